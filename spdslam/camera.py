@@ -1,0 +1,179 @@
+"""Pinhole camera, projection of dual quadrics, boxes and their back-projected planes.
+
+Convention (used everywhere in spdslam): a pose ``T_wc`` maps camera coordinates to world
+coordinates (camera-to-world, as in TUM trajectory files). The projection matrix is
+
+    M = K [R_cw | t_cw],   T_cw = T_wc⁻¹,
+
+a dual quadric projects to the dual conic C* = M Q* Mᵀ, and a line l of the image
+back-projects to the plane π = Mᵀ l.
+
+The untruncated box of C* (the tangent lines u = const, v = const) is
+
+    u = (C*₁₃ ± √(C*₁₃² − C*₁₁ C*₃₃)) / C*₃₃,   v = (C*₂₃ ± √(C*₂₃² − C*₂₂ C*₃₃)) / C*₃₃
+
+(1-based indices; the paper's formula omits the division by C*₃₃, which is only right for
+C*₃₃ = 1 and wrong for a homogeneous C*).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .ellipsoid import as_ellipsoid, dual_quadric
+
+__all__ = [
+    "Camera",
+    "as_pose",
+    "projection_matrix",
+    "project_dual_quadric",
+    "conic_box",
+    "project_box",
+    "box_lines",
+    "box_planes",
+    "normalize_plane",
+    "depth_range",
+    "in_front",
+    "camera_inside",
+]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics: focal lengths and principal point in pixels, image size."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: float
+    height: float
+
+    def __post_init__(self):
+        vals = (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+        if not all(isinstance(v, (int, float, np.number)) for v in vals):
+            return  # arrays or traced values (batched intrinsics, inside jit): not checked
+        if not (all(np.isfinite(vals)) and min(self.fx, self.fy, self.width, self.height) > 0):
+            raise ValueError(
+                "Camera needs finite values and positive fx, fy, width, height; got "
+                f"fx={self.fx}, fy={self.fy}, cx={self.cx}, cy={self.cy}, "
+                f"width={self.width}, height={self.height}"
+            )
+
+    @property
+    def K(self) -> jax.Array:
+        z = jnp.zeros_like(jnp.asarray(self.fx, dtype=float))
+        return jnp.array(
+            [[self.fx, z, self.cx], [z, self.fy, self.cy], [z, z, z + 1.0]], dtype=float
+        )
+
+    def as_array(self) -> jax.Array:
+        return jnp.array([self.fx, self.fy, self.cx, self.cy, self.width, self.height], dtype=float)
+
+    @classmethod
+    def from_array(cls, a) -> "Camera":
+        return cls(*(a[..., i] for i in range(6)))
+
+
+jax.tree_util.register_dataclass(
+    Camera, data_fields=["fx", "fy", "cx", "cy", "width", "height"], meta_fields=[]
+)
+
+
+def as_pose(T) -> jaxlie.SE3:
+    """A jaxlie.SE3 from an SE3 or a 4×4 homogeneous matrix (camera-to-world)."""
+    if isinstance(T, jaxlie.SE3):
+        return T
+    return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
+
+
+def projection_matrix(T_wc, camera: Camera) -> jax.Array:
+    """M = K [R_cw | t_cw] (3×4) for a camera-to-world pose."""
+    T_cw = as_pose(T_wc).inverse()
+    return camera.K @ T_cw.as_matrix()[:3, :]
+
+
+def project_dual_quadric(Q, T_wc, camera: Camera) -> jax.Array:
+    """C* = M Q* Mᵀ."""
+    M = projection_matrix(T_wc, camera)
+    return M @ Q @ M.T
+
+
+def _safe_sqrt(x):
+    return jnp.sqrt(jnp.maximum(x, 0.0))
+
+
+def conic_box(C) -> jax.Array:
+    """[u_min, v_min, u_max, v_max] of the dual conic C* (any scale)."""
+    C = jnp.asarray(C)
+    du = _safe_sqrt(C[0, 2] ** 2 - C[0, 0] * C[2, 2])
+    dv = _safe_sqrt(C[1, 2] ** 2 - C[1, 1] * C[2, 2])
+    u1, u2 = (C[0, 2] - du) / C[2, 2], (C[0, 2] + du) / C[2, 2]
+    v1, v2 = (C[1, 2] - dv) / C[2, 2], (C[1, 2] + dv) / C[2, 2]
+    return jnp.stack(
+        [jnp.minimum(u1, u2), jnp.minimum(v1, v2), jnp.maximum(u1, u2), jnp.maximum(v1, v2)]
+    )
+
+
+def project_box(ellipsoid, T_wc, camera: Camera) -> jax.Array:
+    """Untruncated box [u_min, v_min, u_max, v_max] of a landmark seen from T_wc.
+
+    Only meaningful when ``in_front(ellipsoid, T_wc)``; elsewhere the result is finite but
+    not a box of the object.
+    """
+    return conic_box(project_dual_quadric(dual_quadric(ellipsoid), T_wc, camera))
+
+
+def box_lines(box) -> jax.Array:
+    """The 4 image lines (4×3) u = u_min, v = v_min, u = u_max, v = v_max."""
+    b = jnp.asarray(box, dtype=float)
+    one, zero = jnp.ones_like(b[0]), jnp.zeros_like(b[0])
+    return jnp.stack(
+        [
+            jnp.stack([one, zero, -b[0]]),
+            jnp.stack([zero, one, -b[1]]),
+            jnp.stack([one, zero, -b[2]]),
+            jnp.stack([zero, one, -b[3]]),
+        ]
+    )
+
+
+def normalize_plane(pi) -> jax.Array:
+    """π / ‖π[:3]‖: unit normal n, so π·[x; 1] = n·x + d is a signed distance."""
+    pi = jnp.asarray(pi)
+    return pi / jnp.linalg.norm(pi[..., :3], axis=-1, keepdims=True)
+
+
+def box_planes(box, T_wc, camera: Camera) -> jax.Array:
+    """World planes (4×4, unit normals) through the camera centre and each box edge: π = Mᵀ l."""
+    M = projection_matrix(T_wc, camera)
+    return normalize_plane(box_lines(box) @ M)
+
+
+def depth_range(ellipsoid, T_wc) -> jax.Array:
+    """(z_min, z_max): the extent of the ellipsoid along the optical axis, in the camera frame."""
+    e = as_ellipsoid(ellipsoid)
+    T = as_pose(T_wc)
+    R_wc = T.rotation().as_matrix()
+    axis = R_wc[:, 2]
+    zc = axis @ (e.center - T.translation())
+    half = jnp.sqrt(jnp.maximum(axis @ e.P @ axis, 0.0))
+    return jnp.stack([zc - half, zc + half])
+
+
+def in_front(ellipsoid, T_wc, min_depth: float = 0.0) -> jax.Array:
+    """True when the whole ellipsoid lies in front of the camera (every point has z_c > min_depth).
+
+    Then the principal plane does not cut it and its projection is a bounded ellipse.
+    """
+    return depth_range(ellipsoid, T_wc)[0] > min_depth
+
+
+def camera_inside(ellipsoid, T_wc) -> jax.Array:
+    """True when the camera centre lies inside the ellipsoid."""
+    return as_ellipsoid(ellipsoid).contains(as_pose(T_wc).translation())

@@ -1,0 +1,122 @@
+"""The manifold SPD(3) of symmetric positive definite 3×3 matrices.
+
+Metric (affine-invariant):   ⟨A, B⟩_P = tr(P⁻¹ A P⁻¹ B),  A, B symmetric.
+Retraction (paper eq. 21):   P ⊞ ξ = P^½ Exp(P^-½ ξ P^-½) P^½   (the Riemannian exponential).
+Log map (paper eq. 22):      Q ⊟ P = P^½ Log(P^-½ Q P^-½) P^½.
+Geodesic distance:           d(P, Q) = ‖Log(P^-½ Q P^-½)‖_F.
+
+Tangent coordinates. The solver works with 6-vectors c. The symmetric matrices
+
+    E₀ = e₀e₀ᵀ, E₁ = e₁e₁ᵀ, E₂ = e₂e₂ᵀ,  E₃ = (e₀e₁ᵀ+e₁e₀ᵀ)/√2, E₄ = (e₀e₂ᵀ+…)/√2, E₅ = (e₁e₂ᵀ+…)/√2
+
+are Frobenius-orthonormal, so Bₖ = P^½ Eₖ P^½ is an orthonormal basis of T_P SPD(3) under the
+affine-invariant metric: ξ = Σ cₖ Bₖ has ⟨ξ, ξ⟩_P = ‖c‖². ``retract_vec``/``local_vec`` use these
+coordinates; ``retract``/``local`` take and return symmetric matrices ξ.
+
+All functions accept numpy or JAX arrays and broadcast over leading axes.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .matfun import expm, invsqrtm, logm, sqrtm, sym
+
+__all__ = [
+    "retract",
+    "local",
+    "exp",
+    "log",
+    "retract_vec",
+    "local_vec",
+    "sqrtm",
+    "invsqrtm",
+    "distance",
+    "inner",
+    "vec_to_sym",
+    "sym_to_vec",
+    "tangent_basis",
+    "is_spd",
+]
+
+_S = 2.0**-0.5
+_IDX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def vec_to_sym(c):
+    """6-vector → symmetric matrix Σ cₖ Eₖ (Frobenius-orthonormal basis)."""
+    c = jnp.asarray(c)
+    a, b, d, e, f, g = (c[..., k] for k in range(6))
+    return jnp.stack(
+        [
+            jnp.stack([a, _S * e, _S * f], -1),
+            jnp.stack([_S * e, b, _S * g], -1),
+            jnp.stack([_S * f, _S * g, d], -1),
+        ],
+        -2,
+    )
+
+
+def sym_to_vec(S):
+    """Symmetric matrix → its 6 coordinates in the basis Eₖ (inverse of ``vec_to_sym``)."""
+    S = sym(S)
+    return jnp.stack(
+        [S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]]
+        + [S[..., i, j] / _S for i, j in _IDX[3:]],
+        -1,
+    )
+
+
+def tangent_basis(P):
+    """The six tangent vectors Bₖ = P^½ Eₖ P^½ at P, orthonormal under ⟨·,·⟩_P. Shape (6, 3, 3)."""
+    Ph = sqrtm(P)
+    E = vec_to_sym(jnp.eye(6))
+    return Ph @ E @ Ph
+
+
+def inner(P, A, B):
+    """Affine-invariant inner product tr(P⁻¹ A P⁻¹ B)."""
+    Pi = jnp.linalg.inv(P)
+    return jnp.trace(Pi @ A @ Pi @ B, axis1=-2, axis2=-1)
+
+
+def retract(P, xi):
+    """P ⊞ ξ = P^½ Exp(P^-½ ξ P^-½) P^½ for a symmetric tangent matrix ξ (paper eq. 21)."""
+    Ph, Pmh = sqrtm(P), invsqrtm(P)
+    return sym(Ph @ expm(Pmh @ sym(xi) @ Pmh) @ Ph)
+
+
+def local(P, Q):
+    """Q ⊟ P = P^½ Log(P^-½ Q P^-½) P^½, the inverse of ``retract`` (paper eq. 22)."""
+    Ph, Pmh = sqrtm(P), invsqrtm(P)
+    return sym(Ph @ logm(Pmh @ Q @ Pmh) @ Ph)
+
+
+exp = retract
+log = local
+
+
+def retract_vec(P, c):
+    """P ⊞ c = P^½ Exp(Σ cₖ Eₖ) P^½ in orthonormal tangent coordinates c ∈ R⁶."""
+    Ph = sqrtm(P)
+    return sym(Ph @ expm(vec_to_sym(c)) @ Ph)
+
+
+def local_vec(P, Q):
+    """Coordinates c ∈ R⁶ of Q ⊟ P, the inverse of ``retract_vec``."""
+    Pmh = invsqrtm(P)
+    return sym_to_vec(logm(Pmh @ Q @ Pmh))
+
+
+def distance(P, Q):
+    """Affine-invariant geodesic distance ‖Log(P^-½ Q P^-½)‖_F."""
+    return jnp.linalg.norm(local_vec(P, Q), axis=-1)
+
+
+def is_spd(P, rtol: float = 0.0):
+    """True where P is symmetric with all eigenvalues > rtol·max|λ|."""
+    P = jnp.asarray(P)
+    w = jnp.linalg.eigvalsh(sym(P))
+    symmetric = jnp.all(jnp.abs(P - jnp.swapaxes(P, -1, -2)) <= 1e-9 * jnp.max(jnp.abs(P)))
+    return symmetric & (w[..., 0] > rtol * jnp.max(jnp.abs(w), axis=-1))
+
