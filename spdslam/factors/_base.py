@@ -16,11 +16,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import manifold
+
 __all__ = [
     "Factor",
+    "tangent_jacobians",
     "RobustKernel",
     "Huber",
     "Cauchy",
@@ -149,3 +153,22 @@ class Factor:
         if self.robust is not None:
             s = self.robust.rho(s)
         return 0.5 * float(s)
+
+
+def tangent_jacobians(residual: Callable, values: tuple, args: tuple = ()):
+    """r and the Jacobians ∂r(x₁ ⊞ δ₁, …)/∂δₖ at δ = 0, one (m, dₖ) block per variable.
+
+    Derivatives are with respect to each variable's tangent coordinates (its registered
+    retraction), evaluated by forward-mode autodiff.
+    """
+    values = tuple(values)
+    dims = [manifold.tangent_dim(v) for v in values]
+
+    def perturbed(*deltas):
+        xs = [manifold.retract(v, d) for v, d in zip(values, deltas)]
+        return jnp.atleast_1d(residual(*xs, *args))
+
+    zeros = tuple(jnp.zeros(d) for d in dims)
+    r = perturbed(*zeros)
+    J = jax.jacfwd(perturbed, argnums=tuple(range(len(values))))(*zeros)
+    return r, list(J)

@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# Install spdslam (editable) with its test extras and, when possible, CHOLMOD.
+#
+#   bash install.sh                  # uses python3
+#   PYTHON=python3.12 bash install.sh
+#
+# 1. Ensures SuiteSparse headers (cholmod.h) are present: as root with apt-get it installs
+#    Debian's libsuitesparse-dev, otherwise it prints the command to run and continues.
+# 2. pip install -e ".[test,cholmod]"; if that fails (scikit-sparse cannot build), falls back
+#    to pip install -e ".[test]" and the scipy sparse solver is used instead of CHOLMOD.
+# Safe to re-run; never prompts.
+set -euo pipefail
+
+PY="${PYTHON:-python3}"
+export DEBIAN_FRONTEND=noninteractive
+export PIP_DISABLE_PIP_VERSION_CHECK=1
+export PIP_ROOT_USER_ACTION=ignore
+
+cd "$(dirname "${BASH_SOURCE[0]}")"
+
+say() { printf 'install.sh: %s\n' "$*"; }
+
+# --- interpreter ---------------------------------------------------------------------------
+if ! command -v "$PY" >/dev/null 2>&1; then
+    say "error: Python interpreter '$PY' not found (set PYTHON=/path/to/python3.11+)" >&2
+    exit 2
+fi
+if ! "$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)'; then
+    say "error: spdslam needs Python >= 3.11; '$PY' is $("$PY" -c 'import platform; print(platform.python_version())')" >&2
+    exit 2
+fi
+if ! "$PY" -m pip --version >/dev/null 2>&1; then
+    say "pip missing for '$PY'; bootstrapping it with ensurepip"
+    "$PY" -m ensurepip --upgrade
+fi
+
+# --- SuiteSparse headers (for scikit-sparse / CHOLMOD) ------------------------------------
+have_cholmod_header() {
+    local d
+    for d in "${SUITESPARSE_INCLUDE_DIR:-}" /usr/include/suitesparse /usr/include \
+             /usr/local/include/suitesparse /usr/local/include \
+             "${CONDA_PREFIX:-}/include/suitesparse" "${CONDA_PREFIX:-}/include"; do
+        [[ -n "$d" && -f "$d/cholmod.h" ]] && return 0
+    done
+    return 1
+}
+
+if have_cholmod_header; then
+    say "SuiteSparse headers found (cholmod.h)"
+elif [[ "$(id -u)" -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
+    say "installing libsuitesparse-dev with apt-get"
+    if apt-get update -qq && apt-get install -y -qq --no-install-recommends libsuitesparse-dev >/dev/null; then
+        say "libsuitesparse-dev installed"
+    else
+        say "warning: apt-get could not install libsuitesparse-dev; continuing without it"
+    fi
+else
+    say "SuiteSparse headers (cholmod.h) not found; for CHOLMOD run: sudo apt-get install -y libsuitesparse-dev (Debian/Ubuntu). Continuing."
+fi
+
+# --- the package ---------------------------------------------------------------------------
+if "$PY" -m pip install -q -e ".[test,cholmod]"; then
+    say "installed spdslam with CHOLMOD (scikit-sparse)"
+else
+    say "pip install -e \".[test,cholmod]\" failed; retrying without CHOLMOD"
+    "$PY" -m pip install -q -e ".[test]"
+    say "NOTE: scikit-sparse (CHOLMOD) is not installed; the scipy sparse solver will be used."
+fi
+
+say "done; check with: spdslam info"
