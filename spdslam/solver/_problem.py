@@ -1,0 +1,500 @@
+"""A factor graph laid out for vectorised linearisation.
+
+Layout (built once per call to the optimiser, in ``Problem.__init__``):
+
+- variables of one registered type are stacked into one pytree whose leaves have a leading
+  axis (one row per variable);
+- factors whose residual function, variable types, data layout (tree structure, shapes,
+  dtypes), noise-model shape, robust kernel and ``valid`` function agree form a *group*:
+  their ``args`` and W are stacked, and each key position gets an integer array of row
+  indices into its type's stack;
+- the tangent vector δ ∈ Rⁿ concatenates the tangent coordinates of the free variables
+  (fixed variables and variables no factor touches have none);
+- H = JᵀJ is stored as the lower triangle of a symmetric CSC matrix whose pattern, and the
+  slot of every per-factor contribution in it, are computed here once.
+
+Linearisation of a group is one vmapped call: for each factor,
+
+    r̃(δ) = W r(x₁ ⊞ δ₁, …, x_k ⊞ δ_k, args),   J = ∂r̃/∂δ |_{δ=0}  (jax.jacfwd),
+
+with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. The whole
+problem (all groups, plus the scatter of JᵀJ and Jᵀr̃ into their slots) is one jitted call;
+the compiled functions are cached on the static structure (residual functions, types, data
+tree structures), so the same structure with new data or sizes reuses them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Hashable, Iterable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import manifold
+from ..factors._base import RobustKernel
+
+__all__ = ["Problem"]
+
+
+@dataclass(frozen=True)
+class _TypeSpec:
+    """Static description of one variable type: class, tree structure, tangent dim."""
+
+    cls: type
+    treedef: Any
+    dim: int
+
+
+@dataclass(frozen=True)
+class _GroupSpec:
+    """Static description of one factor group (hashable: the cache key of its kernels)."""
+
+    residual: Callable
+    var_types: tuple[int, ...]
+    dims: tuple[int, ...]
+    args_treedef: Any
+    has_sqrt_info: bool
+    robust: RobustKernel | None
+    valid: Callable | None
+
+    @property
+    def D(self) -> int:
+        return sum(self.dims)
+
+
+class _GroupBuild:
+    __slots__ = ("sig", "fids", "idx", "args", "W", "first")
+
+    def __init__(self, sig, first):
+        self.sig, self.first = sig, first
+        self.fids: list[int] = []
+        self.idx: list[list[int]] = []
+        self.args: list[list[np.ndarray]] = []
+        self.W: list[Any] = []
+
+
+def _describe(f, fi) -> str:
+    return f"factor #{fi} ({f.kind}, keys {tuple(f.keys)!r})"
+
+
+# ------------------------------------------------------------------------------------------
+# Kernels: pure functions of stacked arrays, cached on the static structure.
+# ------------------------------------------------------------------------------------------
+
+
+def _gather(tree, idx):
+    return jax.tree.map(lambda a: a[idx], tree)
+
+
+def _group_terms(spec: _GroupSpec, tspecs, vars_, idx, data, jac: bool):
+    """Whitened (IRLS-weighted) residuals r (nf, m), Jacobians J (nf, m, D) or None,
+    cost ½Σρ(s), validity (nf,) or None, per-factor finiteness (nf,)."""
+    leaves, W = data
+    args = jax.tree.unflatten(spec.args_treedef, leaves)
+    xs = [_gather(vars_[t], idx[:, p]) for p, t in enumerate(spec.var_types)]
+    ops = [manifold.ops(tspecs[t].cls) for t in spec.var_types]
+    offs = np.concatenate([[0], np.cumsum(spec.dims)]).tolist()
+
+    def whiten(r, Wi):
+        r = jnp.ravel(jnp.atleast_1d(r))
+        return r if Wi is None else Wi @ r
+
+    if jac:
+
+        def one(xs_i, args_i, W_i):
+            def fun(d):
+                ys = [
+                    op.retract(x, d[offs[p] : offs[p + 1]])
+                    for p, (op, x) in enumerate(zip(ops, xs_i))
+                ]
+                r = whiten(spec.residual(*ys, *args_i), W_i)
+                return r, r
+
+            J, r = jax.jacfwd(fun, has_aux=True)(jnp.zeros(spec.D))
+            return r, J
+
+        r, J = jax.vmap(one)(xs, args, W)
+    else:
+
+        def one(xs_i, args_i, W_i):
+            return whiten(spec.residual(*xs_i, *args_i), W_i)
+
+        r, J = jax.vmap(one)(xs, args, W), None
+
+    finite = jnp.all(jnp.isfinite(r), axis=1)
+    if J is not None:
+        finite &= jnp.all(jnp.isfinite(J), axis=(1, 2))
+    s = jnp.sum(r * r, axis=1)
+    if spec.robust is not None:
+        rho = spec.robust.rho(s)
+        sw = jnp.sqrt(spec.robust.weight(s))
+        r = r * sw[:, None]
+        if J is not None:
+            J = J * sw[:, None, None]
+    else:
+        rho = s
+    cost = 0.5 * jnp.sum(rho)
+    valid = None
+    if spec.valid is not None:
+        valid = jax.vmap(lambda x, a: jnp.asarray(spec.valid(*x, *a), bool))(xs, args)
+    return r, J, cost, valid, finite
+
+
+def _retract_all(tspecs, vars_, delta, tan_idx, free):
+    """x ⊞ δ for every free variable, then the type's ``regularize`` (fixed rows unchanged)."""
+    dext = jnp.concatenate([delta, jnp.zeros(1, delta.dtype)])
+    out = []
+    for ts, x, ti, fr in zip(tspecs, vars_, tan_idx, free):
+        op = manifold.ops(ts.cls)
+        y = jax.vmap(op.retract)(x, dext[ti])
+        if op.regularize is not None:
+            y = jax.vmap(op.regularize)(y)
+        y = jax.tree.map(
+            lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x
+        )
+        out.append(y)
+    return tuple(out)
+
+
+def _violates(valid_cur, valid_new):
+    bad = jnp.zeros((), bool)
+    for vc, vn in zip(valid_cur, valid_new):
+        if vc is not None:
+            bad |= jnp.any(vc & ~vn)
+    return bad
+
+
+class _Kernels:
+    """Jitted functions of one static structure."""
+
+    def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
+        self.tspecs, self.gspecs = tspecs, gspecs
+        tri = [np.triu_indices(g.D) for g in gspecs]
+
+        def evaluate(vars_, gdata, gidx):
+            cost, valids = jnp.zeros(()), []
+            for spec, d, ix in zip(gspecs, gdata, gidx):
+                _, _, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=False)
+                cost, valids = cost + c, valids + [v]
+            return cost, tuple(valids)
+
+        def linearize_sparse(vars_, gdata, gidx, hslots, gslots, nnz, n):
+            h = jnp.zeros(nnz + 1)
+            g = jnp.zeros(n + 1)
+            cost, valids = jnp.zeros(()), []
+            for spec, d, ix, hs, gs, (iu, ju) in zip(gspecs, gdata, gidx, hslots, gslots, tri):
+                r, J, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=True)
+                JtJ = jnp.einsum("fmi,fmj->fij", J, J)
+                h = h.at[hs].add(JtJ[:, iu, ju])
+                g = g.at[gs].add(jnp.einsum("fm,fmi->fi", r, J))
+                cost, valids = cost + c, valids + [v]
+            return h[:nnz], g[:n], cost, tuple(valids)
+
+        def linearize_dense(vars_, gdata, gidx, gcols, n):
+            H = jnp.zeros((n + 1, n + 1))
+            g = jnp.zeros(n + 1)
+            cost, valids = jnp.zeros(()), []
+            for spec, d, ix, G in zip(gspecs, gdata, gidx, gcols):
+                r, J, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=True)
+                H = H.at[G[:, :, None], G[:, None, :]].add(jnp.einsum("fmi,fmj->fij", J, J))
+                g = g.at[G].add(jnp.einsum("fm,fmi->fi", r, J))
+                cost, valids = cost + c, valids + [v]
+            return H[:n, :n], g[:n], cost, tuple(valids)
+
+        def step(vars_, delta, tan_idx, free, gdata, gidx, valid_cur):
+            new = _retract_all(tspecs, vars_, delta, tan_idx, free)
+            cost, valid_new = evaluate(new, gdata, gidx)
+            return new, cost, _violates(valid_cur, valid_new)
+
+        def group_terms(k, vars_, data, idx):
+            r, J, c, v, fin = _group_terms(gspecs[k], tspecs, vars_, idx, data, jac=True)
+            return r, J, fin
+
+        self.evaluate_fn = evaluate
+        self.linearize_dense_fn = linearize_dense
+        self.retract_fn = lambda vars_, delta, tan_idx, free: _retract_all(
+            tspecs, vars_, delta, tan_idx, free
+        )
+        self.evaluate = jax.jit(evaluate)
+        self.linearize_sparse = jax.jit(linearize_sparse, static_argnames=("nnz", "n"))
+        self.linearize_dense = jax.jit(linearize_dense, static_argnames=("n",))
+        self.step = jax.jit(step)
+        self.retract = jax.jit(self.retract_fn)
+        self.group_terms = jax.jit(group_terms, static_argnums=0)
+
+
+_KERNELS: dict[Any, _Kernels] = {}
+
+
+def kernels(tspecs, gspecs) -> _Kernels:
+    key = (tspecs, gspecs)
+    k = _KERNELS.get(key)
+    if k is None:
+        k = _KERNELS[key] = _Kernels(tspecs, gspecs)
+    return k
+
+
+# ------------------------------------------------------------------------------------------
+# The problem layout
+# ------------------------------------------------------------------------------------------
+
+
+class Problem:
+    """A factor graph with values, laid out for the solver (see the module docstring).
+
+    ``fixed`` keys keep their values and have no tangent coordinates; so do keys that are
+    in ``values`` but touched by no factor.
+    """
+
+    def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
+                 check_free: bool = True):
+        factors = list(graph)
+        self.factors = factors
+        fixed = set(fixed)
+        for k in fixed:
+            if k not in values:
+                raise ValueError(f"fixed key {k!r} has no value")
+        key_slot: dict[Hashable, tuple[int, int]] = {}
+        type_index: dict[type, int] = {}
+        t_cls: list[type] = []
+        t_treedef: list[Any] = []
+        t_shapes: list[Any] = []
+        t_keys: list[list[Hashable]] = []
+        t_leaves: list[list[list[Any]]] = []
+        groups: dict[Any, _GroupBuild] = {}
+
+        for fi, f in enumerate(factors):
+            slots = []
+            for k in f.keys:
+                s = key_slot.get(k)
+                if s is None:
+                    if k not in values:
+                        raise ValueError(
+                            f"{_describe(f, fi)} refers to key {k!r}, which has no value"
+                        )
+                    v = values[k]
+                    cls = type(v)
+                    ti = type_index.get(cls)
+                    leaves, treedef = jax.tree.flatten(v)
+                    if ti is None:
+                        try:
+                            manifold.ops(cls)
+                        except TypeError as e:
+                            raise TypeError(f"value for key {k!r}: {e}") from None
+                        ti = type_index[cls] = len(t_cls)
+                        t_cls.append(cls)
+                        t_treedef.append(treedef)
+                        t_shapes.append([np.shape(x) for x in leaves])
+                        t_keys.append([])
+                        t_leaves.append([])
+                    elif treedef != t_treedef[ti] or [np.shape(x) for x in leaves] != t_shapes[ti]:
+                        raise ValueError(
+                            f"value for key {k!r} ({cls.__name__}) has a different layout "
+                            f"from other {cls.__name__} values"
+                        )
+                    s = key_slot[k] = (ti, len(t_keys[ti]))
+                    t_keys[ti].append(k)
+                    t_leaves[ti].append(leaves)
+                slots.append(s)
+            if len(set(f.keys)) != len(f.keys):
+                raise ValueError(f"{_describe(f, fi)} uses a key more than once")
+            leaves, treedef = jax.tree.flatten(f.args)
+            leaves = [np.asarray(x) for x in leaves]
+            W = f.sqrt_info
+            sig = (
+                f.residual,
+                tuple(s[0] for s in slots),
+                treedef,
+                tuple((x.shape, x.dtype.str) for x in leaves),
+                None if W is None else W.shape,
+                f.robust,
+                f.valid,
+            )
+            gb = groups.get(sig)
+            if gb is None:
+                gb = groups[sig] = _GroupBuild(sig, fi)
+            gb.fids.append(fi)
+            gb.idx.append([s[1] for s in slots])
+            gb.args.append(leaves)
+            gb.W.append(W)
+
+        # --- variable types ------------------------------------------------------------
+        self.tspecs = tuple(
+            _TypeSpec(c, td, manifold.tangent_dim(c)) for c, td in zip(t_cls, t_treedef)
+        )
+        self.type_keys = t_keys
+        self.vars = tuple(
+            jax.tree.unflatten(
+                td, [jnp.asarray(np.stack([np.asarray(lv[j]) for lv in leaves]))
+                     for j in range(td.num_leaves)]
+            )
+            for td, leaves in zip(t_treedef, t_leaves)
+        )
+        self.free = [np.array([k not in fixed for k in keys], bool) for keys in t_keys]
+        offsets = []
+        n = 0
+        for ts, fr in zip(self.tspecs, self.free):
+            off = np.full(len(fr), -1, np.int64)
+            off[fr] = n + ts.dim * np.arange(int(fr.sum()))
+            n += ts.dim * int(fr.sum())
+            offsets.append(off)
+        self.offsets = offsets
+        self.n = n
+        if check_free and n == 0:
+            raise ValueError(
+                "the graph has no free variables (every key it touches is fixed)"
+                if factors else "the graph has no factors"
+            )
+        self.tan_idx = tuple(
+            jnp.asarray(np.where(off[:, None] >= 0, off[:, None] + np.arange(ts.dim), n),
+                        dtype=jnp.int32)
+            for ts, off in zip(self.tspecs, offsets)
+        )
+        self.free_j = tuple(jnp.asarray(fr) for fr in self.free)
+
+        # --- factor groups -------------------------------------------------------------
+        gspecs, gdata, gidx, self.group_fids, self.group_cols = [], [], [], [], []
+        for gb in groups.values():
+            f0 = factors[gb.first]
+            ex_vals = [values[k] for k in f0.keys]
+            try:
+                out = jax.eval_shape(f0.residual, *ex_vals, *f0.args)
+            except Exception as e:
+                raise ValueError(f"{_describe(f0, gb.first)}: residual failed: {e}") from e
+            m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
+            if gb.sig[4] is not None and gb.sig[4] != (m, m):
+                raise ValueError(
+                    f"{_describe(f0, gb.first)}: sqrt_info has shape {gb.sig[4]}, "
+                    f"but the residual has dimension {m}"
+                )
+            var_types = gb.sig[1]
+            spec = _GroupSpec(
+                residual=f0.residual,
+                var_types=var_types,
+                dims=tuple(self.tspecs[t].dim for t in var_types),
+                args_treedef=gb.sig[2],
+                has_sqrt_info=gb.sig[4] is not None,
+                robust=f0.robust,
+                valid=f0.valid,
+            )
+            idx = np.asarray(gb.idx, np.int32).reshape(len(gb.fids), len(var_types))
+            leaves = [jnp.asarray(np.stack([a[j] for a in gb.args]))
+                      for j in range(len(gb.sig[3]))]
+            W = jnp.asarray(np.stack(gb.W)) if spec.has_sqrt_info else None
+            # global tangent index of each local coordinate, n where fixed
+            cols = []
+            for p, t in enumerate(var_types):
+                off = offsets[t][idx[:, p]]
+                c = off[:, None] + np.arange(self.tspecs[t].dim)
+                cols.append(np.where(off[:, None] >= 0, c, -1))
+            G = np.concatenate(cols, axis=1)
+            gspecs.append(spec)
+            gdata.append((leaves, W))
+            gidx.append(jnp.asarray(idx))
+            self.group_fids.append(np.asarray(gb.fids))
+            self.group_cols.append(G)
+        self.gspecs = tuple(gspecs)
+        self.gdata = tuple(gdata)
+        self.gidx = tuple(gidx)
+        self.kernels = kernels(self.tspecs, self.gspecs)
+        self._sparse = None
+        self._dense_cols = None
+
+    # --- pattern -----------------------------------------------------------------------
+    def sparse_pattern(self):
+        """(indptr, indices, diag_slots, hslots, gslots) of the lower-triangular CSC H."""
+        if self._sparse is None:
+            n = self.n
+            codes = []
+            for G in self.group_cols:
+                iu, ju = np.triu_indices(G.shape[1])
+                gi, gj = G[:, iu], G[:, ju]
+                ok = (gi >= 0) & (gj >= 0)
+                code = np.minimum(gi, gj).astype(np.int64) * n + np.maximum(gi, gj)
+                codes.append(np.where(ok, code, -1))
+            diag_code = np.arange(n, dtype=np.int64) * (n + 1)
+            uniq = np.unique(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
+            nnz = len(uniq)
+            hslots = []
+            for c in codes:
+                s = np.searchsorted(uniq, c)
+                s[c < 0] = nnz
+                hslots.append(jnp.asarray(s, dtype=jnp.int32))
+            gslots = tuple(jnp.asarray(np.where(G >= 0, G, n), dtype=jnp.int32)
+                           for G in self.group_cols)
+            cols, rows = np.divmod(uniq, n)
+            indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
+            self._sparse = dict(
+                nnz=nnz,
+                indptr=indptr,
+                indices=rows.astype(np.int32),
+                rows=rows,
+                cols=cols,
+                diag=np.searchsorted(uniq, diag_code),
+                hslots=tuple(hslots),
+                gslots=gslots,
+            )
+        return self._sparse
+
+    def dense_cols(self):
+        """Per group (nf, D) global tangent indices, n for fixed coordinates."""
+        if self._dense_cols is None:
+            self._dense_cols = tuple(
+                jnp.asarray(np.where(G >= 0, G, self.n), dtype=jnp.int32)
+                for G in self.group_cols
+            )
+        return self._dense_cols
+
+    # --- evaluation --------------------------------------------------------------------
+    def cost(self, vars_=None) -> float:
+        vars_ = self.vars if vars_ is None else vars_
+        c, _ = self.kernels.evaluate(vars_, self.gdata, self.gidx)
+        return float(c)
+
+    def linearize(self, vars_):
+        """(H lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group)."""
+        sp = self.sparse_pattern()
+        return self.kernels.linearize_sparse(
+            vars_, self.gdata, self.gidx, sp["hslots"], sp["gslots"], nnz=sp["nnz"], n=self.n
+        )
+
+    def step(self, vars_, delta, valid_cur):
+        """(x ⊞ δ regularised, its cost, whether a valid factor became invalid)."""
+        return self.kernels.step(
+            vars_, jnp.asarray(delta), self.tan_idx, self.free_j, self.gdata, self.gidx,
+            valid_cur,
+        )
+
+    def group_terms(self, k: int, vars_=None):
+        """Group k: whitened residuals (nf, m), Jacobians (nf, m, D), finiteness (nf,)."""
+        vars_ = self.vars if vars_ is None else vars_
+        return self.kernels.group_terms(k, vars_, self.gdata[k], self.gidx[k])
+
+    def diagnose(self, vars_=None, when: str = "at the initial values") -> None:
+        """Raise ``ValueError`` naming the first factor with a non-finite residual or
+        Jacobian; return quietly if there is none."""
+        for k in range(len(self.gspecs)):
+            r, J, fin = self.group_terms(k, vars_)
+            fin = np.asarray(fin)
+            if not fin.all():
+                j = int(np.flatnonzero(~fin)[0])
+                fi = int(self.group_fids[k][j])
+                what = "residual" if not np.all(np.isfinite(np.asarray(r[j]))) else "Jacobian"
+                raise ValueError(
+                    f"{_describe(self.factors[fi], fi)} has a non-finite {what} {when} "
+                    f"({int((~fin).sum())} of {len(fin)} factors of this kind)"
+                )
+
+    # --- results -----------------------------------------------------------------------
+    def to_values(self, vars_, base: Any):
+        """A copy of ``base`` (a Values) with this problem's variables set from ``vars_``."""
+        out = base.copy()
+        for ts, keys, x in zip(self.tspecs, self.type_keys, vars_):
+            leaves = [np.asarray(a) for a in jax.tree.leaves(x)]
+            rows = [[a[i] for a in leaves] for i in range(len(keys))]
+            rows = jax.device_put(rows)
+            for k, lv in zip(keys, rows):
+                out._data[k] = jax.tree.unflatten(ts.treedef, lv)
+        return out
