@@ -40,6 +40,7 @@ __all__ = [
     "depth_range",
     "in_front",
     "camera_inside",
+    "look_at",
 ]
 
 
@@ -90,6 +91,21 @@ def as_pose(T) -> jaxlie.SE3:
     if isinstance(T, jaxlie.SE3):
         return T
     return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> jaxlie.SE3:
+    """Camera-to-world pose at ``eye`` whose optical axis (+z) points at ``target``.
+
+    Image x (+u) points right and image y (+v) down, with ``up`` appearing upwards.
+    """
+    eye = jnp.asarray(eye, dtype=float)
+    z = jnp.asarray(target, dtype=float) - eye
+    z = z / jnp.linalg.norm(z)
+    x = jnp.cross(z, jnp.asarray(up, dtype=float))
+    x = x / jnp.linalg.norm(x)
+    y = jnp.cross(z, x)
+    R = jnp.stack([x, y, z], axis=1)
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), eye)
 
 
 def projection_matrix(T_wc, camera: Camera) -> jax.Array:

@@ -117,6 +117,7 @@ def is_spd(P, rtol: float = 0.0):
     """True where P is symmetric with all eigenvalues > rtol·max|λ|."""
     P = jnp.asarray(P)
     w = jnp.linalg.eigvalsh(sym(P))
-    symmetric = jnp.all(jnp.abs(P - jnp.swapaxes(P, -1, -2)) <= 1e-9 * jnp.max(jnp.abs(P)))
+    scale = jnp.max(jnp.abs(P), axis=(-2, -1), keepdims=True)
+    symmetric = jnp.all(jnp.abs(P - jnp.swapaxes(P, -1, -2)) <= 1e-9 * scale, axis=(-2, -1))
     return symmetric & (w[..., 0] > rtol * jnp.max(jnp.abs(w), axis=-1))
 
