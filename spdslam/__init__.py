@@ -8,17 +8,41 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import camera, manifold, matfun, spd  # noqa: E402
+from . import camera, factors, manifold, matfun, solver, spd  # noqa: E402
 from ._version import __version__  # noqa: E402
 from .camera import (  # noqa: E402
     Camera,
     box_planes,
     camera_inside,
     in_front,
+    look_at,
     project_box,
     project_dual_quadric,
 )
 from .ellipsoid import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid  # noqa: E402
+from .factors import (  # noqa: E402
+    BetweenFactor,
+    Cauchy,
+    ClassicOrientationFactor,
+    Factor,
+    Huber,
+    InverseBoxFactor,
+    OrientationFactor,
+    PriorFactor,
+    SemiInverseBoxFactor,
+    ShapeFactor,
+    SizeFactor,
+    SupportPlaneFactor,
+)
+from .solver import (  # noqa: E402
+    FactorGraph,
+    GaussNewton,
+    LevenbergMarquardt,
+    NonlinearFactorGraph,
+    OptimizationResult,
+    Values,
+    solve_batched,
+)
 
 __all__ = [
     "__version__",
@@ -32,7 +56,29 @@ __all__ = [
     "box_planes",
     "in_front",
     "camera_inside",
+    "look_at",
+    "Factor",
+    "Huber",
+    "Cauchy",
+    "InverseBoxFactor",
+    "SemiInverseBoxFactor",
+    "OrientationFactor",
+    "ClassicOrientationFactor",
+    "ShapeFactor",
+    "SizeFactor",
+    "SupportPlaneFactor",
+    "PriorFactor",
+    "BetweenFactor",
+    "Values",
+    "NonlinearFactorGraph",
+    "FactorGraph",
+    "LevenbergMarquardt",
+    "GaussNewton",
+    "OptimizationResult",
+    "solve_batched",
     "camera",
+    "factors",
+    "solver",
     "manifold",
     "matfun",
     "spd",

@@ -1,0 +1,341 @@
+"""Camera, projection of ellipsoids to boxes, back-projected planes, visibility predicates.
+
+The reference for every box is a dense sampling of the ellipsoid surface projected with an
+independent pinhole model (x_c = R_wcᵀ (x − c), u = fx x/z + cx, v = fy y/z + cy).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+import pytest
+
+from spdslam import (
+    Camera,
+    Ellipsoid,
+    EllipsoidFull,
+    EllipsoidRTS,
+    box_planes,
+    camera_inside,
+    in_front,
+    project_box,
+    project_dual_quadric,
+)
+from spdslam.camera import conic_box, depth_range, projection_matrix
+
+KINDS = ("general", "sphere", "spheroid_oblate", "spheroid_prolate")
+N_SURFACE = 200_000
+BOX_TOL = 1e-2  # pixels
+
+
+def _sampled_box(gen, R, t, s, R_wc, c, cam, n=N_SURFACE):
+    """[u_min, v_min, u_max, v_max] of the projected surface samples, and their depths."""
+    X = gen.surface_points(R, t, s, n)
+    Xc = gen.world_to_camera(X, R_wc, c)
+    uv = gen.pinhole(Xc, cam.fx, cam.fy, cam.cx, cam.cy)
+    return np.r_[uv.min(axis=0), uv.max(axis=0)], Xc[:, 2]
+
+
+def _check_box(box, sampled, tol=BOX_TOL):
+    """The true box contains every sample, and is within tol of the sampled extremes."""
+    box = np.asarray(box)
+    lo_ok = box[:2] <= sampled[:2] + 1e-9
+    hi_ok = box[2:] >= sampled[2:] - 1e-9
+    assert np.all(lo_ok) and np.all(hi_ok), (box, sampled)
+    np.testing.assert_allclose(box, sampled, atol=tol)
+
+
+def _paper_conic_box(C):
+    """The paper's printed formula, without the division by C*₃₃."""
+    C = np.asarray(C)
+    du = np.sqrt(max(C[0, 2] ** 2 - C[0, 0] * C[2, 2], 0.0))
+    dv = np.sqrt(max(C[1, 2] ** 2 - C[1, 1] * C[2, 2], 0.0))
+    u = sorted([C[0, 2] - du, C[0, 2] + du])
+    v = sorted([C[1, 2] - dv, C[1, 2] + dv])
+    return np.array([u[0], v[0], u[1], v[1]])
+
+
+def _configs(gen, n):
+    for i in range(n):
+        kind = KINDS[i % len(KINDS)]
+        R, t, s = gen.ellipsoid_params(kind)
+        cam = gen.camera()
+        T, R_wc, c = gen.pose_looking_at(R, t, s, dist=(1.5, 8.0), jitter=0.1)
+        yield kind, R, t, s, cam, T, R_wc, c
+
+
+# --- Camera ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(fx=0.0),
+        dict(fx=-500.0),
+        dict(fy=0.0),
+        dict(fy=-1.0),
+        dict(width=0.0),
+        dict(height=-480.0),
+        dict(width=0),
+        dict(fx=float("nan")),
+        dict(fy=float("inf")),
+        dict(cx=float("nan")),
+    ],
+)
+def test_camera_rejects_invalid_intrinsics(bad):
+    kw = dict(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640.0, height=480.0)
+    kw.update(bad)
+    with pytest.raises(ValueError, match="positive"):
+        Camera(**kw)
+
+
+def test_camera_accepts_valid_intrinsics():
+    for kw in (
+        dict(fx=500, fy=400, cx=320, cy=240, width=640, height=480),
+        dict(fx=np.float32(500), fy=np.float64(400), cx=-3.0, cy=1e4, width=1.0, height=1.0),
+    ):
+        cam = Camera(**kw)
+        K = np.asarray(cam.K)
+        np.testing.assert_allclose(K, [[kw["fx"], 0, kw["cx"]], [0, kw["fy"], kw["cy"]], [0, 0, 1]])
+        back = Camera.from_array(np.asarray(cam.as_array()))
+        np.testing.assert_allclose(np.asarray(back.as_array()), np.asarray(cam.as_array()))
+
+
+def test_projection_matrix_is_pinhole(gen):
+    cam = gen.camera()
+    R_wc, c = gen.rotation(), gen.rng.normal(size=3)
+    T = gen.pose(R_wc, c)
+    X = c + R_wc @ np.array([0.3, -0.2, 4.0]) + gen.rng.normal(size=(20, 3)) * 0.5
+    want = gen.pinhole(gen.world_to_camera(X, R_wc, c), cam.fx, cam.fy, cam.cx, cam.cy)
+    for pose in (T, np.asarray(T.as_matrix()), jnp.asarray(T.as_matrix())):
+        M = np.asarray(projection_matrix(pose, cam))
+        x = np.c_[X, np.ones(len(X))] @ M.T
+        np.testing.assert_allclose(x[:, :2] / x[:, 2:], want, rtol=1e-10)
+
+
+# --- project_box ----------------------------------------------------------------------
+
+
+def test_project_box_matches_dense_sampling(gen):
+    for kind, R, t, s, cam, T, R_wc, c in _configs(gen, 12):
+        e = Ellipsoid.from_axes(R, t, s)
+        sampled, z = _sampled_box(gen, R, t, s, R_wc, c, cam)
+        assert z.min() > 0, "premise: the object is in front of the camera"
+        _check_box(project_box(e, T, cam), sampled)
+
+
+def test_project_box_every_parameterisation_and_input_type(gen):
+    for kind, R, t, s, cam, T, R_wc, c in _configs(gen, 4):
+        e = Ellipsoid.from_axes(R, t, s)
+        sampled, _ = _sampled_box(gen, R, t, s, R_wc, c, cam, n=50_000)
+        Q = np.asarray(e.dual_quadric())
+        want = np.asarray(project_box(e, T, cam))
+        _check_box(want, sampled, tol=5e-2)
+        for x in (
+            EllipsoidRTS.from_axes(R, t, s),
+            EllipsoidFull.from_ellipsoid(e),
+            Q,
+            jnp.asarray(Q),
+            Ellipsoid(jnp.asarray(e.P), jnp.asarray(e.center)),
+        ):
+            for pose in (T, np.asarray(T.as_matrix())):
+                np.testing.assert_allclose(np.asarray(project_box(x, pose, cam)), want, rtol=1e-9, atol=1e-8)
+
+
+def test_box_of_any_scalar_multiple_of_the_quadric(gen):
+    """conic_box divides by C*₃₃, so any multiple of Q* gives the same box; the paper's
+    formula without that division is right only when C*₃₃ = 1, and fails for a scaled Q*."""
+    for kind, R, t, s, cam, T, R_wc, c in _configs(gen, 6):
+        e = Ellipsoid.from_axes(R, t, s)
+        sampled, _ = _sampled_box(gen, R, t, s, R_wc, c, cam)
+        Q = np.asarray(e.dual_quadric())
+        for k in (3.7, 0.01, -1.0, -250.0):
+            _check_box(project_box(k * Q, T, cam), sampled)
+            _check_box(project_box(EllipsoidFull.from_dual_quadric(k * Q), T, cam), sampled)
+            C = np.asarray(project_dual_quadric(k * Q, T, cam))
+            _check_box(conic_box(C), sampled)
+            # the version without division: right for C/C₃₃ (sanity of the reference) ...
+            _check_box(_paper_conic_box(C / C[2, 2]), sampled)
+            # ... wrong for the scaled quadric
+            err = np.abs(_paper_conic_box(C) - sampled).max()
+            assert err > 1.0, err
+
+
+def test_sphere_on_the_optical_axis_closed_form(gen):
+    """A sphere of radius r at depth Z on the axis: half-width f·r/√(Z² − r²)."""
+    cam = gen.camera()
+    for _ in range(5):
+        r, Z = gen.rng.uniform(0.2, 2.0), gen.rng.uniform(3.0, 10.0)
+        R_wc, c = gen.rotation(), gen.rng.normal(size=3)
+        t = c + Z * R_wc[:, 2]
+        e = Ellipsoid.from_axes(np.eye(3), t, np.full(3, r))
+        hw = r / np.sqrt(Z**2 - r**2)
+        want = [cam.cx - cam.fx * hw, cam.cy - cam.fy * hw, cam.cx + cam.fx * hw, cam.cy + cam.fy * hw]
+        np.testing.assert_allclose(np.asarray(project_box(e, gen.pose(R_wc, c), cam)), want, rtol=1e-10)
+
+
+# --- box planes -----------------------------------------------------------------------
+
+
+def test_box_planes_through_centre_tangent_and_projecting_to_box_lines(gen):
+    for kind, R, t, s, cam, T, R_wc, c in _configs(gen, 8):
+        e = Ellipsoid.from_axes(R, t, s)
+        Q = np.asarray(e.dual_quadric())
+        P = np.asarray(e.P)
+        box = np.asarray(project_box(e, T, cam))
+        planes = np.asarray(box_planes(box, T, cam))
+        assert planes.shape == (4, 4)
+        X = gen.surface_points(R, t, s, 5000)
+        for k, pi in enumerate(planes):
+            n, d = pi[:3], pi[3]
+            np.testing.assert_allclose(np.linalg.norm(n), 1.0, rtol=1e-12)
+            # through the camera centre
+            assert abs(n @ c + d) < 1e-9 * max(1.0, np.abs(c).max())
+            # tangent: πᵀQ*π = nᵀPn − (n·t + d)² = 0 relative to its terms
+            scale = n @ P @ n + (n @ t + d) ** 2
+            assert abs(pi @ Q @ pi) < 1e-9 * scale
+            # the whole ellipsoid is on one side
+            side = X @ n + d
+            assert np.all(side >= -1e-9 * scale) or np.all(side <= 1e-9 * scale)
+            # points of the plane in front of the camera project onto the box line
+            basis = np.linalg.svd(n[None, :])[2][1:]  # two unit vectors ⟂ n
+            dirs = gen.rng.normal(size=(50, 2)) @ basis
+            dirs = dirs * np.sign(dirs @ R_wc[:, 2])[:, None]  # towards the front
+            Y = c + dirs * gen.rng.uniform(0.5, 10.0, size=(50, 1))
+            Yc = gen.world_to_camera(Y, R_wc, c)
+            keep = Yc[:, 2] > 1e-2 * np.linalg.norm(Yc, axis=1)
+            uv = gen.pinhole(Yc[keep], cam.fx, cam.fy, cam.cx, cam.cy)
+            coord = uv[:, k % 2]  # u for lines 0, 2 and v for lines 1, 3
+            np.testing.assert_allclose(coord, box[k], atol=1e-6 * max(1.0, abs(box[k])))
+
+
+def test_box_planes_of_arbitrary_box(gen):
+    """Any box: the planes pass through the centre and project to the box lines."""
+    cam = gen.camera()
+    T = gen.pose_random()
+    R_wc, c = np.asarray(T.rotation().as_matrix()), np.asarray(T.translation())
+    box = np.array([100.0, 50.0, 400.0, 300.0]) + gen.rng.normal(size=4)
+    planes = np.asarray(box_planes(box, T, cam))
+    for k, pi in enumerate(planes):
+        assert abs(pi[:3] @ c + pi[3]) < 1e-9
+        # the ray through pixel (box[k] on its axis, anything on the other) lies in the plane
+        for other in (0.0, 200.0, 480.0):
+            u, v = (box[k], other) if k % 2 == 0 else (other, box[k])
+            ray = R_wc @ np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0])
+            assert abs(pi[:3] @ (c + 3.0 * ray) + pi[3]) < 1e-9 * max(1, np.abs(c).max())
+
+
+# --- visibility -----------------------------------------------------------------------
+
+
+def test_in_front_and_depth_range(gen):
+    for kind, R, t, s, cam, T, R_wc, c in _configs(gen, 8):
+        e = Ellipsoid.from_axes(R, t, s)
+        _, z = _sampled_box(gen, R, t, s, R_wc, c, cam, n=50_000)
+        zr = np.asarray(depth_range(e, T))
+        np.testing.assert_allclose(zr, [z.min(), z.max()], rtol=1e-3)
+        assert zr[0] <= z.min() + 1e-9 and zr[1] >= z.max() - 1e-9
+        # in front
+        assert bool(in_front(e, T))
+        assert bool(in_front(e.to_rts(), np.asarray(T.as_matrix())))
+        assert bool(in_front(e.to_full(), T))
+        assert bool(in_front(e, T, min_depth=0.99 * zr[0]))
+        assert not bool(in_front(e, T, min_depth=1.01 * zr[0]))
+        assert not bool(camera_inside(e, T))
+        # behind: the same camera turned around (rotated by π about its y axis)
+        R_back = R_wc @ np.diag([-1.0, 1.0, -1.0])
+        T_back = gen.pose(R_back, c)
+        assert not bool(in_front(e, T_back))
+        assert gen.world_to_camera(t[None], R_back, c)[0, 2] < 0
+        # straddling: camera beside the object, looking along a direction ⟂ to (t − c), so
+        # the principal plane z_c = 0 passes through the centre and cuts the ellipsoid
+        side = gen.tangent_vec(1.0, 3)
+        c_side = t + 2.0 * s.max() * side
+        R_side = gen.look_at(c_side, c_side + np.cross(side, gen.tangent_vec(1.0, 3)))
+        T_side = gen.pose(R_side, c_side)
+        _, z_side = _sampled_box(gen, R, t, s, R_side, c_side, cam, n=20_000)
+        assert z_side.min() < 0 < z_side.max()
+        assert not bool(in_front(e, T_side))
+
+
+def test_in_front_barely(gen):
+    """Just in front of / just cutting the principal plane, decided by the support function."""
+    for _ in range(5):
+        R, t, s = gen.ellipsoid_params()
+        R_wc = gen.rotation()
+        z = R_wc[:, 2]
+        h = np.sqrt(z @ ((R * s**2) @ R.T) @ z)  # half-extent along the optical axis
+        e = Ellipsoid.from_axes(R, t, s)
+        for depth, want in ((1.001 * h, True), (0.999 * h, False), (-2 * h, False)):
+            c = t - depth * z + 0.3 * R_wc[:, 0]
+            assert bool(in_front(e, gen.pose(R_wc, c))) is want
+
+
+def test_camera_inside(gen):
+    for kind in KINDS:
+        R, t, s = gen.ellipsoid_params(kind)
+        e = Ellipsoid.from_axes(R, t, s)
+        R_wc = gen.rotation()
+        assert bool(camera_inside(e, gen.pose(R_wc, t)))
+        assert not bool(in_front(e, gen.pose(R_wc, t)))
+        for k in range(3):
+            for sg in (-1, 1):
+                assert bool(camera_inside(e, gen.pose(R_wc, t + sg * 0.95 * s[k] * R[:, k])))
+                assert not bool(camera_inside(e, gen.pose(R_wc, t + sg * 1.05 * s[k] * R[:, k])))
+        assert not bool(camera_inside(e.to_rts(), np.asarray(gen.pose(R_wc, t + 10 * s.max()).as_matrix())))
+        assert bool(camera_inside(e.to_full(), gen.pose(R_wc, t)))
+
+
+# --- JAX: jit, vmap, derivatives ------------------------------------------------------
+
+
+def test_jit_vmap_over_poses_and_cameras(gen):
+    R, t, s = gen.ellipsoid_params()
+    e = Ellipsoid.from_axes(R, t, s)
+    cams, poses = [], []
+    for _ in range(5):
+        cams.append(gen.camera())
+        poses.append(gen.pose_looking_at(R, t, s)[0])
+    want = np.stack([np.asarray(project_box(e, T, cm)) for T, cm in zip(poses, cams)])
+    Tb = jaxlie.SE3(jnp.stack([T.wxyz_xyz for T in poses]))
+    Cb = Camera.from_array(jnp.stack([cm.as_array() for cm in cams]))
+    got = jax.jit(jax.vmap(project_box, in_axes=(None, 0, 0)))(e, Tb, Cb)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-10)
+    got = jax.vmap(project_box, in_axes=(None, 0, None))(e, Tb, cams[0])
+    np.testing.assert_allclose(
+        np.asarray(got[1]), np.asarray(project_box(e, poses[1], cams[0])), rtol=1e-10
+    )
+    # many ellipsoids, one camera
+    es = [gen.ellipsoid() for _ in range(3)]
+    eb = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *es)
+    gb = jax.jit(jax.vmap(project_box, in_axes=(0, None, None)))(eb, poses[0], cams[0])
+    for i, ei in enumerate(es):
+        np.testing.assert_allclose(np.asarray(gb[i]), np.asarray(project_box(ei, poses[0], cams[0])), rtol=1e-10)
+    # the predicates vectorise too
+    inf = jax.jit(jax.vmap(in_front, in_axes=(None, 0)))(e, Tb)
+    np.testing.assert_array_equal(np.asarray(inf), [bool(in_front(e, T)) for T in poses])
+    pl = jax.jit(jax.vmap(box_planes, in_axes=(0, 0, 0)))(jnp.asarray(want), Tb, Cb)
+    np.testing.assert_allclose(np.asarray(pl[2]), np.asarray(box_planes(want[2], poses[2], cams[2])), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["general", "sphere"])
+def test_box_derivatives_finite_and_correct(gen, kind):
+    """d box / d (ellipsoid tangent, pose tangent): finite at spheres, = central differences."""
+    from spdslam import manifold
+
+    R, t, s = gen.ellipsoid_params(kind)
+    e = Ellipsoid.from_axes(R, t, s)
+    cam = gen.camera()
+    T = gen.pose_looking_at(R, t, s)[0]
+
+    @jax.jit
+    def f(d):
+        return project_box(manifold.retract(e, d[:9]), manifold.retract(T, d[9:]), cam)
+
+    J = np.asarray(jax.jit(jax.jacfwd(f))(jnp.zeros(15)))
+    assert np.all(np.isfinite(J))
+    h = 1e-6
+    fd = np.stack([(np.asarray(f(h * u)) - np.asarray(f(-h * u))) / (2 * h) for u in np.eye(15)], axis=1)
+    np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
