@@ -8,7 +8,7 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
-from . import camera, factors, manifold, matfun, solver, spd  # noqa: E402
+from . import camera, factors, manifold, matfun, se3, solver, spd  # noqa: E402
 from ._version import __version__  # noqa: E402
 from .camera import (  # noqa: E402
     Camera,
@@ -82,4 +82,5 @@ __all__ = [
     "manifold",
     "matfun",
     "spd",
+    "se3",
 ]

@@ -26,6 +26,7 @@ import jaxlie
 import numpy as np
 
 from .ellipsoid import as_ellipsoid, dual_quadric
+from .se3 import as_pose
 
 __all__ = [
     "Camera",
@@ -84,13 +85,6 @@ class Camera:
 jax.tree_util.register_dataclass(
     Camera, data_fields=["fx", "fy", "cx", "cy", "width", "height"], meta_fields=[]
 )
-
-
-def as_pose(T) -> jaxlie.SE3:
-    """A jaxlie.SE3 from an SE3 or a 4×4 homogeneous matrix (camera-to-world)."""
-    if isinstance(T, jaxlie.SE3):
-        return T
-    return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> jaxlie.SE3:

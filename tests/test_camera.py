@@ -27,15 +27,38 @@ from spdslam.camera import conic_box, depth_range, projection_matrix
 
 KINDS = ("general", "sphere", "spheroid_oblate", "spheroid_prolate")
 N_SURFACE = 200_000
-BOX_TOL = 1e-2  # pixels
+BOX_TOL = 1e-2  # pixels (the refined sampling is good to ~1e-5 px)
 
 
-def _sampled_box(gen, R, t, s, R_wc, c, cam, n=N_SURFACE):
-    """[u_min, v_min, u_max, v_max] of the projected surface samples, and their depths."""
-    X = gen.surface_points(R, t, s, n)
-    Xc = gen.world_to_camera(X, R_wc, c)
-    uv = gen.pinhole(Xc, cam.fx, cam.fy, cam.cx, cam.cy)
-    return np.r_[uv.min(axis=0), uv.max(axis=0)], Xc[:, 2]
+def _sampled_box(gen, R, t, s, R_wc, c, cam, n=N_SURFACE, refine=True):
+    """[u_min, v_min, u_max, v_max] of the projected surface samples, and their depths.
+
+    The surface is x = t + R diag(s) u for n nearly uniform unit vectors u. With ``refine``,
+    each of the four extremes is then re-sampled on a fine 101×101 grid of directions in a
+    small cap around the best sample (a denser sampling where it matters), which takes the
+    sampling error from ~1e-2 px to ~1e-5 px.
+    """
+    U = gen.fibonacci_sphere(n)
+
+    def project(U):
+        X = t[None, :] + (U * s[None, :]) @ R.T
+        Xc = gen.world_to_camera(X, R_wc, c)
+        return gen.pinhole(Xc, cam.fx, cam.fy, cam.cx, cam.cy), Xc[:, 2]
+
+    uv, z = project(U)
+    box = np.r_[uv.min(axis=0), uv.max(axis=0)]
+    if refine:
+        cap = 4.0 * np.sqrt(4 * np.pi / n)
+        g = np.linspace(-cap, cap, 101)
+        a, b = (x.ravel() for x in np.meshgrid(g, g))
+        for k, (col, sign) in enumerate(((0, -1), (1, -1), (0, 1), (1, 1))):
+            u0 = U[np.argmax(sign * uv[:, col])]
+            e1, e2 = np.linalg.svd(u0[None, :])[2][1:]
+            V = u0[None, :] + a[:, None] * e1 + b[:, None] * e2
+            V /= np.linalg.norm(V, axis=1, keepdims=True)
+            uv_k, _ = project(V)
+            box[k] = sign * max(sign * box[k], np.max(sign * uv_k[:, col]))
+    return box, z
 
 
 def _check_box(box, sampled, tol=BOX_TOL):

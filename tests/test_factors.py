@@ -250,3 +250,17 @@ def test_factor_error_uses_whitening_and_kernel():
     fr = SupportPlaneFactor("l", floor, sigma=0.1, robust=Huber(1.0))
     assert fr.error(e) == pytest.approx(0.5 * (2 * abs(r) / 0.1 - 1.0))
     assert isinstance(e.to_full(), EllipsoidFull)
+
+
+def test_tum_round_trip():
+    from spdslam import se3
+
+    rng = np.random.default_rng(9)
+    for _ in range(10):
+        T = jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(rot(rng)), rng.normal(size=3))
+        v = se3.to_tum(T)
+        assert v[6] >= 0
+        np.testing.assert_allclose(se3.from_tum(v).as_matrix(), T.as_matrix(), atol=1e-12)
+    # TUM order is qx qy qz qw: a 90° yaw
+    T = se3.from_tum([1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    np.testing.assert_allclose(T.rotation().as_matrix() @ np.array([1.0, 0, 0]), [0, 1, 0], atol=1e-12)

@@ -195,14 +195,14 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
 
     def linearize(x):
         t = tick()
-        h, g, c, valid = problem.linearize(x)
+        h, g, c, valid, finite = problem.linearize(x)
         h, g, c = np.asarray(h), np.asarray(g), float(c)
         timings["linearize"] += tick() - t
-        return h, g, c, valid
+        return h, g, c, valid, bool(finite) and np.isfinite(c)
 
     x = problem.vars
-    h, g, cost, valid = linearize(x)
-    if not (np.isfinite(cost) and np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
+    h, g, cost, valid, finite = linearize(x)
+    if not finite:
         problem.diagnose(x)
         raise ValueError("the cost or its gradient is not finite at the initial values")
     initial_cost = cost
@@ -242,14 +242,19 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
             gain = (cost - trial_cost) / pred if (ok and pred > 0) else -np.inf
             rec = IterationRecord(it, cost, trial_cost, step_norm, lam, gain, accepted, 0.0)
         if accepted:
+            lin = linearize(x_new)
+            nlin += 1
+            if not lin[4]:  # non-finite Jacobian at the trial point: reject it
+                accepted = rec.accepted = False
+                ok = False
+        if accepted:
             decrease, old = cost - trial_cost, cost
             x, cost = x_new, trial_cost
             rec.cost = cost
             if not gn:
                 lam = max(p.lambda_min, lam * max(1.0 / 3.0, 1.0 - (2.0 * rec.gain_ratio - 1.0) ** 3))
                 nu = 2.0
-            h, g, _, valid = linearize(x)
-            nlin += 1
+            h, g, _, valid, _ = lin
             if cost <= p.absolute_tolerance:
                 reason = "absolute"
             elif decrease <= p.relative_tolerance * old:

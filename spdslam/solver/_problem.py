@@ -88,22 +88,42 @@ def _gather(tree, idx):
     return jax.tree.map(lambda a: a[idx], tree)
 
 
-def _group_terms(spec: _GroupSpec, tspecs, vars_, idx, data, jac: bool):
-    """Whitened (IRLS-weighted) residuals r (nf, m), Jacobians J (nf, m, D) or None,
-    cost ½Σρ(s), validity (nf,) or None, per-factor finiteness (nf,)."""
+#: Factors are linearised in chunks of about CHUNK // D factors (lax.map over vmapped
+#: chunks): the intermediates of forward-mode differentiation then stay in cache, which on
+#: CPU is several times faster than one vmap over all factors of a group.
+CHUNK = 256
+
+
+def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
+    """Per-factor terms of one group, mapped over its factors in chunks.
+
+    mode "cost":   (½ρ(s) (nf,), valid, finite)
+    mode "sparse": (JᵀJ upper triangle (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)
+    mode "dense":  (JᵀJ (nf, D, D), Jᵀr (nf, D), ½ρ(s), valid, finite)
+    mode "terms":  (r (nf, m), J (nf, m, D), ½ρ(s), valid, finite)
+
+    r and J are whitened and IRLS-weighted: r ← √ρ'(s) W r, J ← √ρ'(s) W ∂r/∂δ, s = ‖W r‖².
+    ``valid`` is None when the group has no validity function.
+    """
     leaves, W = data
     args = jax.tree.unflatten(spec.args_treedef, leaves)
     xs = [_gather(vars_[t], idx[:, p]) for p, t in enumerate(spec.var_types)]
     ops = [manifold.ops(tspecs[t].cls) for t in spec.var_types]
     offs = np.concatenate([[0], np.cumsum(spec.dims)]).tolist()
+    D = spec.D
+    iu, ju = np.triu_indices(D)
 
     def whiten(r, Wi):
         r = jnp.ravel(jnp.atleast_1d(r))
         return r if Wi is None else Wi @ r
 
-    if jac:
+    def one(item):
+        xs_i, args_i, W_i = item
+        if mode == "cost":
+            r = whiten(spec.residual(*xs_i, *args_i), W_i)
+            J = None
+        else:
 
-        def one(xs_i, args_i, W_i):
             def fun(d):
                 ys = [
                     op.retract(x, d[offs[p] : offs[p + 1]])
@@ -112,34 +132,44 @@ def _group_terms(spec: _GroupSpec, tspecs, vars_, idx, data, jac: bool):
                 r = whiten(spec.residual(*ys, *args_i), W_i)
                 return r, r
 
-            J, r = jax.jacfwd(fun, has_aux=True)(jnp.zeros(spec.D))
-            return r, J
-
-        r, J = jax.vmap(one)(xs, args, W)
-    else:
-
-        def one(xs_i, args_i, W_i):
-            return whiten(spec.residual(*xs_i, *args_i), W_i)
-
-        r, J = jax.vmap(one)(xs, args, W), None
-
-    finite = jnp.all(jnp.isfinite(r), axis=1)
-    if J is not None:
-        finite &= jnp.all(jnp.isfinite(J), axis=(1, 2))
-    s = jnp.sum(r * r, axis=1)
-    if spec.robust is not None:
-        rho = spec.robust.rho(s)
-        sw = jnp.sqrt(spec.robust.weight(s))
-        r = r * sw[:, None]
+            J, r = jax.jacfwd(fun, has_aux=True)(jnp.zeros(D))
+        finite = jnp.all(jnp.isfinite(r))
         if J is not None:
-            J = J * sw[:, None, None]
+            finite &= jnp.all(jnp.isfinite(J))
+        s = jnp.sum(r * r)
+        if spec.robust is not None:
+            half_rho = 0.5 * spec.robust.rho(s)
+            if J is not None:
+                sw = jnp.sqrt(spec.robust.weight(s))
+                r, J = sw * r, sw * J
+        else:
+            half_rho = 0.5 * s
+        valid = (
+            jnp.asarray(spec.valid(*xs_i, *args_i), bool) if spec.valid is not None else None
+        )
+        if mode == "cost":
+            return half_rho, valid, finite
+        if mode == "terms":
+            return r, J, half_rho, valid, finite
+        JtJ = J.T @ J
+        Jtr = J.T @ r
+        if mode == "sparse":
+            JtJ = JtJ[iu, ju]
+        return JtJ, Jtr, half_rho, valid, finite
+
+    nf = idx.shape[0]
+    batch = max(1, min(nf, CHUNK // max(D, 1)))
+    return jax.lax.map(one, (xs, args, W), batch_size=batch)
+
+
+def _group_terms(spec: _GroupSpec, tspecs, vars_, idx, data, jac: bool):
+    """(r, J or None, cost, valid, finite) of one group (see ``_group_map``)."""
+    if jac:
+        r, J, hr, valid, finite = _group_map(spec, tspecs, vars_, idx, data, "terms")
     else:
-        rho = s
-    cost = 0.5 * jnp.sum(rho)
-    valid = None
-    if spec.valid is not None:
-        valid = jax.vmap(lambda x, a: jnp.asarray(spec.valid(*x, *a), bool))(xs, args)
-    return r, J, cost, valid, finite
+        hr, valid, finite = _group_map(spec, tspecs, vars_, idx, data, "cost")
+        r = J = None
+    return r, J, jnp.sum(hr), valid, finite
 
 
 def _retract_all(tspecs, vars_, delta, tan_idx, free):
@@ -171,37 +201,34 @@ class _Kernels:
 
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
-        tri = [np.triu_indices(g.D) for g in gspecs]
-
         def evaluate(vars_, gdata, gidx):
             cost, valids = jnp.zeros(()), []
             for spec, d, ix in zip(gspecs, gdata, gidx):
-                _, _, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=False)
-                cost, valids = cost + c, valids + [v]
+                hr, v, _ = _group_map(spec, tspecs, vars_, ix, d, "cost")
+                cost, valids = cost + jnp.sum(hr), valids + [v]
             return cost, tuple(valids)
 
         def linearize_sparse(vars_, gdata, gidx, hslots, gslots, nnz, n):
             h = jnp.zeros(nnz + 1)
             g = jnp.zeros(n + 1)
-            cost, valids = jnp.zeros(()), []
-            for spec, d, ix, hs, gs, (iu, ju) in zip(gspecs, gdata, gidx, hslots, gslots, tri):
-                r, J, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=True)
-                JtJ = jnp.einsum("fmi,fmj->fij", J, J)
-                h = h.at[hs].add(JtJ[:, iu, ju])
-                g = g.at[gs].add(jnp.einsum("fm,fmi->fi", r, J))
-                cost, valids = cost + c, valids + [v]
-            return h[:nnz], g[:n], cost, tuple(valids)
+            cost, valids, finite = jnp.zeros(()), [], jnp.ones((), bool)
+            for spec, d, ix, hs, gs in zip(gspecs, gdata, gidx, hslots, gslots):
+                hc, gc, hr, v, fin = _group_map(spec, tspecs, vars_, ix, d, "sparse")
+                h = h.at[hs.ravel()].add(hc.ravel())
+                g = g.at[gs.ravel()].add(gc.ravel())
+                cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
+            return h[:nnz], g[:n], cost, tuple(valids), finite
 
         def linearize_dense(vars_, gdata, gidx, gcols, n):
             H = jnp.zeros((n + 1, n + 1))
             g = jnp.zeros(n + 1)
-            cost, valids = jnp.zeros(()), []
+            cost, valids, finite = jnp.zeros(()), [], jnp.ones((), bool)
             for spec, d, ix, G in zip(gspecs, gdata, gidx, gcols):
-                r, J, c, v, _ = _group_terms(spec, tspecs, vars_, ix, d, jac=True)
-                H = H.at[G[:, :, None], G[:, None, :]].add(jnp.einsum("fmi,fmj->fij", J, J))
-                g = g.at[G].add(jnp.einsum("fm,fmi->fi", r, J))
-                cost, valids = cost + c, valids + [v]
-            return H[:n, :n], g[:n], cost, tuple(valids)
+                JtJ, gc, hr, v, fin = _group_map(spec, tspecs, vars_, ix, d, "dense")
+                H = H.at[G[:, :, None], G[:, None, :]].add(JtJ)
+                g = g.at[G].add(gc)
+                cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
+            return H[:n, :n], g[:n], cost, tuple(valids), finite
 
         def step(vars_, delta, tan_idx, free, gdata, gidx, valid_cur):
             new = _retract_all(tspecs, vars_, delta, tan_idx, free)
@@ -454,7 +481,7 @@ class Problem:
         return float(c)
 
     def linearize(self, vars_):
-        """(H lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group)."""
+        """(H lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, all finite)."""
         sp = self.sparse_pattern()
         return self.kernels.linearize_sparse(
             vars_, self.gdata, self.gidx, sp["hslots"], sp["gslots"], nnz=sp["nnz"], n=self.n

@@ -1,0 +1,53 @@
+"""SE(3) poses (through jaxlie) and the one convention spdslam uses.
+
+A pose ``T_wc`` maps camera coordinates to world coordinates (camera-to-world): its
+translation is the camera centre in the world, its rotation's columns are the camera axes
+(x right, y down, z forward along the optical axis) in the world. TUM trajectory lines
+``timestamp tx ty tz qx qy qz qw`` store exactly this pose. Tangent vectors are jaxlie's
+(v, ω), translation first, with the right perturbation T ⊞ δ = T · Exp(δ).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+__all__ = ["as_pose", "from_tum", "to_tum", "from_matrix", "to_matrix", "stack"]
+
+
+def as_pose(T) -> jaxlie.SE3:
+    """A jaxlie.SE3 from an SE3 or a 4×4 homogeneous matrix."""
+    if isinstance(T, jaxlie.SE3):
+        return T
+    return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
+
+
+def from_matrix(T) -> jaxlie.SE3:
+    return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
+
+
+def to_matrix(T) -> np.ndarray:
+    return np.asarray(as_pose(T).as_matrix())
+
+
+def from_tum(values) -> jaxlie.SE3:
+    """Pose(s) from TUM fields ``tx ty tz qx qy qz qw`` (shape (..., 7)); quaternions are normalised."""
+    v = jnp.asarray(values, dtype=float)
+    q_xyzw = v[..., 3:7]
+    q = q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True)
+    wxyz = jnp.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3(wxyz), v[..., :3])
+
+
+def to_tum(T) -> np.ndarray:
+    """TUM fields ``tx ty tz qx qy qz qw`` (…, 7) of pose(s), with qw ≥ 0."""
+    T = as_pose(T)
+    wxyz = np.asarray(T.rotation().wxyz)
+    wxyz = np.where(wxyz[..., :1] < 0, -wxyz, wxyz)
+    return np.concatenate([np.asarray(T.translation()), wxyz[..., 1:], wxyz[..., :1]], axis=-1)
+
+
+def stack(poses) -> jaxlie.SE3:
+    """A batched SE3 from a sequence of poses."""
+    return jaxlie.SE3(jnp.stack([as_pose(T).wxyz_xyz for T in poses]))
