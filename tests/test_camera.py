@@ -155,7 +155,7 @@ def test_project_box_every_parameterisation_and_input_type(gen):
         sampled, _ = _sampled_box(gen, R, t, s, R_wc, c, cam, n=50_000)
         Q = np.asarray(e.dual_quadric())
         want = np.asarray(project_box(e, T, cam))
-        _check_box(want, sampled, tol=5e-2)
+        _check_box(want, sampled)
         for x in (
             EllipsoidRTS.from_axes(R, t, s),
             EllipsoidFull.from_ellipsoid(e),

@@ -1,0 +1,323 @@
+"""Evaluation of estimated objects against ground truth: oriented cuboids, 3D IoU, errors.
+
+A cuboid is C = {c + R q : |q_k| ≤ h_k}, centre c, axes the columns of R, half-extents h > 0.
+A landmark's circumscribed cuboid has c = t, R and h = s from ``Ellipsoid.axes()``.
+
+- ``cuboid_iou``: exact |A ∩ B| / |A ∪ B| of two oriented cuboids. A ∩ B is a convex
+  polytope whose vertices are the corners of each cuboid inside the other and the points
+  where an edge of one crosses a face plane of the other; its volume is that of their
+  convex hull (``scipy.spatial.ConvexHull``).
+- ``orientation_error_deg``: the angle of the rotation aligning the estimate's axes with the
+  ground truth's, whatever the order and signs of the axes (min over the octahedral group).
+- ``translation_error``: ‖c_est − c_gt‖.
+
+Pure numpy/scipy; every input is validated and degenerate ones raise ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from .ellipsoid import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid
+
+__all__ = [
+    "Cuboid",
+    "as_cuboid",
+    "cuboid_iou",
+    "cuboid_iou_batch",
+    "orientation_error_deg",
+    "translation_error",
+    "signed_permutations",
+    "MAX_ORIENTATION_ERROR_DEG",
+]
+
+#: Corner signs σ ∈ {±1}³, x varying fastest (the order of ``Ellipsoid.cuboid_corners``).
+_CORNER_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))[:, ::-1]
+#: The 12 edges as pairs of corner indices: corners i and i + 2ᵏ differ in the sign of axis k.
+_EDGES = np.array(
+    [(i, i | (1 << k)) for k in range(3) for i in range(8) if not i & (1 << k)]
+)
+#: Tolerance on ‖RᵀR − I‖ (entrywise) for a matrix to count as orthonormal.
+_ORTHO_TOL = 1e-6
+
+_LANDMARKS = (Ellipsoid, EllipsoidRTS, EllipsoidFull)
+
+
+def _signed_permutations() -> np.ndarray:
+    """All 48 signed permutation matrices (48×3×3), the 24 with det +1 first."""
+    mats = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            G = np.zeros((3, 3))
+            G[list(perm), range(3)] = signs
+            mats.append(G)
+    mats = np.array(mats)
+    return mats[np.argsort(-np.round(np.linalg.det(mats)), kind="stable")]
+
+
+_SIGNED_PERMS = _signed_permutations()
+
+
+def signed_permutations(proper: bool = True) -> np.ndarray:
+    """The 24 signed permutation matrices with det +1 (the octahedral group), or det −1."""
+    return (_SIGNED_PERMS[:24] if proper else _SIGNED_PERMS[24:]).copy()
+
+
+#: sup over R ∈ SO(3) of min_G angle(R G): the covering radius of the octahedral group,
+#: 2 atan √(23 − 16√2) ≈ 62.7994°, attained at the rotation about (1, 1, √2 − 1).
+MAX_ORIENTATION_ERROR_DEG = float(np.degrees(2.0 * np.arctan(np.sqrt(23.0 - 16.0 * np.sqrt(2)))))
+
+
+# --- validation ---------------------------------------------------------------------------
+
+
+def _vector(x, name: str) -> np.ndarray:
+    v = np.array(x, dtype=float)  # a copy: Cuboid freezes it
+    if v.shape != (3,):
+        raise ValueError(f"{name} must have shape (3,), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be finite, got {v.tolist()}")
+    return v
+
+
+def _orthonormal(x, name: str) -> np.ndarray:
+    R = np.asarray(x, dtype=float)
+    if R.shape != (3, 3):
+        raise ValueError(f"{name} must have shape (3, 3), got {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise ValueError(f"{name} must be finite")
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > _ORTHO_TOL:
+        raise ValueError(f"{name} must be orthonormal (max |RᵀR − I| = {err:.3g})")
+    return R
+
+
+# --- cuboids ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Cuboid:
+    """C = {c + R q : |q_k| ≤ h_k}: ``center`` c, ``rotation`` R (columns = axes, det +1),
+    ``half_extents`` h > 0.
+
+    A reflection (det R = −1) describes the same solid; its third axis is negated.
+    """
+
+    center: np.ndarray
+    rotation: np.ndarray
+    half_extents: np.ndarray
+
+    def __post_init__(self):
+        c = _vector(self.center, "center")
+        R = _orthonormal(self.rotation, "rotation").copy()
+        h = _vector(self.half_extents, "half_extents")
+        if not np.all(h > 0):
+            raise ValueError(f"half_extents must be positive, got {h.tolist()}")
+        if np.linalg.det(R) < 0:
+            R[:, 2] = -R[:, 2]
+        for name, v in (("center", c), ("rotation", R), ("half_extents", h)):
+            v.setflags(write=False)
+            object.__setattr__(self, name, v)
+
+    # --- construction -------------------------------------------------------------------
+    @classmethod
+    def from_ellipsoid(cls, x) -> "Cuboid":
+        """The circumscribed cuboid of any landmark: c = t, R and h = s of ``axes()``."""
+        e = as_ellipsoid(x)
+        R, s = e.axes()
+        return cls(np.asarray(e.center, float), np.asarray(R, float), np.asarray(s, float))
+
+    @classmethod
+    def from_yaw(cls, center, yaw: float, half_extents) -> "Cuboid":
+        """R = R_z(yaw), a rotation about +z (the convention of ground truth boxes)."""
+        yaw = float(yaw)
+        if not np.isfinite(yaw):
+            raise ValueError(f"yaw must be finite, got {yaw}")
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        R = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+        return cls(center, R, half_extents)
+
+    @classmethod
+    def from_row(cls, row) -> "Cuboid":
+        """From a ground truth row ``x y z yaw hx hy hz``."""
+        v = np.asarray(row, dtype=float).ravel()
+        if v.shape != (7,):
+            raise ValueError(f"a cuboid row is 'x y z yaw hx hy hz' (7 numbers), got {v.size}")
+        return cls.from_yaw(v[:3], v[3], v[4:])
+
+    # --- views --------------------------------------------------------------------------
+    def corners(self) -> np.ndarray:
+        """The 8 corners (8×3), c + R diag(h) σ, σ ∈ {±1}³ with x varying fastest."""
+        return self.center + (_CORNER_SIGNS * self.half_extents) @ self.rotation.T
+
+    def volume(self) -> float:
+        """8 h₁h₂h₃."""
+        return float(8.0 * np.prod(self.half_extents))
+
+    def to_local(self, points) -> np.ndarray:
+        """Rᵀ(x − c) for points (…×3)."""
+        return (np.asarray(points, dtype=float) - self.center) @ self.rotation
+
+    def contains(self, points, tol: float = 0.0) -> np.ndarray:
+        """True where |Rᵀ(x − c)|_k ≤ h_k + tol for all k."""
+        return np.all(np.abs(self.to_local(points)) <= self.half_extents + tol, axis=-1)
+
+    def transformed(self, rotation, translation) -> "Cuboid":
+        """The image under x ↦ Q x + u: centre Q c + u, axes Q R."""
+        Q = _orthonormal(rotation, "rotation")
+        u = _vector(translation, "translation")
+        return Cuboid(Q @ self.center + u, Q @ self.rotation, self.half_extents)
+
+
+def as_cuboid(x) -> Cuboid:
+    """A ``Cuboid`` as is; any landmark → its circumscribed cuboid."""
+    if isinstance(x, Cuboid):
+        return x
+    if isinstance(x, _LANDMARKS):
+        return Cuboid.from_ellipsoid(x)
+    raise TypeError(f"not a cuboid or ellipsoid landmark: {type(x).__name__}")
+
+
+# --- IoU ----------------------------------------------------------------------------------
+
+
+def _stack(cuboids: Sequence[Cuboid]):
+    c = np.stack([q.center for q in cuboids])
+    R = np.stack([q.rotation for q in cuboids])
+    h = np.stack([q.half_extents for q in cuboids])
+    return c, R, h
+
+
+def _edge_crossings(corners, c, R, h):
+    """Points where the 12 edges of one cuboid (corners n×8×3) cross the 6 face planes
+    q_k = ±h_k of another (c, R, h): n×72×3, and a mask of the crossings within the edge."""
+    q = (corners - c[:, None, :]) @ R  # local coordinates, n×8×3
+    q0, q1 = q[:, _EDGES[:, 0]], q[:, _EDGES[:, 1]]  # n×12×3
+    p0 = corners[:, _EDGES[:, 0]]
+    d = corners[:, _EDGES[:, 1]] - p0
+    target = np.stack([-h, h], axis=-1)[:, None, :, :]  # n×1×3×2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (target - q0[..., None]) / (q1 - q0)[..., None]  # n×12×3×2
+    ok = np.isfinite(u) & (u >= -1e-12) & (u <= 1.0 + 1e-12)
+    u = np.clip(np.where(ok, u, 0.0), 0.0, 1.0)
+    pts = p0[:, :, None, None, :] + u[..., None] * d[:, :, None, None, :]  # n×12×3×2×3
+    n = corners.shape[0]
+    return pts.reshape(n, 72, 3), ok.reshape(n, 72)
+
+
+def _inside(points, c, R, h, tol):
+    """n×m mask of points (n×m×3) inside the cuboids (c, R, h), n of them, up to tol (n,)."""
+    q = (points - c[:, None, :]) @ R
+    return np.all(np.abs(q) <= h[:, None, :] + tol[:, None, None], axis=-1)
+
+
+def _hull_volume(pts: np.ndarray, tol: float) -> float:
+    """Volume of the convex hull of pts (m×3); 0 when fewer than 4 or (nearly) coplanar."""
+    if len(pts) < 4:
+        return 0.0
+    pts = pts[np.unique(np.round(pts / tol), axis=0, return_index=True)[1]]
+    if len(pts) < 4:
+        return 0.0
+    centred = pts - pts.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    if np.max(np.abs(centred @ normal)) <= tol:
+        return 0.0
+    for options in (None, "QJ"):
+        try:
+            return float(ConvexHull(pts, qhull_options=options).volume)
+        except QhullError:
+            continue
+    return 0.0
+
+
+def _iou_arrays(ca, Ra, ha, cb, Rb, hb) -> np.ndarray:
+    n = ca.shape[0]
+    ca, cb = np.zeros_like(ca), cb - ca  # IoU is translation invariant: work about c_a
+    tol = 1e-11 * np.maximum(ha.max(axis=1), hb.max(axis=1)) + 1e-13 * np.abs(cb).max(axis=1)
+    corners_a = ca[:, None, :] + (_CORNER_SIGNS * ha[:, None, :]) @ Ra.transpose(0, 2, 1)
+    corners_b = cb[:, None, :] + (_CORNER_SIGNS * hb[:, None, :]) @ Rb.transpose(0, 2, 1)
+    cross_ab, ok_ab = _edge_crossings(corners_a, cb, Rb, hb)  # edges of A, faces of B
+    cross_ba, ok_ba = _edge_crossings(corners_b, ca, Ra, ha)  # edges of B, faces of A
+    cand = np.concatenate([corners_a, corners_b, cross_ab, cross_ba], axis=1)  # n×160×3
+    ok = np.concatenate([np.ones((n, 16), bool), ok_ab, ok_ba], axis=1)
+    ok &= _inside(cand, ca, Ra, ha, tol) & _inside(cand, cb, Rb, hb, tol)
+    va, vb = 8.0 * ha.prod(axis=1), 8.0 * hb.prod(axis=1)
+    # Bounding spheres apart ⇒ disjoint (the inside test would already leave nothing).
+    reach = np.linalg.norm(ha, axis=1) + np.linalg.norm(hb, axis=1)
+    near = np.linalg.norm(cb, axis=1) <= reach
+    inter = np.zeros(n)
+    for i in np.flatnonzero(near & (ok.sum(axis=1) >= 4)):
+        inter[i] = _hull_volume(cand[i][ok[i]], tol[i])
+    inter = np.minimum(inter, np.minimum(va, vb))
+    return inter / (va + vb - inter)
+
+
+def cuboid_iou(a, b) -> float:
+    """|A ∩ B| / |A ∪ B| ∈ [0, 1], exact up to rounding; cuboids or landmarks.
+
+    A candidate vertex is inside a cuboid within 10⁻¹¹ max h (+ 10⁻¹³ ‖c_b − c_a‖_∞);
+    touching cuboids (shared face, edge or corner) give 0.
+    """
+    a, b = as_cuboid(a), as_cuboid(b)
+    return float(_iou_arrays(*_stack([a]), *_stack([b]))[0])
+
+
+def cuboid_iou_batch(list_a, list_b) -> np.ndarray:
+    """IoU of the pairs (a_i, b_i) (n,), candidate vertices computed for all pairs at once."""
+    list_a, list_b = [as_cuboid(a) for a in list_a], [as_cuboid(b) for b in list_b]
+    if len(list_a) != len(list_b):
+        raise ValueError(f"need as many cuboids in each list, got {len(list_a)} and {len(list_b)}")
+    if not list_a:
+        return np.zeros(0)
+    return _iou_arrays(*_stack(list_a), *_stack(list_b))
+
+
+# --- errors -------------------------------------------------------------------------------
+
+
+def _rotation_of(x, name: str) -> np.ndarray:
+    if isinstance(x, Cuboid):
+        return x.rotation
+    if isinstance(x, _LANDMARKS):
+        x = as_ellipsoid(x)
+    if hasattr(x, "axes"):
+        x = x.axes()[0]
+    elif hasattr(x, "as_matrix"):  # jaxlie.SO3
+        x = x.as_matrix()
+    return _orthonormal(np.asarray(x, dtype=float), name)
+
+
+def _center_of(x, name: str) -> np.ndarray:
+    if isinstance(x, _LANDMARKS):
+        x = as_ellipsoid(x)
+    if hasattr(x, "center"):
+        x = x.center
+    return _vector(np.asarray(x, dtype=float), name)
+
+
+def orientation_error_deg(R_est, R_gt) -> float:
+    """min over signed permutations G (det R_gtᵀR_est G = +1) of angle(R_gtᵀ R_est G), degrees.
+
+    The axes are compared as unsigned lines in any order. Arguments: 3×3 orthonormal
+    matrices (columns = axes), ``Cuboid``s, landmarks, or anything with ``.axes()``.
+    The angle is atan2(‖vee(M − Mᵀ)‖/2, (tr M − 1)/2), accurate also near 0. Range
+    [0°, ``MAX_ORIENTATION_ERROR_DEG``] = [0°, 2 atan √(23 − 16√2)] ≈ [0°, 62.7994°].
+    """
+    Re, Rg = _rotation_of(R_est, "R_est"), _rotation_of(R_gt, "R_gt")
+    M = Rg.T @ Re
+    G = _SIGNED_PERMS[:24] if np.linalg.det(M) > 0 else _SIGNED_PERMS[24:]
+    MG = M @ G  # 24×3×3
+    cos = 0.5 * (np.trace(MG, axis1=1, axis2=2) - 1.0)
+    skew = MG - MG.transpose(0, 2, 1)
+    sin = 0.5 * np.linalg.norm(skew[:, [2, 0, 1], [1, 2, 0]], axis=-1)  # ‖vee(M − Mᵀ)‖/2
+    return float(np.degrees(np.min(np.arctan2(sin, cos))))
+
+
+def translation_error(a, b) -> float:
+    """‖c_a − c_b‖; centres (3,), ``Cuboid``s or landmarks."""
+    return float(np.linalg.norm(_center_of(a, "a") - _center_of(b, "b")))
