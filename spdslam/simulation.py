@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -21,7 +22,7 @@ import numpy as np
 from .camera import Camera, look_at, project_box
 from .ellipsoid import Ellipsoid
 
-__all__ = ["NOISE_LEVELS", "Scene", "random_ellipsoid", "sample_views", "perturb_ellipsoid", "make_scene"]
+__all__ = ["NOISE_LEVELS", "DEFAULT_CAMERA", "Scene", "Scenes", "make_scene", "make_scenes", "random_rotations"]
 
 #: Initial-landmark noise (σθ degrees, σt metres, σ% fraction of each radius) and box noise
 #: σ_b (pixels per edge), per level, as in the paper.
@@ -34,56 +35,43 @@ NOISE_LEVELS = {
 DEFAULT_CAMERA = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 
 
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    return np.asarray(jaxlie.SO3(jnp.asarray(q / np.linalg.norm(q))).as_matrix())
+def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n rotation matrices, uniform on SO(3) (normalised Gaussian quaternions)."""
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.asarray(_quat_to_matrix(jnp.asarray(q)))
 
 
-def random_ellipsoid(
-    rng: np.random.Generator,
-    space=(1.0, 2.0, 3.0),
-    radius_range=(0.1, 0.5),
-) -> Ellipsoid:
-    """Centre uniform in a box of size ``space`` (centred at the origin), random rotation,
-    radii uniform in ``radius_range``."""
-    center = (rng.uniform(size=3) - 0.5) * np.asarray(space)
-    return Ellipsoid.from_axes(random_rotation(rng), center, rng.uniform(*radius_range, size=3))
+_from_axes = jax.jit(jax.vmap(Ellipsoid.from_axes))
+_quat_to_matrix = jax.jit(jax.vmap(lambda w: jaxlie.SO3(w).as_matrix()))
+_exp_to_matrix = jax.jit(jax.vmap(lambda w: jaxlie.SO3.exp(w).as_matrix()))
 
 
-def sample_views(
-    target,
-    n_views: int,
-    angle_range_deg: float,
-    rng: np.random.Generator,
-    distance=(3.0, 4.0),
-    elevation_deg=(5.0, 30.0),
-    aim_jitter: float = 0.05,
-) -> list[jaxlie.SE3]:
-    """Camera-to-world poses around ``target``: azimuths spread uniformly over
-    ``angle_range_deg`` around a random heading, random elevation and distance."""
-    heading = rng.uniform(0, 2 * np.pi)
-    half = np.deg2rad(angle_range_deg) / 2
-    az = heading + np.linspace(-half, half, n_views) + rng.uniform(-0.1, 0.1, n_views) * half
-    el = np.deg2rad(rng.uniform(*elevation_deg, n_views))
-    d = rng.uniform(*distance, n_views)
-    target = np.asarray(target, dtype=float)
-    eyes = target + d[:, None] * np.stack(
-        [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1
-    )
-    aims = target + aim_jitter * rng.normal(size=(n_views, 3))
-    return [look_at(e, a) for e, a in zip(eyes, aims)]
+def _so3_exp(omega: np.ndarray) -> np.ndarray:
+    return np.asarray(_exp_to_matrix(jnp.asarray(omega)))
 
 
-def perturb_ellipsoid(
-    e: Ellipsoid, rot_deg: float, trans: float, scale: float, rng: np.random.Generator
-) -> Ellipsoid:
-    """Initial landmark: rotation, centre and each radius perturbed (see module docstring)."""
-    R, s = (np.asarray(a) for a in e.axes())
-    dR = np.asarray(jaxlie.SO3.exp(jnp.asarray(rng.normal(scale=np.deg2rad(rot_deg), size=3))).as_matrix())
-    s_new = np.abs(s + rng.normal(size=3) * s * scale)
-    s_new = np.maximum(s_new, 0.05 * s)  # keep a proper ellipsoid
-    t_new = np.asarray(e.center) + rng.normal(scale=trans, size=3)
-    return Ellipsoid.from_axes(dR @ R, t_new, s_new)
+@dataclass(frozen=True)
+class Scenes:
+    """A batch of B single-object scenes with V views each (leading axes B, V)."""
+
+    truth: Ellipsoid  # batched: P (B,3,3), center (B,3)
+    initial: Ellipsoid  # batched
+    poses: jaxlie.SE3  # batched camera-to-world, wxyz_xyz (B, V, 7)
+    boxes: np.ndarray  # (B, V, 4) measured boxes
+    camera: Camera
+
+    def __len__(self) -> int:
+        return int(self.boxes.shape[0])
+
+    def __getitem__(self, i: int) -> "Scene":
+        return Scene(
+            Ellipsoid(self.truth.P[i], self.truth.center[i]),
+            Ellipsoid(self.initial.P[i], self.initial.center[i]),
+            [jaxlie.SE3(w) for w in self.poses.wxyz_xyz[i]],
+            np.asarray(self.boxes[i]),
+            self.camera,
+        )
 
 
 @dataclass(frozen=True)
@@ -95,25 +83,75 @@ class Scene:
     camera: Camera
 
 
+@jax.jit
+def _views_and_boxes(truth, eyes, aims, camera):
+    poses = jax.vmap(jax.vmap(look_at))(eyes, aims)
+    boxes = jax.vmap(lambda e, Ts: jax.vmap(lambda T: project_box(e, T, camera))(Ts))(truth, poses)
+    return poses, boxes
+
+
+def make_scenes(
+    seed,
+    n: int,
+    noise: str = "M",
+    angle_range_deg: float = 120.0,
+    n_views: int = 10,
+    box_noise: bool = True,
+    camera: Camera = DEFAULT_CAMERA,
+    space=(1.0, 2.0, 3.0),
+    radius_range=(0.1, 0.5),
+    distance=(3.0, 4.0),
+    elevation_deg=(5.0, 30.0),
+    aim_jitter: float = 0.05,
+) -> Scenes:
+    """n independent scenes, generated with array operations (no loop over scenes).
+
+    Object: centre uniform in a box of size ``space`` centred at the origin, uniform random
+    rotation, radii uniform in ``radius_range``. Views: azimuths evenly spread over
+    ``angle_range_deg`` around a random heading (each jittered by ±5 % of the half-range),
+    elevation and distance uniform in their ranges, aimed at the centre ± ``aim_jitter``.
+    Boxes: the closed-form box of the truth plus N(0, σ_b²) per edge (σ_b of the level).
+    ``seed`` may be an int or a sequence of ints (e.g. (seed, cell index)).
+    """
+    rng = np.random.default_rng(seed)
+    level = NOISE_LEVELS[noise]
+    R = random_rotations(rng, n)
+    t = (rng.uniform(size=(n, 3)) - 0.5) * np.asarray(space)
+    s = rng.uniform(*radius_range, size=(n, 3))
+    truth = _from_axes(jnp.asarray(R), jnp.asarray(t), jnp.asarray(s))
+
+    heading = rng.uniform(0, 2 * np.pi, size=(n, 1))
+    half = np.deg2rad(angle_range_deg) / 2
+    az = heading + np.linspace(-half, half, n_views)[None] + rng.uniform(-0.1, 0.1, (n, n_views)) * half
+    el = np.deg2rad(rng.uniform(*elevation_deg, (n, n_views)))
+    d = rng.uniform(*distance, (n, n_views))
+    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+    eyes = t[:, None] + d[..., None] * dirs
+    aims = t[:, None] + aim_jitter * rng.normal(size=(n, n_views, 3))
+    poses, boxes = _views_and_boxes(truth, jnp.asarray(eyes), jnp.asarray(aims), camera)
+    boxes = np.asarray(boxes)
+    if box_noise and level["box_px"] > 0:
+        boxes = boxes + rng.normal(scale=level["box_px"], size=boxes.shape)
+        boxes = np.concatenate(
+            [np.minimum(boxes[..., :2], boxes[..., 2:]), np.maximum(boxes[..., :2], boxes[..., 2:])], axis=-1
+        )
+
+    # Initial landmark (see module docstring).
+    dR = _so3_exp(rng.normal(scale=np.deg2rad(level["rot_deg"]), size=(n, 3)))
+    s0 = np.abs(s + rng.normal(size=(n, 3)) * s * level["scale"])
+    s0 = np.maximum(s0, 0.05 * s)  # keep a proper ellipsoid
+    t0 = t + rng.normal(scale=level["trans"], size=(n, 3))
+    initial = _from_axes(jnp.asarray(dR @ R), jnp.asarray(t0), jnp.asarray(s0))
+    return Scenes(truth, initial, poses, boxes, camera)
+
+
 def make_scene(
-    seed: int,
+    seed,
     noise: str = "M",
     angle_range_deg: float = 120.0,
     n_views: int = 10,
     box_noise: bool = True,
     camera: Camera = DEFAULT_CAMERA,
 ) -> Scene:
-    """One random object, its views, boxes (with the level's σ_b unless ``box_noise`` is
-    False) and a perturbed initial landmark."""
-    rng = np.random.default_rng(seed)
-    level = NOISE_LEVELS[noise]
-    truth = random_ellipsoid(rng)
-    poses = sample_views(truth.center, n_views, angle_range_deg, rng)
-    boxes = np.stack([np.asarray(project_box(truth, T, camera)) for T in poses])
-    if box_noise and level["box_px"] > 0:
-        boxes = boxes + rng.normal(scale=level["box_px"], size=boxes.shape)
-        boxes = np.concatenate(
-            [np.minimum(boxes[:, :2], boxes[:, 2:]), np.maximum(boxes[:, :2], boxes[:, 2:])], axis=1
-        )
-    initial = perturb_ellipsoid(truth, level["rot_deg"], level["trans"], level["scale"], rng)
-    return Scene(truth, initial, poses, boxes, camera)
+    """One scene (the first of ``make_scenes(seed, 1, ...)``)."""
+    return make_scenes(seed, 1, noise, angle_range_deg, n_views, box_noise, camera)[0]
