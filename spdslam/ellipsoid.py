@@ -247,7 +247,8 @@ class EllipsoidFull:
         Q = self.matrix()
         # A quadric with Q*₃₃ ≥ 0 has no finite centre; flip the overall sign rather than
         # divide by ~0 (the result is then clipped to an ellipsoid below).
-        q33 = jnp.where(jnp.abs(Q[3, 3]) > 1e-12, Q[3, 3], -1.0)
+        # (Relative to the scale of Q: Q* is homogeneous, any multiple of it is the same quadric.)
+        q33 = jnp.where(jnp.abs(Q[3, 3]) > 1e-12 * jnp.max(jnp.abs(Q)), Q[3, 3], -1.0)
         Q = Q / -q33
         t = -Q[:3, 3]
         w, V = jnp.linalg.eigh(sym(Q[:3, :3] + jnp.outer(t, t)))

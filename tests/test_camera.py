@@ -343,6 +343,9 @@ def test_jit_vmap_over_poses_and_cameras(gen):
     np.testing.assert_allclose(np.asarray(pl[2]), np.asarray(box_planes(want[2], poses[2], cams[2])), rtol=1e-10, atol=1e-12)
 
 
+_BOX_FN = None
+
+
 @pytest.mark.parametrize("kind", ["general", "sphere"])
 def test_box_derivatives_finite_and_correct(gen, kind):
     """d box / d (ellipsoid tangent, pose tangent): finite at spheres, = central differences."""
@@ -353,12 +356,57 @@ def test_box_derivatives_finite_and_correct(gen, kind):
     cam = gen.camera()
     T = gen.pose_looking_at(R, t, s)[0]
 
-    @jax.jit
-    def f(d):
+    def f(d, e, T, cam):
         return project_box(manifold.retract(e, d[:9]), manifold.retract(T, d[9:]), cam)
 
-    J = np.asarray(jax.jit(jax.jacfwd(f))(jnp.zeros(15)))
+    global _BOX_FN
+    if _BOX_FN is None:
+        _BOX_FN = jax.jit(f), jax.jit(jax.jacfwd(f))
+    fj, jac = _BOX_FN
+    J = np.asarray(jac(jnp.zeros(15), e, T, cam))
     assert np.all(np.isfinite(J))
     h = 1e-6
-    fd = np.stack([(np.asarray(f(h * u)) - np.asarray(f(-h * u))) / (2 * h) for u in np.eye(15)], axis=1)
+    fd = np.stack(
+        [(np.asarray(fj(h * u, e, T, cam)) - np.asarray(fj(-h * u, e, T, cam))) / (2 * h) for u in np.eye(15)],
+        axis=1,
+    )
     np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
+
+
+# --- look_at --------------------------------------------------------------------------
+
+
+def test_look_at(gen):
+    from spdslam.camera import look_at
+
+    cam = gen.camera()
+    # a worked example: at the origin looking north (+y) with z up, east (+x) is to the right
+    # of the image (u > cx) and up is upwards in the image (v < cy, image y points down)
+    T = look_at([0.0, 0.0, 0.0], [0.0, 5.0, 0.0], up=(0.0, 0.0, 1.0))
+    M = np.asarray(projection_matrix(T, cam))
+
+    def uv(X):
+        x = M @ np.r_[X, 1.0]
+        return x[:2] / x[2], x[2]
+
+    (u, v), z = uv(np.array([0.0, 5.0, 0.0]))
+    np.testing.assert_allclose([u, v], [cam.cx, cam.cy], atol=1e-9)
+    assert z > 0
+    assert uv(np.array([1.0, 5.0, 0.0]))[0][0] > cam.cx
+    assert uv(np.array([0.0, 5.0, 1.0]))[0][1] < cam.cy
+    for _ in range(10):
+        eye, target = gen.rng.normal(size=3) * 3, gen.rng.normal(size=3) * 3
+        up = gen.tangent_vec(1.0, 3)
+        T = look_at(eye, target, up=up)
+        R = np.asarray(T.rotation().as_matrix())
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(T.translation()), eye, atol=1e-14)
+        Xc = gen.world_to_camera(target[None], R, eye)[0]
+        np.testing.assert_allclose(Xc[:2], 0.0, atol=1e-9 * np.linalg.norm(Xc))
+        assert Xc[2] > 0
+        # the part of `up` orthogonal to the view direction points to image −y
+        f = (target - eye) / np.linalg.norm(target - eye)
+        up_perp = up - (up @ f) * f
+        assert gen.world_to_camera((target + 0.1 * up_perp)[None], R, eye)[0, 1] < 0
+        assert abs(gen.world_to_camera((target + 0.1 * up_perp)[None], R, eye)[0, 0]) < 1e-9

@@ -37,6 +37,17 @@ FUNCS = {
 SCALAR = {"sqrtm": np.sqrt, "invsqrtm": lambda w: w**-0.5, "expm": np.exp, "logm": np.log}
 
 
+# Jitted derivatives, compiled once per function for the whole module (eager jacfwd retraces
+# op by op and costs seconds on a small machine).
+JACFWD = {name: jax.jit(jax.jacfwd(f)) for name, (f, _, _) in FUNCS.items()}
+JACREV = {name: jax.jit(jax.jacrev(f)) for name, (f, _, _) in FUNCS.items()}
+_eigvals = lambda X: matfun.eigh(X)[0]  # noqa: E731
+EIG_JACFWD = jax.jit(jax.jacfwd(_eigvals))
+EIG_JACREV = jax.jit(jax.jacrev(_eigvals))
+EIGVEC_JACFWD = jax.jit(jax.jacfwd(lambda X: matfun.eigh(X)[1]))
+EIGH_JVP = jax.jit(lambda A, E: jax.jvp(matfun.eigh, (A,), (E,)))
+
+
 def _np_spectral(name):
     """A plain-numpy reference f(A) = V f(λ) Vᵀ, used for the many central-difference
     evaluations (scipy's logm is too slow for that; values are checked against scipy)."""
@@ -149,8 +160,8 @@ def test_jacobian_matches_central_difference(gen, name, kind):
     A = _matrix(gen, kind, pd)
     np.testing.assert_allclose(_np_spectral(name)(A), ref(A), rtol=1e-10, atol=1e-12)
     J_fd = _fd_jacobian(_np_spectral(name), A, _step(A))
-    J_fwd = np.asarray(jax.jacfwd(f)(jnp.asarray(A)))
-    J_rev = np.asarray(jax.jacrev(f)(jnp.asarray(A)))
+    J_fwd = np.asarray(JACFWD[name](jnp.asarray(A)))
+    J_rev = np.asarray(JACREV[name](jnp.asarray(A)))
     scale = np.abs(J_fd).max()
     assert np.all(np.isfinite(J_fwd)) and np.all(np.isfinite(J_rev))
     np.testing.assert_allclose(J_fwd, J_fd, atol=1e-6 * scale)
@@ -181,7 +192,7 @@ def test_jacobian_near_ties(gen, name, gap):
     R = gen.rotation()
     A = gen.spd_from(R, np.array([1.3, 1.3 * (1 + gap), 0.7]))
     J_fd = _fd_jacobian(_np_spectral(name), A, 1e-5)
-    J = np.asarray(jax.jacfwd(f)(jnp.asarray(A)))
+    J = np.asarray(JACFWD[name](jnp.asarray(A)))
     assert np.all(np.isfinite(J))
     np.testing.assert_allclose(J, J_fd, atol=1e-6 * np.abs(J_fd).max())
 
@@ -193,9 +204,10 @@ def test_gradient_of_scalar_loss_finite_at_sphere(gen):
         L = matfun.logm(P)
         return jnp.sum(L * L) + jnp.sum(matfun.sqrtm(P)) + jnp.trace(matfun.invsqrtm(P))
 
+    grad = jax.jit(jax.grad(loss))
     for c in (1.0, 2.5):
         P = c * jnp.eye(3)
-        g = np.asarray(jax.grad(loss)(P))
+        g = np.asarray(grad(P))
         assert np.all(np.isfinite(g))
         # analytic: d/dP [ ||log P||² + Σ sqrt(P)ᵢⱼ + tr P^-½ ] at c I
         ones = np.ones((3, 3))
@@ -232,9 +244,9 @@ def test_eigh_eigenvalue_jacobian_at_double_ties_equals_central_difference(gen):
     """At a double tie λ ± h·(μ₁, μ₂) the central difference is (μ₁ + μ₂)/2 for both tied
     eigenvalues, the mean derivative of the tie; the Jacobian must equal it."""
     for name, A in _double_ties(gen).items():
-        Jw = np.asarray(jax.jacfwd(lambda X: matfun.eigh(X)[0])(jnp.asarray(A)))
-        Jw_rev = np.asarray(jax.jacrev(lambda X: matfun.eigh(X)[0])(jnp.asarray(A)))
-        JV = np.asarray(jax.jacfwd(lambda X: matfun.eigh(X)[1])(jnp.asarray(A)))
+        Jw = np.asarray(EIG_JACFWD(jnp.asarray(A)))
+        Jw_rev = np.asarray(EIG_JACREV(jnp.asarray(A)))
+        JV = np.asarray(EIGVEC_JACFWD(jnp.asarray(A)))
         assert np.all(np.isfinite(Jw)) and np.all(np.isfinite(JV)), name
         # At a tie the second-order terms of the two tied eigenvalues swap between +h and
         # −h, so the central difference is only O(h) accurate there: small h, loose atol.
@@ -245,7 +257,7 @@ def test_eigh_eigenvalue_jacobian_at_double_ties_equals_central_difference(gen):
         # Along random symmetric directions too (not only the coordinate ones).
         for _ in range(3):
             E = gen.symmetric()
-            _, (dw, _) = jax.jvp(matfun.eigh, (jnp.asarray(A),), (jnp.asarray(E),))
+            _, (dw, _) = EIGH_JVP(jnp.asarray(A), jnp.asarray(E))
             fd = (np.linalg.eigvalsh(A + h * E) - np.linalg.eigvalsh(A - h * E)) / (2 * h)
             np.testing.assert_allclose(np.asarray(dw), fd, atol=1e-6, err_msg=name)
             # ... and it is the mean of the one-sided derivatives of the tied pair, which
@@ -267,8 +279,8 @@ def test_eigh_eigenvalue_jacobian_at_triple_tie(gen, c):
     (b) in directions whose μ are symmetric about their mean, the central difference is the
     mean itself and equals the Jacobian exactly."""
     A = c * np.eye(3)
-    Jw = np.asarray(jax.jacfwd(lambda X: matfun.eigh(X)[0])(jnp.asarray(A)))
-    Jw_rev = np.asarray(jax.jacrev(lambda X: matfun.eigh(X)[0])(jnp.asarray(A)))
+    Jw = np.asarray(EIG_JACFWD(jnp.asarray(A)))
+    Jw_rev = np.asarray(EIG_JACREV(jnp.asarray(A)))
     assert np.all(np.isfinite(Jw)) and np.all(np.isfinite(Jw_rev))
     J_fd = _fd_jacobian(np.linalg.eigvalsh, A, 1e-5)
     np.testing.assert_allclose(Jw, np.broadcast_to(J_fd.mean(axis=0), Jw.shape), atol=1e-8)
@@ -277,7 +289,7 @@ def test_eigh_eigenvalue_jacobian_at_triple_tie(gen, c):
     for _ in range(3):
         m, d = gen.rng.normal(size=2)
         E = gen.spd_from(gen.rotation(), np.array([m - d, m, m + d]))
-        _, (dw, _) = jax.jvp(matfun.eigh, (jnp.asarray(A),), (jnp.asarray(E),))
+        _, (dw, _) = EIGH_JVP(jnp.asarray(A), jnp.asarray(E))
         fd = (np.linalg.eigvalsh(A + h * E) - np.linalg.eigvalsh(A - h * E)) / (2 * h)
         np.testing.assert_allclose(fd, np.full(3, m), atol=1e-8)  # the premise
         np.testing.assert_allclose(np.asarray(dw), fd, atol=1e-8)
@@ -286,14 +298,14 @@ def test_eigh_eigenvalue_jacobian_at_triple_tie(gen, c):
 def test_eigh_tie_derivative_is_mean_of_block(gen):
     """Hand-computed: at c·I the tied eigenvalues all move by tr(E)/3."""
     E = gen.symmetric()
-    _, (dw, _) = jax.jvp(matfun.eigh, (2.0 * jnp.eye(3),), (jnp.asarray(E),))
+    _, (dw, _) = EIGH_JVP(2.0 * jnp.eye(3), jnp.asarray(E))
     np.testing.assert_allclose(np.asarray(dw), np.full(3, np.trace(E) / 3), atol=1e-14)
 
 
 def test_eigh_jacobian_distinct_eigenvalues(gen):
     A = gen.spd("general")
     E = gen.symmetric()
-    (w, V), (dw, dV) = jax.jvp(matfun.eigh, (jnp.asarray(A),), (jnp.asarray(E),))
+    (w, V), (dw, dV) = EIGH_JVP(jnp.asarray(A), jnp.asarray(E))
     h = 1e-6
     wp, Vp = np.linalg.eigh(A + h * E)
     wm, Vm = np.linalg.eigh(A - h * E)
@@ -318,7 +330,6 @@ def test_batch_vmap_jit_and_input_types(gen, name):
         f(As),  # numpy, batched (leading axis)
         f(jnp.asarray(As)),
         jax.vmap(f)(jnp.asarray(As)),
-        jax.jit(f)(As),
         jax.jit(jax.vmap(f))(As),
         np.stack([f(A) for A in As]),
         np.stack([f(A.tolist()) for A in As]),
@@ -331,7 +342,7 @@ def test_batch_vmap_jit_and_input_types(gen, name):
     # derivatives under vmap and jit
     J = jax.jit(jax.vmap(jax.jacfwd(f)))(As)
     assert J.shape == (5, 3, 3, 3, 3) and np.all(np.isfinite(np.asarray(J)))
-    np.testing.assert_allclose(np.asarray(J[1]), np.asarray(jax.jacfwd(f)(As[1])), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(J[1]), np.asarray(JACFWD[name](As[1])), atol=1e-12)
 
 
 def test_eigh_batched(gen):
@@ -340,5 +351,5 @@ def test_eigh_batched(gen):
     np.testing.assert_allclose(np.asarray(w), np.linalg.eigvalsh(As), rtol=1e-12, atol=1e-14)
     wv, _ = jax.vmap(matfun.eigh)(jnp.asarray(As))
     np.testing.assert_allclose(np.asarray(wv), np.asarray(w), atol=1e-14)
-    Jw = jax.vmap(jax.jacfwd(lambda X: matfun.eigh(X)[0]))(jnp.asarray(As))
+    Jw = jax.jit(jax.vmap(EIG_JACFWD))(jnp.asarray(As))
     assert np.all(np.isfinite(np.asarray(Jw)))

@@ -271,18 +271,22 @@ def test_gradients_finite_and_correct(gen, kind):
     """d/dc of a loss through retract_vec/local_vec at c = 0 (what the solver differentiates),
     at spheres and the identity too: finite and equal to central differences."""
     P, Q = gen.spd(kind), gen.spd("general")
-
-    def loss(c):
-        X = spd.retract_vec(P, c)
-        return jnp.sum(spd.local_vec(Q, X) ** 2)
-
     c0 = np.zeros(6)
-    g = np.asarray(jax.grad(loss)(c0))
-    J = np.asarray(jax.jacfwd(lambda c: spd.local_vec(Q, spd.retract_vec(P, c)))(c0))
+    g = np.asarray(_GRAD(c0, P, Q))
+    J = np.asarray(_JAC(c0, P, Q))
     assert np.all(np.isfinite(g)) and np.all(np.isfinite(J))
     h = 1e-6
-    g_fd = np.array([(float(loss(h * e)) - float(loss(-h * e))) / (2 * h) for e in np.eye(6)])
+    g_fd = np.array([(float(_LOSS(h * e, P, Q)) - float(_LOSS(-h * e, P, Q))) / (2 * h) for e in np.eye(6)])
     np.testing.assert_allclose(g, g_fd, rtol=1e-6, atol=1e-7)
     # at P itself the Jacobian of local(P, retract(P, c)) is the identity
-    J0 = np.asarray(jax.jacfwd(lambda c: spd.local_vec(P, spd.retract_vec(P, c)))(c0))
+    J0 = np.asarray(_JAC(c0, P, P))
     np.testing.assert_allclose(J0, np.eye(6), atol=1e-10)
+
+
+def _residual(c, P, Q):
+    return spd.local_vec(Q, spd.retract_vec(P, c))
+
+
+_LOSS = jax.jit(lambda c, P, Q: jnp.sum(_residual(c, P, Q) ** 2))
+_GRAD = jax.jit(jax.grad(lambda c, P, Q: jnp.sum(_residual(c, P, Q) ** 2)))
+_JAC = jax.jit(jax.jacfwd(_residual))

@@ -56,8 +56,8 @@ class PoseGraph:
     has_vertices: bool = False
 
 
-def rpy_to_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """(w, x, y, z) of Rz(yaw) Ry(pitch) Rx(roll)."""
+def rpy_to_quaternion(roll, pitch, yaw) -> np.ndarray:
+    """(w, x, y, z) of Rz(yaw) Ry(pitch) Rx(roll) (stacked on the first axis for arrays)."""
     cr, sr = np.cos(0.5 * roll), np.sin(0.5 * roll)
     cp, sp = np.cos(0.5 * pitch), np.sin(0.5 * pitch)
     cy, sy = np.cos(0.5 * yaw), np.sin(0.5 * yaw)
@@ -71,12 +71,6 @@ def rpy_to_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
     )
 
 
-def _se3(wxyz, xyz) -> jaxlie.SE3:
-    q = np.asarray(wxyz, dtype=float)
-    q = q / np.linalg.norm(q)
-    return jaxlie.SE3(np.concatenate([q, np.asarray(xyz, dtype=float)]))
-
-
 # tag: (number of numbers after the tag, description)
 _LAYOUT = {
     "VERTEX3": (7, "id x y z roll pitch yaw"),
@@ -87,15 +81,24 @@ _LAYOUT = {
 
 
 def _upper_to_info(vals) -> np.ndarray:
-    M = np.zeros((6, 6))
-    M[_IU] = vals
-    return M + np.triu(M, 1).T
+    """(…, 21) upper-triangle rows → (…, 6, 6) symmetric matrices."""
+    vals = np.asarray(vals, dtype=float)
+    M = np.zeros(vals.shape[:-1] + (6, 6))
+    M[..., _IU[0], _IU[1]] = vals
+    M[..., _IU[1], _IU[0]] = vals
+    return M
+
+
+def _rpy_quaternions(rpy: np.ndarray) -> np.ndarray:
+    """(n, 3) roll, pitch, yaw → (n, 4) (w, x, y, z) of Rz(yaw) Ry(pitch) Rx(roll)."""
+    return rpy_to_quaternion(rpy[:, 0], rpy[:, 1], rpy[:, 2]).T.reshape(-1, 4)
 
 
 def parse_g2o(text: str, name: str = "<string>") -> PoseGraph:
     """Parse the contents of a pose-graph file (see the module docstring)."""
-    vertices: dict[int, jaxlie.SE3] = {}
-    edges: list[Edge] = []
+    # rows: (line number, tag, ids, numbers); the geometry is then converted in bulk
+    rows: dict[str, list] = {tag: [] for tag in _LAYOUT}
+    order: list[tuple[str, int]] = []  # edges in file order: (tag, row)
     fixed: list[int] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         tok = line.split()
@@ -123,34 +126,85 @@ def parse_g2o(text: str, name: str = "<string>") -> PoseGraph:
         try:
             ids = [int(t) for t in tok[1 : 1 + nid]]
         except ValueError:
-            raise ValueError(f"{where}: expected integer ids in {tag}, got {tok[1:1 + nid]}") from None
+            raise ValueError(
+                f"{where}: expected integer ids after {tag}, got {' '.join(tok[1:1 + nid])}"
+            ) from None
         try:
-            num = np.array([float(t) for t in tok[1 + nid :]])
+            num = [float(t) for t in tok[1 + nid :]]
         except ValueError:
             raise ValueError(f"{where}: expected numbers after the ids of {tag}") from None
         if not np.all(np.isfinite(num)):
             raise ValueError(f"{where}: expected finite numbers in {tag}")
+        if not tag.startswith("VERTEX"):
+            order.append((tag, len(rows[tag])))
+        rows[tag].append((lineno, ids, num))
+
+    def poses_of(tag):
+        """(line numbers, ids (n, k), SE3 wxyz_xyz (n, 7), numbers (n, c)) of one tag."""
+        r = rows[tag]
+        count = _LAYOUT[tag][0]
+        k = 1 if tag.startswith("VERTEX") else 2
+        lines = np.array([x[0] for x in r], dtype=int)
+        ids = np.array([x[1] for x in r], dtype=int).reshape(len(r), k)
+        num = np.array([x[2] for x in r], dtype=float).reshape(len(r), count - k)
         if tag in ("VERTEX3", "EDGE3"):
-            pose = _se3(rpy_to_quaternion(*num[3:6]), num[:3])
+            q = _rpy_quaternions(num[:, 3:6])
         else:
-            q = num[3:7]
-            if np.linalg.norm(q) < 1e-12:
-                raise ValueError(f"{where}: expected a non-zero quaternion qx qy qz qw")
-            pose = _se3([q[3], q[0], q[1], q[2]], num[:3])
-        if tag.startswith("VERTEX"):
-            vertices[ids[0]] = pose
+            q = num[:, [6, 3, 4, 5]]  # (qw, qx, qy, qz)
+            norm = np.linalg.norm(q, axis=1)
+            if np.any(norm < 1e-12):
+                bad = int(lines[np.argmax(norm < 1e-12)])
+                raise ValueError(f"{name}:{bad}: expected a non-zero quaternion qx qy qz qw")
+            q = q / norm[:, None]
+        return lines, ids, np.concatenate([q, num[:, :3]], axis=1), num
+
+    vertices: dict[int, jaxlie.SE3] = {}
+    for tag in ("VERTEX3", "VERTEX_SE3:QUAT"):
+        if rows[tag]:
+            _, ids, wxyz_xyz, _ = poses_of(tag)
+            for i, p in zip(ids[:, 0].tolist(), wxyz_xyz):
+                vertices[i] = jaxlie.SE3(p)
+
+    built: dict[str, Any] = {}
+    for tag in ("EDGE3", "EDGE_SE3:QUAT"):
+        if not rows[tag]:
             continue
-        info = _upper_to_info(num[-21:])
-        if tag == "EDGE3":  # gtsam reads it in (ω, v) order
-            info = info[np.ix_(SWAP_ROT_TRANS, SWAP_ROT_TRANS)]
-        if np.any(np.linalg.eigvalsh(info) <= 0):
-            raise ValueError(f"{where}: expected a positive definite information matrix")
-        edges.append(Edge(ids[0], ids[1], pose, info))
+        lines, ids, wxyz_xyz, num = poses_of(tag)
+        info = _upper_to_info(num[:, -21:])
+        if tag == "EDGE3":  # gtsam reads TORO information in (ω, v) order
+            info = info[:, SWAP_ROT_TRANS][:, :, SWAP_ROT_TRANS]
+        ok = np.linalg.eigvalsh(info)[:, 0] > 0
+        if not ok.all():
+            bad = int(lines[np.argmin(ok)])
+            raise ValueError(f"{name}:{bad}: expected a positive definite information matrix")
+        built[tag] = (ids.tolist(), wxyz_xyz, info)
+    edges = []
+    for tag, r in order:
+        ids, wxyz_xyz, info = built[tag]
+        edges.append(Edge(ids[r][0], ids[r][1], jaxlie.SE3(wxyz_xyz[r]), info[r]))
 
     poses = dict(vertices)
     if not vertices and edges:
         poses = _odometry_chain(edges, name)
     return PoseGraph(poses, edges, fixed, name, bool(vertices))
+
+
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+def _qrot(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """R(q) v."""
+    w, u = q[0], q[1:]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
 def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
@@ -160,19 +214,19 @@ def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
     for e in edges:
         ids.update((e.i, e.j))
         if e.j == e.i + 1 and e.i not in odo:
-            odo[e.i] = np.asarray(e.measured.as_matrix())
+            odo[e.i] = np.asarray(e.measured.wxyz_xyz, dtype=float)
     first, last = min(ids), max(ids)
-    T = np.eye(4)
-    poses = {first: jaxlie.SE3.identity()}
-    mats = [T]
+    q, t = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
+    poses = {first: jaxlie.SE3(np.concatenate([q, t]))}
     for i in range(first, last):
         if i not in odo:
             raise ValueError(f"{name}: no vertices, and no odometry edge {i} -> {i + 1} "
                              "to build the initial poses from")
-        T = T @ odo[i]
-        mats.append(T)
-    wxyz_xyz = np.asarray(jaxlie.SE3.from_matrix(np.stack(mats)).wxyz_xyz)
-    return {first + k: jaxlie.SE3(wxyz_xyz[k]) for k in range(len(mats))}
+        m = odo[i]
+        q, t = _qmul(q, m[:4]), t + _qrot(q, m[4:])
+        q = q / np.linalg.norm(q)
+        poses[i + 1] = jaxlie.SE3(np.concatenate([q, t]))
+    return poses
 
 
 def read_g2o(path: str | os.PathLike) -> PoseGraph:

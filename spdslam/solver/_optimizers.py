@@ -196,9 +196,8 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
     def linearize(x):
         t = tick()
         h, g, c, valid, finite = problem.linearize(x)
-        h, g, c = np.asarray(h), np.asarray(g), float(c)
         timings["linearize"] += tick() - t
-        return h, g, c, valid, bool(finite) and np.isfinite(c)
+        return h, g, c, valid, finite and np.isfinite(c)
 
     x = problem.vars
     h, g, cost, valid, finite = linearize(x)

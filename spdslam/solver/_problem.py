@@ -13,14 +13,19 @@ Layout (built once per call to the optimiser, in ``Problem.__init__``):
 - H = JᵀJ is stored as the lower triangle of a symmetric CSC matrix whose pattern, and the
   slot of every per-factor contribution in it, are computed here once.
 
-Linearisation of a group is one vmapped call: for each factor,
+Linearisation of a group is one vmapped computation: for each factor,
 
     r̃(δ) = W r(x₁ ⊞ δ₁, …, x_k ⊞ δ_k, args),   J = ∂r̃/∂δ |_{δ=0}  (jax.jacfwd),
 
 with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. The whole
-problem (all groups, plus the scatter of JᵀJ and Jᵀr̃ into their slots) is one jitted call;
-the compiled functions are cached on the static structure (residual functions, types, data
-tree structures), so the same structure with new data or sizes reuses them.
+problem (all groups, plus the scatter of JᵀJ and Jᵀr̃ into their slots) is one jitted call.
+
+Compilation. The jitted functions are cached on the static structure (residual functions,
+variable types, data tree structures, kernels) and JAX caches them per array shape. To keep
+the number of shapes small, every count (variables per type, factors per group, n, nnz) is
+padded up to a ``bucket`` (2ᵏ·{1, 1.25, 1.5, 1.75}): pad variables repeat row 0 and are held
+fixed, pad factors repeat factor 0 with zero weight and scatter into a discarded slot. A graph
+that grows by a few factors therefore usually reuses the compiled code.
 """
 
 from __future__ import annotations
@@ -35,7 +40,20 @@ import numpy as np
 from .. import manifold
 from ..factors._base import RobustKernel
 
-__all__ = ["Problem"]
+__all__ = ["Problem", "bucket", "CHUNK"]
+
+#: Factors are linearised in chunks of about CHUNK // D factors (lax.map over vmapped
+#: chunks): the intermediates of forward-mode differentiation then stay in cache, which on
+#: CPU is several times faster than one vmap over all factors of a group.
+CHUNK = 256
+
+
+def bucket(x: int, minimum: int = 8) -> int:
+    """The smallest of 2ᵏ·{1, 1.25, 1.5, 1.75} that is ≥ max(x, minimum)."""
+    x = max(int(x), minimum)
+    k = max(int(np.floor(np.log2(x))) - 2, 0)
+    step = 1 << k
+    return -(-x // step) * step
 
 
 @dataclass(frozen=True)
@@ -49,7 +67,7 @@ class _TypeSpec:
 
 @dataclass(frozen=True)
 class _GroupSpec:
-    """Static description of one factor group (hashable: the cache key of its kernels)."""
+    """Static description of one factor group (hashable: part of the kernels' cache key)."""
 
     residual: Callable
     var_types: tuple[int, ...]
@@ -79,6 +97,13 @@ def _describe(f, fi) -> str:
     return f"factor #{fi} ({f.kind}, keys {tuple(f.keys)!r})"
 
 
+def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
+    """Append copies of row 0 up to ``total`` rows."""
+    if len(a) == total:
+        return a
+    return np.concatenate([a, np.repeat(a[:1], total - len(a), axis=0)])
+
+
 # ------------------------------------------------------------------------------------------
 # Kernels: pure functions of stacked arrays, cached on the static structure.
 # ------------------------------------------------------------------------------------------
@@ -88,13 +113,7 @@ def _gather(tree, idx):
     return jax.tree.map(lambda a: a[idx], tree)
 
 
-#: Factors are linearised in chunks of about CHUNK // D factors (lax.map over vmapped
-#: chunks): the intermediates of forward-mode differentiation then stay in cache, which on
-#: CPU is several times faster than one vmap over all factors of a group.
-CHUNK = 256
-
-
-def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
+def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
     """Per-factor terms of one group, mapped over its factors in chunks.
 
     mode "cost":   (½ρ(s) (nf,), valid, finite)
@@ -103,8 +122,9 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
     mode "terms":  (r (nf, m), J (nf, m, D), ½ρ(s), valid, finite)
 
     r and J are whitened and IRLS-weighted: r ← √ρ'(s) W r, J ← √ρ'(s) W ∂r/∂δ, s = ‖W r‖².
-    ``valid`` is None when the group has no validity function.
+    ½ρ(s) is zero on pad rows. ``valid`` is None when the group has no validity function.
     """
+    idx, mask = gidx
     leaves, W = data
     args = jax.tree.unflatten(spec.args_treedef, leaves)
     xs = [_gather(vars_[t], idx[:, p]) for p, t in enumerate(spec.var_types)]
@@ -118,7 +138,7 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
         return r if Wi is None else Wi @ r
 
     def one(item):
-        xs_i, args_i, W_i = item
+        xs_i, args_i, W_i, mask_i = item
         if mode == "cost":
             r = whiten(spec.residual(*xs_i, *args_i), W_i)
             J = None
@@ -144,6 +164,7 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
                 r, J = sw * r, sw * J
         else:
             half_rho = 0.5 * s
+        half_rho = jnp.where(mask_i, half_rho, 0.0)
         valid = (
             jnp.asarray(spec.valid(*xs_i, *args_i), bool) if spec.valid is not None else None
         )
@@ -158,27 +179,31 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, idx, data, mode: str):
         return JtJ, Jtr, half_rho, valid, finite
 
     nf = idx.shape[0]
-    batch = max(1, min(nf, CHUNK // max(D, 1)))
-    return jax.lax.map(one, (xs, args, W), batch_size=batch)
+    batch = _chunk(nf, D)
+    if batch >= nf:
+        return jax.vmap(one)((xs, args, W, mask))
+    return jax.lax.map(one, (xs, args, W, mask), batch_size=batch)
 
 
-def _group_terms(spec: _GroupSpec, tspecs, vars_, idx, data, jac: bool):
-    """(r, J or None, cost, valid, finite) of one group (see ``_group_map``)."""
-    if jac:
-        r, J, hr, valid, finite = _group_map(spec, tspecs, vars_, idx, data, "terms")
-    else:
-        hr, valid, finite = _group_map(spec, tspecs, vars_, idx, data, "cost")
-        r = J = None
-    return r, J, jnp.sum(hr), valid, finite
+def _chunk(nf: int, D: int) -> int:
+    """Chunk size: the largest power of two ≤ CHUNK/D dividing nf (nf is a bucket size,
+    so this leaves no remainder), or nf itself when nf ≤ CHUNK/D."""
+    target = max(1, CHUNK // max(D, 1))
+    if nf <= target:
+        return nf
+    b = 1
+    while b * 2 <= target and nf % (b * 2) == 0:
+        b *= 2
+    return b
 
 
-def _retract_all(tspecs, vars_, delta, tan_idx, free):
-    """x ⊞ δ for every free variable, then the type's ``regularize`` (fixed rows unchanged)."""
-    dext = jnp.concatenate([delta, jnp.zeros(1, delta.dtype)])
+def _retract_all(tspecs, vars_, deltas, free):
+    """x ⊞ δ for every free variable, then the type's ``regularize`` (other rows unchanged).
+    ``deltas``: per type, (rows, tangent dim)."""
     out = []
-    for ts, x, ti, fr in zip(tspecs, vars_, tan_idx, free):
+    for ts, x, d, fr in zip(tspecs, vars_, deltas, free):
         op = manifold.ops(ts.cls)
-        y = jax.vmap(op.retract)(x, dext[ti])
+        y = jax.vmap(op.retract)(x, d)
         if op.regularize is not None:
             y = jax.vmap(op.regularize)(y)
         y = jax.tree.map(
@@ -188,7 +213,16 @@ def _retract_all(tspecs, vars_, delta, tan_idx, free):
     return tuple(out)
 
 
+def split_delta(delta, tan_idx):
+    """Per-type (rows, dim) blocks of δ; ``tan_idx`` rows of non-free variables point past
+    the end of δ and get zeros. Works on numpy and JAX arrays."""
+    xp = jnp if isinstance(delta, jax.Array) else np
+    dext = xp.concatenate([delta, xp.zeros(1, delta.dtype)])
+    return tuple(dext[ti] for ti in tan_idx)
+
+
 def _violates(valid_cur, valid_new):
+    """True if a factor valid in ``valid_cur`` is invalid in ``valid_new``."""
     bad = jnp.zeros((), bool)
     for vc, vn in zip(valid_cur, valid_new):
         if vc is not None:
@@ -197,10 +231,12 @@ def _violates(valid_cur, valid_new):
 
 
 class _Kernels:
-    """Jitted functions of one static structure."""
+    """The functions of one static structure: plain (``*_fn``, for use inside other traced
+    code such as the batched solver) and jitted."""
 
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
+
         def evaluate(vars_, gdata, gidx):
             cost, valids = jnp.zeros(()), []
             for spec, d, ix in zip(gspecs, gdata, gidx):
@@ -208,16 +244,13 @@ class _Kernels:
                 cost, valids = cost + jnp.sum(hr), valids + [v]
             return cost, tuple(valids)
 
-        def linearize_sparse(vars_, gdata, gidx, hslots, gslots, nnz, n):
-            h = jnp.zeros(nnz + 1)
-            g = jnp.zeros(n + 1)
-            cost, valids, finite = jnp.zeros(()), [], jnp.ones((), bool)
-            for spec, d, ix, hs, gs in zip(gspecs, gdata, gidx, hslots, gslots):
+        def linearize_sparse(vars_, gdata, gidx):
+            terms, cost, valids, finite = [], jnp.zeros(()), [], jnp.ones((), bool)
+            for spec, d, ix in zip(gspecs, gdata, gidx):
                 hc, gc, hr, v, fin = _group_map(spec, tspecs, vars_, ix, d, "sparse")
-                h = h.at[hs.ravel()].add(hc.ravel())
-                g = g.at[gs.ravel()].add(gc.ravel())
+                terms.append((hc, gc))
                 cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
-            return h[:nnz], g[:n], cost, tuple(valids), finite
+            return tuple(terms), cost, tuple(valids), finite
 
         def linearize_dense(vars_, gdata, gidx, gcols, n):
             H = jnp.zeros((n + 1, n + 1))
@@ -230,25 +263,21 @@ class _Kernels:
                 cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
             return H[:n, :n], g[:n], cost, tuple(valids), finite
 
-        def step(vars_, delta, tan_idx, free, gdata, gidx, valid_cur):
-            new = _retract_all(tspecs, vars_, delta, tan_idx, free)
+        def step(vars_, deltas, free, gdata, gidx, valid_cur):
+            new = _retract_all(tspecs, vars_, deltas, free)
             cost, valid_new = evaluate(new, gdata, gidx)
             return new, cost, _violates(valid_cur, valid_new)
 
-        def group_terms(k, vars_, data, idx):
-            r, J, c, v, fin = _group_terms(gspecs[k], tspecs, vars_, idx, data, jac=True)
+        def group_terms(k, vars_, data, gidx):
+            r, J, _, _, fin = _group_map(gspecs[k], tspecs, vars_, gidx, data, "terms")
             return r, J, fin
 
         self.evaluate_fn = evaluate
         self.linearize_dense_fn = linearize_dense
-        self.retract_fn = lambda vars_, delta, tan_idx, free: _retract_all(
-            tspecs, vars_, delta, tan_idx, free
-        )
         self.evaluate = jax.jit(evaluate)
-        self.linearize_sparse = jax.jit(linearize_sparse, static_argnames=("nnz", "n"))
+        self.linearize_sparse = jax.jit(linearize_sparse)
         self.linearize_dense = jax.jit(linearize_dense, static_argnames=("n",))
         self.step = jax.jit(step)
-        self.retract = jax.jit(self.retract_fn)
         self.group_terms = jax.jit(group_terms, static_argnums=0)
 
 
@@ -256,6 +285,7 @@ _KERNELS: dict[Any, _Kernels] = {}
 
 
 def kernels(tspecs, gspecs) -> _Kernels:
+    """The (cached) kernels of a static structure."""
     key = (tspecs, gspecs)
     k = _KERNELS.get(key)
     if k is None:
@@ -272,7 +302,10 @@ class Problem:
     """A factor graph with values, laid out for the solver (see the module docstring).
 
     ``fixed`` keys keep their values and have no tangent coordinates; so do keys that are
-    in ``values`` but touched by no factor.
+    in ``values`` but touched by no factor (they are left out of the problem).
+
+    Attributes used by the optimisers: ``n`` (tangent dimension) and ``n_pad``; ``vars``
+    (per type, stacked and padded); ``linearize``, ``step``, ``cost``, ``to_values``.
     """
 
     def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
@@ -352,12 +385,15 @@ class Problem:
             _TypeSpec(c, td, manifold.tangent_dim(c)) for c, td in zip(t_cls, t_treedef)
         )
         self.type_keys = t_keys
+        self.nv = [len(keys) for keys in t_keys]
+        nv_pad = [bucket(nv) for nv in self.nv]
         self.vars = tuple(
             jax.tree.unflatten(
-                td, [jnp.asarray(np.stack([np.asarray(lv[j]) for lv in leaves]))
-                     for j in range(td.num_leaves)]
+                td,
+                [jnp.asarray(_pad_rows(np.stack([np.asarray(lv[j]) for lv in leaves]), npad))
+                 for j in range(td.num_leaves)],
             )
-            for td, leaves in zip(t_treedef, t_leaves)
+            for td, leaves, npad in zip(t_treedef, t_leaves, nv_pad)
         )
         self.free = [np.array([k not in fixed for k in keys], bool) for keys in t_keys]
         offsets = []
@@ -369,20 +405,28 @@ class Problem:
             offsets.append(off)
         self.offsets = offsets
         self.n = n
+        self.n_pad = bucket(n)
         if check_free and n == 0:
             raise ValueError(
                 "the graph has no free variables (every key it touches is fixed)"
                 if factors else "the graph has no factors"
             )
-        self.tan_idx = tuple(
-            jnp.asarray(np.where(off[:, None] >= 0, off[:, None] + np.arange(ts.dim), n),
-                        dtype=jnp.int32)
-            for ts, off in zip(self.tspecs, offsets)
-        )
-        self.free_j = tuple(jnp.asarray(fr) for fr in self.free)
+        # tangent index of each coordinate of each (padded) variable row; rows without
+        # tangent coordinates point past the end: n for δ ∈ Rⁿ on the host, n_pad in JAX.
+        self.tan_idx, tan_idx_pad, free_j = [], [], []
+        for ts, off, npad in zip(self.tspecs, offsets, nv_pad):
+            off = np.concatenate([off, np.full(npad - len(off), -1)])
+            ti = off[:, None] + np.arange(ts.dim)
+            self.tan_idx.append(np.where(off[:, None] >= 0, ti, n))
+            tan_idx_pad.append(jnp.asarray(np.where(off[:, None] >= 0, ti, self.n_pad),
+                                           dtype=jnp.int32))
+            free_j.append(jnp.asarray(off >= 0))
+        self.tan_idx_pad = tuple(tan_idx_pad)
+        self.free_j = tuple(free_j)
 
         # --- factor groups -------------------------------------------------------------
-        gspecs, gdata, gidx, self.group_fids, self.group_cols = [], [], [], [], []
+        gspecs, gdata, gidx = [], [], []
+        self.group_fids, self.group_cols, self.group_nf = [], [], []
         for gb in groups.values():
             f0 = factors[gb.first]
             ex_vals = [values[k] for k in f0.keys]
@@ -406,11 +450,14 @@ class Problem:
                 robust=f0.robust,
                 valid=f0.valid,
             )
-            idx = np.asarray(gb.idx, np.int32).reshape(len(gb.fids), len(var_types))
-            leaves = [jnp.asarray(np.stack([a[j] for a in gb.args]))
+            nf = len(gb.fids)
+            nf_pad = bucket(nf)
+            idx = np.asarray(gb.idx, np.int32).reshape(nf, len(var_types))
+            leaves = [jnp.asarray(_pad_rows(np.stack([a[j] for a in gb.args]), nf_pad))
                       for j in range(len(gb.sig[3]))]
-            W = jnp.asarray(np.stack(gb.W)) if spec.has_sqrt_info else None
-            # global tangent index of each local coordinate, n where fixed
+            W = jnp.asarray(_pad_rows(np.stack(gb.W), nf_pad)) if spec.has_sqrt_info else None
+            mask = np.arange(nf_pad) < nf
+            # global tangent index of each local coordinate, -1 where fixed
             cols = []
             for p, t in enumerate(var_types):
                 off = offsets[t][idx[:, p]]
@@ -419,9 +466,10 @@ class Problem:
             G = np.concatenate(cols, axis=1)
             gspecs.append(spec)
             gdata.append((leaves, W))
-            gidx.append(jnp.asarray(idx))
+            gidx.append((jnp.asarray(_pad_rows(idx, nf_pad)), jnp.asarray(mask)))
             self.group_fids.append(np.asarray(gb.fids))
             self.group_cols.append(G)
+            self.group_nf.append(nf)
         self.gspecs = tuple(gspecs)
         self.gdata = tuple(gdata)
         self.gidx = tuple(gidx)
@@ -429,9 +477,22 @@ class Problem:
         self._sparse = None
         self._dense_cols = None
 
-    # --- pattern -----------------------------------------------------------------------
-    def sparse_pattern(self):
-        """(indptr, indices, diag_slots, hslots, gslots) of the lower-triangular CSC H."""
+    # --- index maps --------------------------------------------------------------------
+    def _pad_index(self, a: np.ndarray, k: int, trash: int) -> np.ndarray:
+        """Pad a per-factor index array of group k to its padded length with ``trash``."""
+        nf_pad = self.gidx[k][0].shape[0]
+        out = np.full((nf_pad,) + a.shape[1:], trash, dtype=np.int64)
+        out[: len(a)] = a
+        return out
+
+    def sparse_pattern(self) -> dict:
+        """The lower-triangular CSC pattern of H and the slot of every contribution.
+
+        nnz; indptr, indices (CSC, int32); rows, cols (of each stored entry); diag (slot of
+        each diagonal entry); hslots (per group, flat (nf_pad·D(D+1)/2,): slot of each
+        upper-triangle entry of each factor's JᵀJ, nnz where discarded); gslots (per group,
+        flat (nf_pad·D,): tangent index of each coordinate, n where discarded).
+        """
         if self._sparse is None:
             n = self.n
             codes = []
@@ -445,13 +506,15 @@ class Problem:
             uniq = np.unique(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
             nnz = len(uniq)
             hslots = []
-            for c in codes:
+            for k, c in enumerate(codes):
                 s = np.searchsorted(uniq, c)
                 s[c < 0] = nnz
-                hslots.append(jnp.asarray(s, dtype=jnp.int32))
-            gslots = tuple(jnp.asarray(np.where(G >= 0, G, n), dtype=jnp.int32)
-                           for G in self.group_cols)
-            cols, rows = np.divmod(uniq, n)
+                hslots.append(self._pad_index(s, k, nnz).ravel())
+            gslots = tuple(
+                self._pad_index(np.where(G >= 0, G, n), k, n).ravel()
+                for k, G in enumerate(self.group_cols)
+            )
+            cols, rows = np.divmod(uniq, n) if n else (uniq, uniq)
             indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
             self._sparse = dict(
                 nnz=nnz,
@@ -466,38 +529,51 @@ class Problem:
         return self._sparse
 
     def dense_cols(self):
-        """Per group (nf, D) global tangent indices, n for fixed coordinates."""
+        """Per group (nf_pad, D) global tangent indices, n_pad where discarded."""
         if self._dense_cols is None:
             self._dense_cols = tuple(
-                jnp.asarray(np.where(G >= 0, G, self.n), dtype=jnp.int32)
-                for G in self.group_cols
+                jnp.asarray(self._pad_index(np.where(G >= 0, G, self.n_pad), k, self.n_pad),
+                            dtype=jnp.int32)
+                for k, G in enumerate(self.group_cols)
             )
         return self._dense_cols
 
+    def pad_diagonal(self):
+        """(n_pad,): 1 on the pad coordinates of the dense H (keeps it positive definite)."""
+        return jnp.asarray(np.arange(self.n_pad) >= self.n, dtype=float)
+
     # --- evaluation --------------------------------------------------------------------
     def cost(self, vars_=None) -> float:
+        """F(x) = Σ ½ρ(‖W r‖²)."""
         vars_ = self.vars if vars_ is None else vars_
         c, _ = self.kernels.evaluate(vars_, self.gdata, self.gidx)
         return float(c)
 
     def linearize(self, vars_):
-        """(H lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, all finite)."""
+        """(H: lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, whether all
+        residuals and Jacobians are finite). H and g are numpy arrays, summed here from the
+        per-factor JᵀJ and Jᵀr (so compiled code depends on the counts of factors and
+        variables only, not on n or nnz)."""
         sp = self.sparse_pattern()
-        return self.kernels.linearize_sparse(
-            vars_, self.gdata, self.gidx, sp["hslots"], sp["gslots"], nnz=sp["nnz"], n=self.n
-        )
+        terms, cost, valids, finite = self.kernels.linearize_sparse(vars_, self.gdata, self.gidx)
+        h = np.zeros(sp["nnz"] + 1)
+        g = np.zeros(self.n + 1)
+        for (hc, gc), hs, gs in zip(terms, sp["hslots"], sp["gslots"]):
+            h += np.bincount(hs, weights=np.asarray(hc).ravel(), minlength=len(h))
+            g += np.bincount(gs, weights=np.asarray(gc).ravel(), minlength=len(g))
+        return h[:-1], g[:-1], float(cost), valids, bool(finite)
 
     def step(self, vars_, delta, valid_cur):
-        """(x ⊞ δ regularised, its cost, whether a valid factor became invalid)."""
-        return self.kernels.step(
-            vars_, jnp.asarray(delta), self.tan_idx, self.free_j, self.gdata, self.gidx,
-            valid_cur,
-        )
+        """(regularize(x ⊞ δ), its cost, whether a factor valid before is now invalid)."""
+        deltas = split_delta(np.asarray(delta, dtype=float), self.tan_idx)
+        return self.kernels.step(vars_, deltas, self.free_j, self.gdata, self.gidx, valid_cur)
 
     def group_terms(self, k: int, vars_=None):
         """Group k: whitened residuals (nf, m), Jacobians (nf, m, D), finiteness (nf,)."""
         vars_ = self.vars if vars_ is None else vars_
-        return self.kernels.group_terms(k, vars_, self.gdata[k], self.gidx[k])
+        r, J, fin = self.kernels.group_terms(k, vars_, self.gdata[k], self.gidx[k])
+        nf = self.group_nf[k]
+        return r[:nf], J[:nf], fin[:nf]
 
     def diagnose(self, vars_=None, when: str = "at the initial values") -> None:
         """Raise ``ValueError`` naming the first factor with a non-finite residual or
@@ -520,8 +596,7 @@ class Problem:
         out = base.copy()
         for ts, keys, x in zip(self.tspecs, self.type_keys, vars_):
             leaves = [np.asarray(a) for a in jax.tree.leaves(x)]
-            rows = [[a[i] for a in leaves] for i in range(len(keys))]
-            rows = jax.device_put(rows)
+            rows = jax.device_put([[a[i] for a in leaves] for i in range(len(keys))])
             for k, lv in zip(keys, rows):
                 out._data[k] = jax.tree.unflatten(ts.treedef, lv)
         return out
