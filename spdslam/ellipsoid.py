@@ -245,8 +245,8 @@ class EllipsoidFull:
 
     def regularized(self) -> "EllipsoidFull":
         Q = self.matrix()
-        # A quadric with Q*₃₃ ≥ 0 has no finite centre; flip the overall sign rather than
-        # divide by ~0 (the result is then clipped to an ellipsoid below).
+        # Q*₃₃ ≈ 0 has no finite centre: normalise by −1 instead of dividing by ~0 (the
+        # result is then clipped to an ellipsoid below).
         # (Relative to the scale of Q: Q* is homogeneous, any multiple of it is the same quadric.)
         q33 = jnp.where(jnp.abs(Q[3, 3]) > 1e-12 * jnp.max(jnp.abs(Q)), Q[3, 3], -1.0)
         Q = Q / -q33
@@ -289,7 +289,8 @@ def as_ellipsoid(x) -> Ellipsoid:
 
 
 def dual_quadric(x) -> jax.Array:
-    """Q* of any landmark parameterisation, normalised to Q*[3, 3] == −1."""
+    """Q* of any landmark parameterisation, normalised to Q*[3, 3] == −1 (a raw 4×4 array
+    is passed through as it is)."""
     if isinstance(x, (Ellipsoid, EllipsoidRTS, EllipsoidFull)):
         return x.dual_quadric()
     return jnp.asarray(x, dtype=float)

@@ -11,9 +11,12 @@ with Fᵢⱼ = f'((λᵢ+λⱼ)/2) when λᵢ ≈ λⱼ: the divided difference 
 at ties and continuous around them.
 
 ``eigh`` itself gets a derivative that is finite at ties too: eigenvalues that coincide
-get the mean of their first-order changes (the centre of the generalised gradient, which
-is what a central difference measures), and the coupling of eigenvectors inside a tie is
-dropped (they are not unique there).
+get the mean of their first-order changes, and the coupling of eigenvectors inside a tie is
+dropped (they are not unique there). Sorted eigenvalues are not differentiable at a tie;
+at a double tie this mean is exactly what a central difference measures. At a triple tie
+(c·I) the central difference of the k-th eigenvalue is (μₖ + μ₄₋ₖ)/2 for the eigenvalues
+μ of the perturbation, which is not linear in it, so no derivative can match it in every
+direction: the mean agrees with it for perturbations whose eigenvalues are symmetric.
 """
 
 from __future__ import annotations
