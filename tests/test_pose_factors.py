@@ -58,7 +58,8 @@ def _jac_fns(residual, k):
 def jacobians(residual, poses, data):
     """(J by jax.jacfwd, J by central differences), each (N, m, 6k)."""
     auto, central = _jac_fns(residual, len(poses))
-    return np.asarray(auto(tuple(poses), tuple(data))), np.asarray(central(tuple(poses), tuple(data)))
+    poses, data = tuple(poses), tuple(data)
+    return np.asarray(auto(poses, data)), np.asarray(central(poses, data))
 
 
 def test_prior_residual_zero_at_truth(rng):

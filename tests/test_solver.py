@@ -280,10 +280,12 @@ def _log_x(T):
 def test_error_messages():
     graph, values, _ = pose_graph(9)
     bad = NonlinearFactorGraph(list(graph) + [BetweenFactor(1, "ghost", values[1], sigma=1.0)])
-    with pytest.raises(ValueError, match=r"BetweenFactor.*refers to key 'ghost', which has no value"):
+    with pytest.raises(ValueError,
+                       match=r"BetweenFactor.*refers to key 'ghost', which has no value"):
         LevenbergMarquardt().optimize(bad, values)
     with pytest.raises(ValueError, match="uses a key more than once"):
-        LevenbergMarquardt().optimize(NonlinearFactorGraph([BetweenFactor(1, 1, values[1])]), values)
+        LevenbergMarquardt().optimize(
+            NonlinearFactorGraph([BetweenFactor(1, 1, values[1])]), values)
     with pytest.raises(ValueError, match="the graph has no factors"):
         LevenbergMarquardt().optimize(NonlinearFactorGraph(), values)
     with pytest.raises(TypeError, match=r"key 'm'.*not an optimisation variable type"):
@@ -296,11 +298,12 @@ def test_error_messages():
     values_neg = Values({2: jaxlie.SE3.from_rotation_and_translation(
         T.rotation(), jnp.array([-1.0, 0, 0]))})
     nan_graph = NonlinearFactorGraph([Factor(_log_x, (2,), name="LogX")])
-    with pytest.raises(ValueError, match=r"factor #0 \(LogX, keys \(2,\)\) has a non-finite residual"):
+    with pytest.raises(ValueError,
+                       match=r"factor #0 \(LogX, keys \(2,\)\) has a non-finite residual"):
         LevenbergMarquardt().optimize(nan_graph, values_neg)
 
 
-# ------------------------------------------------------------------------------ other variable types
+# ------------------------------------------------------------------- other variable types
 
 
 def _ellipsoid_prior(E, P_ref, t_ref):

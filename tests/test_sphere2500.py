@@ -36,7 +36,8 @@ def build(n_poses: int | None):
         f = full.at(k)
         if n_poses is None or max(f.keys()) < n_poses:
             g.add(f)
-    g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)))
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
+    g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), prior_noise))
     init = to_gtsam(values)
     return graph, values, g, init
 

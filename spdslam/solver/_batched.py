@@ -250,7 +250,8 @@ def solve_batched(
     if not finite.all():
         b = int(np.flatnonzero(~finite)[0])
         problems[b].diagnose(when=f"at the initial values of problem {b}")
-        raise ValueError(f"problem {b}: the cost or its gradient is not finite at the initial values")
+        raise ValueError(
+            f"problem {b}: the cost or its gradient is not finite at the initial values")
     reasons = [REASONS[int(r)] for r in np.asarray(reason)]
     hc, ht, hs, hl, ha = (np.asarray(a) for a in hist)
     its = np.asarray(its)

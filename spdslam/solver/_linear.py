@@ -12,6 +12,7 @@ H is given as the data of its lower triangle in a fixed CSC pattern (``Problem.s
 
 from __future__ import annotations
 
+import time
 import warnings
 
 import numpy as np
@@ -31,48 +32,75 @@ HAVE_CHOLMOD = _cholmod is not None
 DENSE_THRESHOLD = 500
 
 
-class DenseSolver:
+class _Solver:
+    name = ""
+
+    def __init__(self):
+        #: accumulated seconds: "factorize" (incl. assembly of the matrix) and "backsolve"
+        self.timings = {"factorize": 0.0, "backsolve": 0.0}
+
+    def solve(self, data, rhs):
+        """x with A x = rhs, A the symmetric matrix whose lower triangle is ``data``;
+        None if A is not positive definite (or the solve fails)."""
+        t0 = time.perf_counter()
+        f = self._factorize(data)
+        t1 = time.perf_counter()
+        self.timings["factorize"] += t1 - t0
+        if f is None:
+            return None
+        x = self._backsolve(f, rhs)
+        self.timings["backsolve"] += time.perf_counter() - t1
+        return x if x is not None and np.all(np.isfinite(x)) else None
+
+
+class DenseSolver(_Solver):
     name = "dense"
 
     def __init__(self, pattern, n):
+        super().__init__()
         self.n = n
         self.rows, self.cols = pattern["rows"], pattern["cols"]
 
-    def solve(self, data, rhs):
+    def _factorize(self, data):
         H = np.zeros((self.n, self.n))
         H[self.rows, self.cols] = data
         H[self.cols, self.rows] = data
         try:
-            c = scipy.linalg.cho_factor(H, lower=True, check_finite=False)
+            return scipy.linalg.cho_factor(H, lower=True, check_finite=False)
         except (np.linalg.LinAlgError, ValueError):
             return None
-        x = scipy.linalg.cho_solve(c, rhs, check_finite=False)
-        return x if np.all(np.isfinite(x)) else None
+
+    def _backsolve(self, c, rhs):
+        return scipy.linalg.cho_solve(c, rhs, check_finite=False)
 
 
-class ScipySolver:
+class ScipySolver(_Solver):
     name = "scipy"
 
     def __init__(self, pattern, n):
+        super().__init__()
         self.n = n
         self.pattern = pattern
         self.diag = pattern["diag"]
 
-    def solve(self, data, rhs):
+    def _factorize(self, data):
         p = self.pattern
         L = scipy.sparse.csc_matrix((data, p["indices"], p["indptr"]), shape=(self.n, self.n))
         A = (L + L.T - scipy.sparse.diags(data[self.diag])).tocsc()
         try:
-            x = scipy.sparse.linalg.splu(A).solve(rhs)
+            return scipy.sparse.linalg.splu(A)
         except RuntimeError:
             return None
-        return x if np.all(np.isfinite(x)) else None
+
+    def _backsolve(self, lu, rhs):
+        return lu.solve(rhs)
 
 
-class CholmodSolver:
+class CholmodSolver(_Solver):
     name = "cholmod"
 
     def __init__(self, pattern, n):
+        super().__init__()
         if _cholmod is None:
             raise ImportError("linear_solver='cholmod' needs scikit-sparse (sksparse.cholmod)")
         self.n = n
@@ -84,16 +112,21 @@ class CholmodSolver:
             warnings.simplefilter("ignore")
             self.factor = _cholmod.analyze(self.A, mode="supernodal")
 
-    def solve(self, data, rhs):
+    def _factorize(self, data):
         self.A.data = np.ascontiguousarray(data, dtype=np.float64)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error", _cholmod.CholmodWarning)
                 self.factor.cholesky_inplace(self.A)
-                x = self.factor(rhs)
         except (_cholmod.CholmodError, _cholmod.CholmodWarning):
             return None
-        return x if np.all(np.isfinite(x)) else None
+        return self.factor
+
+    def _backsolve(self, factor, rhs):
+        try:
+            return factor(rhs)
+        except (_cholmod.CholmodError, _cholmod.CholmodWarning):
+            return None
 
 
 def resolve_linear_solver(kind: str, n: int, dense_threshold: int = DENSE_THRESHOLD) -> str:

@@ -43,7 +43,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable, Iterable
 
-import jax
 import numpy as np
 
 from ._linear import DENSE_THRESHOLD, make_linear_solver, resolve_linear_solver
@@ -139,7 +138,9 @@ class OptimizationResult:
     converged: bool
     reason: str
     history: list[IterationRecord] = field(default_factory=list)
-    #: accumulated wall time (s): setup, linearize, solve (damping + factorise + solve), step.
+    #: accumulated wall time (s): setup (layout, symbolic analysis), linearize (= jacobians,
+    #: the jitted call, + assemble, the sums into H and g), damp (H + λD), solve (= factorize
+    #: + backsolve), step (retract, regularize and the cost at the trial point).
     timings: dict[str, float] = field(default_factory=dict)
     linear_solver: str = ""
     linearizations: int = 0
@@ -156,7 +157,13 @@ class _Optimizer:
     Params = OptimizerParams
 
     def __init__(self, params: OptimizerParams | None = None, **overrides: Any):
-        params = params if params is not None else self.Params()
+        """``params`` (default ``self.Params()``), with keyword ``overrides`` of its fields;
+        params of the other method keep their shared fields."""
+        if params is None:
+            params = self.Params()
+        elif not isinstance(params, self.Params):
+            shared = {f.name: getattr(params, f.name) for f in dataclasses.fields(OptimizerParams)}
+            params = self.Params(**shared)
         self.params = dataclasses.replace(params, **overrides) if overrides else params
 
     def optimize(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = ()
@@ -190,12 +197,12 @@ class GaussNewton(_Optimizer):
 
 def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationResult:
     tick = time.perf_counter
-    timings.update(linearize=0.0, solve=0.0, step=0.0)
+    timings.update(linearize=0.0, jacobians=0.0, assemble=0.0, damp=0.0, solve=0.0, step=0.0)
     diag = problem.sparse_pattern()["diag"]
 
     def linearize(x):
         t = tick()
-        h, g, c, valid, finite = problem.linearize(x)
+        h, g, c, valid, finite = problem.linearize(x, timings)
         timings["linearize"] += tick() - t
         return h, g, c, valid, finite and np.isfinite(c)
 
@@ -224,9 +231,11 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
         D = np.clip(h[diag], p.min_diagonal, p.max_diagonal)
         hd = h.copy()
         hd[diag] += lam * D
-        delta = solver.solve(hd, -g)
         t = tick()
-        timings["solve"] += t - t_it
+        timings["damp"] += t - t_it
+        delta = solver.solve(hd, -g)
+        timings["solve"] += tick() - t
+        t = tick()
         if delta is None:
             rec = IterationRecord(it, cost, np.inf, np.nan, lam, -np.inf, False, 0.0)
             accepted, ok, trial_cost, pred, step_norm = False, False, np.inf, np.nan, np.nan
@@ -251,7 +260,8 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
             x, cost = x_new, trial_cost
             rec.cost = cost
             if not gn:
-                lam = max(p.lambda_min, lam * max(1.0 / 3.0, 1.0 - (2.0 * rec.gain_ratio - 1.0) ** 3))
+                shrink = max(1.0 / 3.0, 1.0 - (2.0 * rec.gain_ratio - 1.0) ** 3)
+                lam = max(p.lambda_min, lam * shrink)
                 nu = 2.0
             h, g, _, valid, _ = lin
             if cost <= p.absolute_tolerance:
@@ -290,6 +300,7 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
             )
         if p.callback is not None and p.callback(rec) and reason is None:
             reason = "callback"
+    timings.update(solver.timings)
     return OptimizationResult(
         values=x,
         initial_cost=initial_cost,

@@ -30,6 +30,7 @@ that grows by a few factors therefore usually reuses the compiled code.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Iterable
 
@@ -549,18 +550,25 @@ class Problem:
         c, _ = self.kernels.evaluate(vars_, self.gdata, self.gidx)
         return float(c)
 
-    def linearize(self, vars_):
+    def linearize(self, vars_, timings: dict | None = None):
         """(H: lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, whether all
         residuals and Jacobians are finite). H and g are numpy arrays, summed here from the
         per-factor JᵀJ and Jᵀr (so compiled code depends on the counts of factors and
-        variables only, not on n or nnz)."""
+        variables only, not on n or nnz). ``timings`` accumulates seconds spent in
+        "jacobians" (the jitted call) and "assemble" (the sums)."""
+        t0 = time.perf_counter()
         sp = self.sparse_pattern()
         terms, cost, valids, finite = self.kernels.linearize_sparse(vars_, self.gdata, self.gidx)
+        terms = [(np.asarray(hc), np.asarray(gc)) for hc, gc in terms]
+        t1 = time.perf_counter()
         h = np.zeros(sp["nnz"] + 1)
         g = np.zeros(self.n + 1)
         for (hc, gc), hs, gs in zip(terms, sp["hslots"], sp["gslots"]):
-            h += np.bincount(hs, weights=np.asarray(hc).ravel(), minlength=len(h))
-            g += np.bincount(gs, weights=np.asarray(gc).ravel(), minlength=len(g))
+            h += np.bincount(hs, weights=hc.ravel(), minlength=len(h))
+            g += np.bincount(gs, weights=gc.ravel(), minlength=len(g))
+        if timings is not None:
+            timings["jacobians"] = timings.get("jacobians", 0.0) + t1 - t0
+            timings["assemble"] = timings.get("assemble", 0.0) + time.perf_counter() - t1
         return h[:-1], g[:-1], float(cost), valids, bool(finite)
 
     def step(self, vars_, delta, valid_cur):

@@ -1,0 +1,196 @@
+"""spdslam vs gtsam Levenberg-Marquardt on gtsam's sphere2500 pose graph, in one process.
+
+Same problem for both: gtsam's reading of ``sphere2500.txt`` (2500 poses, 4949 relative-pose
+edges), a prior on pose 0 at the identity with σ = 1e-6, initial values from the odometry
+chain, LM to a relative cost decrease of 1e-10. Costs are reported in gtsam's convention,
+F = Σ ½‖W r‖², and both solutions are evaluated by gtsam's ``graph.error``.
+
+Timing. gtsam: ``LevenbergMarquardtOptimizer(...).optimize()``; its "iteration" is one
+linearisation followed by as many λ trials as it needs. spdslam: a warm-up run first compiles
+the JAX kernels (reported separately as compile time); the timed run then counts setup (layout,
+CHOLMOD symbolic analysis) apart from the iterations. spdslam's iteration is one trial (one
+damped solve); per-iteration times are given per trial and per linearisation (the latter is
+the unit of gtsam's count). The breakdown splits spdslam's time into the jitted Jacobians,
+assembly of H and g, damping, CHOLMOD factorisation, back-substitution, and the trial step
+(retract + regularize + cost).
+
+    python3 benchmarks/sphere2500.py [--out benchmarks/results/sphere2500.json] [--max-iterations 1000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import spdslam
+from spdslam.io import pose_graph_factors, read_g2o
+from spdslam.solver import HAVE_CHOLMOD, LevenbergMarquardt
+
+PRIOR_SIGMA = 1e-6
+RELATIVE_TOLERANCE = 1e-10
+
+
+def cholmod_blas() -> str:
+    """The BLAS library the process has loaded (CHOLMOD's supernodal kernels use it)."""
+    try:
+        maps = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return "unknown"
+    libs = {os.path.realpath(line.split()[-1]) for line in maps
+            if line.split()[-1].startswith("/")}
+    names = ("libblas", "libopenblas", "libmkl", "libblis")
+    libs = sorted(x for x in libs if os.path.basename(x).startswith(names))
+    out = ", ".join(libs) or "none found"
+    if any("/blas/libblas" in x for x in libs):
+        out += " (reference BLAS: slow supernodal CHOLMOD; see benchmarks/README.md)"
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sphere2500.json"))
+    ap.add_argument("--max-iterations", type=int, default=1000)
+    ap.add_argument("--linear-solver", default="cholmod" if HAVE_CHOLMOD else "scipy")
+    args = ap.parse_args()
+
+    import gtsam
+
+    path = gtsam.findExampleDataFile("sphere2500.txt")
+    t0 = time.perf_counter()
+    pg = read_g2o(path)
+    graph, values = pose_graph_factors(pg, prior_sigma=PRIOR_SIGMA)
+    t_read = time.perf_counter() - t0
+
+    g, _ = gtsam.readG2o(path, True)
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
+    g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), prior_noise))
+
+    def to_gtsam(vals):
+        out = gtsam.Values()
+        for k, T in vals.items():
+            out.insert(k, gtsam.Pose3(np.asarray(T.as_matrix())))
+        return out
+
+    init = to_gtsam(values)
+    initial_cost = g.error(init)
+
+    # ---- gtsam ---------------------------------------------------------------------------
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(RELATIVE_TOLERANCE)
+    params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(args.max_iterations)
+    t0 = time.perf_counter()
+    opt = gtsam.LevenbergMarquardtOptimizer(g, init, params)
+    ref = opt.optimize()
+    t_gtsam = time.perf_counter() - t0
+    it_gtsam = int(opt.iterations())
+    gt = dict(
+        iterations=it_gtsam,
+        final_cost=g.error(ref),
+        total_s=t_gtsam,
+        per_iteration_ms=1e3 * t_gtsam / max(it_gtsam, 1),
+    )
+    # one linearisation and one elimination at the initial values, for reference
+    t0 = time.perf_counter()
+    gfg = g.linearize(init)
+    gt["linearize_ms"] = 1e3 * (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    gfg.optimize()
+    gt["eliminate_and_solve_ms"] = 1e3 * (time.perf_counter() - t0)
+
+    # ---- spdslam ---------------------------------------------------------------------------
+    lm = LevenbergMarquardt(relative_tolerance=RELATIVE_TOLERANCE,
+                            max_iterations=args.max_iterations, linear_solver=args.linear_solver)
+    t0 = time.perf_counter()
+    LevenbergMarquardt(max_iterations=2, linear_solver=args.linear_solver).optimize(graph, values)
+    t_warm = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = lm.optimize(graph, values)
+    t_total = time.perf_counter() - t0
+    tm = res.timings
+    t_iter = t_total - tm["setup"]
+    n_lin = res.linearizations
+    sp = dict(
+        iterations=res.iterations,
+        linearizations=n_lin,
+        accepted=int(sum(r.accepted for r in res.history)),
+        reason=res.reason,
+        final_cost=res.final_cost,
+        final_cost_gtsam=g.error(to_gtsam(res.values)),
+        total_s=t_total,
+        warmup_s=t_warm,
+        setup_s=tm["setup"],
+        iterations_s=t_iter,
+        per_iteration_ms=1e3 * t_iter / max(res.iterations, 1),
+        per_linearization_ms=1e3 * t_iter / max(n_lin - 1, 1),
+        linear_solver=res.linear_solver,
+        breakdown_ms_per_iteration={
+            k: 1e3 * tm[k] / max(res.iterations, 1)
+            for k in ("jacobians", "assemble", "damp", "factorize", "backsolve", "step")
+        },
+    )
+    sp["breakdown_ms_per_iteration"]["other"] = sp["per_iteration_ms"] - sum(
+        sp["breakdown_ms_per_iteration"].values())
+    # compile time: the warm-up run minus what the same work costs once compiled
+    sp["compile_s_estimate"] = max(
+        0.0, t_warm - tm["setup"] - 2 * sp["per_iteration_ms"] / 1e3)
+
+    # ---- report --------------------------------------------------------------------------
+    ratio_iter = sp["per_iteration_ms"] / gt["per_iteration_ms"]
+    ratio_lin = sp["per_linearization_ms"] / gt["per_iteration_ms"]
+    rows = [
+        ("iterations", f"{gt['iterations']}",
+         f"{sp['iterations']} trials, {n_lin - 1} accepted steps"),
+        ("final cost (gtsam error)", f"{gt['final_cost']:.8f}", f"{sp['final_cost_gtsam']:.8f}"),
+        ("per iteration [ms]", f"{gt['per_iteration_ms']:.1f}",
+         f"{sp['per_iteration_ms']:.1f} per trial, {sp['per_linearization_ms']:.1f} per step"),
+        ("total [s]", f"{gt['total_s']:.2f}",
+         f"{sp['total_s']:.2f} (setup {sp['setup_s']:.2f})"),
+        ("JAX compile [s]", "-",
+         f"{sp['compile_s_estimate']:.2f} (warm-up run of 2 iterations: {sp['warmup_s']:.2f})"),
+    ]
+    w = max(len(r[0]) for r in rows)
+    print(f"sphere2500: {len(pg.poses)} poses, {len(pg.edges)} edges; "
+          f"initial cost {initial_cost:.6g}")
+    print(f"{'':{w}}  {'gtsam':>14}  spdslam ({sp['linear_solver']})")
+    for name, a, b in rows:
+        print(f"{name:{w}}  {a:>14}  {b}")
+    print(f"ratio spdslam/gtsam per iteration: {ratio_iter:.2f}x per trial, "
+          f"{ratio_lin:.2f}x per accepted step")
+    print(f"gtsam reference: linearize {gt['linearize_ms']:.1f} ms, "
+          f"eliminate+solve {gt['eliminate_and_solve_ms']:.1f} ms")
+    print("spdslam breakdown per iteration [ms]: " + ", ".join(
+        f"{k} {v:.1f}" for k, v in sp["breakdown_ms_per_iteration"].items()))
+    blas = cholmod_blas()
+    print(f"BLAS loaded (used by CHOLMOD): {blas}")
+    rel = abs(sp["final_cost_gtsam"] - gt["final_cost"]) / gt["final_cost"]
+    print(f"relative difference of final costs: {rel:.2e}")
+
+    out = dict(
+        problem=dict(file=path, poses=len(pg.poses), edges=len(pg.edges), prior_sigma=PRIOR_SIGMA,
+                     relative_tolerance=RELATIVE_TOLERANCE, initial_cost=initial_cost,
+                     read_and_build_s=t_read),
+        gtsam=gt,
+        spdslam=sp,
+        ratio_per_iteration=ratio_iter,
+        ratio_per_accepted_step=ratio_lin,
+        relative_cost_difference=rel,
+        environment=dict(python=sys.version.split()[0], platform=platform.platform(),
+                         cpus=os.cpu_count(), blas=blas, spdslam=spdslam.__version__,
+                         gtsam=getattr(gtsam, "__version__", "unknown")),
+    )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
