@@ -4,8 +4,9 @@
 #   bash install.sh                  # uses python3
 #   PYTHON=python3.12 bash install.sh
 #
-# 1. Ensures SuiteSparse headers (cholmod.h) are present: as root with apt-get it installs
-#    Debian's libsuitesparse-dev, otherwise it prints the command to run and continues.
+# 1. Ensures SuiteSparse headers (cholmod.h) and OpenBLAS are present: as root with apt-get it
+#    installs Debian's libsuitesparse-dev and libopenblas0-pthread, otherwise it prints the
+#    command to run and continues.
 # 2. pip install -e ".[test,cholmod]"; if that fails (scikit-sparse cannot build), falls back
 #    to pip install -e ".[test]" and the scipy sparse solver is used instead of CHOLMOD.
 # Safe to re-run; never prompts.
@@ -45,17 +46,26 @@ have_cholmod_header() {
     return 1
 }
 
-if have_cholmod_header; then
-    say "SuiteSparse headers found (cholmod.h)"
+# Debian packages: SuiteSparse (CHOLMOD headers and libraries) and OpenBLAS, which Debian
+# then selects as libblas.so.3: CHOLMOD's supernodal factorisation runs about 2x faster on
+# it than on the reference BLAS.
+missing=()
+have_cholmod_header || missing+=(libsuitesparse-dev)
+if command -v dpkg-query >/dev/null 2>&1 && \
+   ! dpkg-query -W -f='${Status}' libopenblas0-pthread 2>/dev/null | grep -q "install ok installed"; then
+    missing+=(libopenblas0-pthread)
+fi
+if [[ ${#missing[@]} -eq 0 ]]; then
+    say "SuiteSparse headers (cholmod.h) and OpenBLAS found"
 elif [[ "$(id -u)" -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
-    say "installing libsuitesparse-dev with apt-get"
-    if apt-get update -qq && apt-get install -y -qq --no-install-recommends libsuitesparse-dev >/dev/null; then
-        say "libsuitesparse-dev installed"
+    say "installing ${missing[*]} with apt-get"
+    if apt-get update -qq && apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null; then
+        say "${missing[*]} installed"
     else
-        say "warning: apt-get could not install libsuitesparse-dev; continuing without it"
+        say "warning: apt-get could not install ${missing[*]}; continuing without"
     fi
 else
-    say "SuiteSparse headers (cholmod.h) not found; for CHOLMOD run: sudo apt-get install -y libsuitesparse-dev (Debian/Ubuntu). Continuing."
+    say "for CHOLMOD with a fast BLAS run: sudo apt-get install -y ${missing[*]} (Debian/Ubuntu). Continuing."
 fi
 
 # --- the package ---------------------------------------------------------------------------
