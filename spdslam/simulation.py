@@ -1,8 +1,8 @@
 """Synthetic single-object scenes in the spirit of the paper's simulation (Sec. IV-A).
 
 One ellipsoid, ``n_views`` cameras looking at it from viewing directions spread over an
-``angle_range`` (degrees of azimuth around the object), noise-free or noisy boxes, and an
-initial landmark perturbed from the truth:
+``angle_range`` (a cone of directions of that angular diameter), noise-free or noisy boxes,
+and an initial landmark perturbed from the truth:
 
     R = Exp(θ) R̄,  t = t̄ + δt,  θ ~ N(0, σθ² I),  δt ~ N(0, σt² I),  sᵢ = s̄ᵢ + N(0, (s̄ᵢ σ%)²),
 
@@ -98,34 +98,52 @@ def make_scenes(
     n_views: int = 10,
     box_noise: bool = True,
     camera: Camera = DEFAULT_CAMERA,
-    space=(1.0, 2.0, 3.0),
-    radius_range=(0.1, 0.5),
-    distance=(3.0, 4.0),
-    elevation_deg=(5.0, 30.0),
+    extent=(1.0, 2.0, 3.0),
+    min_fraction: float = 0.5,
+    center_box=(1.0, 1.0, 1.0),
+    distance=(4.0, 6.0),
+    centre_elevation_deg: float = 15.0,
     aim_jitter: float = 0.05,
 ) -> Scenes:
     """n independent scenes, generated with array operations (no loop over scenes).
 
-    Object: centre uniform in a box of size ``space`` centred at the origin, uniform random
-    rotation, radii uniform in ``radius_range``. Views: azimuths evenly spread over
-    ``angle_range_deg`` around a random heading (each jittered by ±5 % of the half-range),
-    elevation and distance uniform in their ranges, aimed at the centre ± ``aim_jitter``.
+    Object: an ellipsoid inside a bounded space of ``extent`` (the paper's 1 m × 2 m × 3 m):
+    full axis lengths uniform in [min_fraction·eₖ, eₖ] (radii half of that), uniform random
+    rotation, centre uniform in a box of size ``center_box`` around the origin. Views: viewing
+    directions uniform in a spherical cap of angular diameter ``angle_range_deg`` (60°:
+    insufficient observation, 120°: sufficient) around a random direction of elevation
+    within ±``centre_elevation_deg``; distance uniform in ``distance`` (metres); each camera
+    aimed at the centre ± ``aim_jitter``. With the defaults and f = 500 px a box is about
+    75–300 px.
     Boxes: the closed-form box of the truth plus N(0, σ_b²) per edge (σ_b of the level).
     ``seed`` may be an int or a sequence of ints (e.g. (seed, cell index)).
     """
     rng = np.random.default_rng(seed)
     level = NOISE_LEVELS[noise]
     R = random_rotations(rng, n)
-    t = (rng.uniform(size=(n, 3)) - 0.5) * np.asarray(space)
-    s = rng.uniform(*radius_range, size=(n, 3))
+    t = (rng.uniform(size=(n, 3)) - 0.5) * np.asarray(center_box)
+    half = 0.5 * np.asarray(extent, dtype=float)
+    s = rng.uniform(min_fraction * half, half, size=(n, 3))
     truth = _from_axes(jnp.asarray(R), jnp.asarray(t), jnp.asarray(s))
 
-    heading = rng.uniform(0, 2 * np.pi, size=(n, 1))
-    half = np.deg2rad(angle_range_deg) / 2
-    az = heading + np.linspace(-half, half, n_views)[None] + rng.uniform(-0.1, 0.1, (n, n_views)) * half
-    el = np.deg2rad(rng.uniform(*elevation_deg, (n, n_views)))
+    # Viewing directions (object → camera): uniform in a spherical cap of angular diameter
+    # angle_range around a random centre direction of elevation within ±centre_elevation.
+    az0 = rng.uniform(0, 2 * np.pi, size=n)
+    el0 = np.deg2rad(rng.uniform(-centre_elevation_deg, centre_elevation_deg, size=n))
+    centre = np.stack([np.cos(el0) * np.cos(az0), np.cos(el0) * np.sin(az0), np.sin(el0)], axis=1)
+    e1 = np.cross(centre, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(centre, e1)
+    cos_r = np.cos(np.deg2rad(angle_range_deg) / 2)
+    ct = rng.uniform(cos_r, 1.0, size=(n, n_views))
+    st = np.sqrt(1 - ct**2)
+    ph = rng.uniform(0, 2 * np.pi, size=(n, n_views))
+    dirs = (
+        ct[..., None] * centre[:, None]
+        + (st * np.cos(ph))[..., None] * e1[:, None]
+        + (st * np.sin(ph))[..., None] * e2[:, None]
+    )
     d = rng.uniform(*distance, (n, n_views))
-    dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
     eyes = t[:, None] + d[..., None] * dirs
     aims = t[:, None] + aim_jitter * rng.normal(size=(n, n_views, 3))
     poses, boxes = _views_and_boxes(truth, jnp.asarray(eyes), jnp.asarray(aims), camera)
