@@ -77,6 +77,6 @@ def test_sphere2500_first_500_poses_matches_gtsam():
     assert res.linear_solver in ("cholmod", "scipy")  # 3000 tangent dims: sparse
 
 
-@pytest.mark.slow
 def test_sphere2500_matches_gtsam():
+    """The whole graph (2500 poses, 4949 edges): the spec test, run in CI (about 30-60 s)."""
     compare(None)
