@@ -115,7 +115,9 @@ def project_dual_quadric(Q, T_wc, camera: Camera) -> jax.Array:
 
 
 def _safe_sqrt(x):
-    return jnp.sqrt(jnp.maximum(x, 0.0))
+    """√max(x, 0) with a finite derivative everywhere (0 where x ≤ 0)."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
 
 
 def conic_box(C) -> jax.Array:
@@ -172,7 +174,7 @@ def depth_range(ellipsoid, T_wc) -> jax.Array:
     R_wc = T.rotation().as_matrix()
     axis = R_wc[:, 2]
     zc = axis @ (e.center - T.translation())
-    half = jnp.sqrt(jnp.maximum(axis @ e.P @ axis, 0.0))
+    half = _safe_sqrt(axis @ e.P @ axis)
     return jnp.stack([zc - half, zc + half])
 
 

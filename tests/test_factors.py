@@ -264,3 +264,24 @@ def test_tum_round_trip():
     # TUM order is qx qy qz qw: a 90° yaw
     T = se3.from_tum([1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)])
     np.testing.assert_allclose(T.rotation().as_matrix() @ np.array([1.0, 0, 0]), [0, 1, 0], atol=1e-12)
+
+
+def test_box_factor_jacobians_finite_for_degenerate_geometry():
+    """Objects straddling the principal plane, behind the camera or around it: the
+    residuals and Jacobians stay finite (the factor reports itself invalid instead)."""
+    from spdslam.factors import tangent_jacobians
+
+    e = Ellipsoid.from_axes(np.eye(3), np.zeros(3), [0.8, 0.5, 0.3])
+    box = jnp.array([100.0, 100.0, 300.0, 250.0])
+    poses = [
+        look_at(np.array([0.0, -0.3, 0.1]), np.array([0.0, 5.0, 0.1])),  # straddling
+        look_at(np.array([0.0, -3.0, 0.0]), np.array([0.0, -8.0, 0.0])),  # behind
+        look_at(np.array([0.1, 0.0, 0.05]), np.array([0.1, 5.0, 0.05])),  # inside
+        look_at(np.array([0.0, -0.85, 0.0]), np.array([0.0, 5.0, 0.0])),  # touching
+    ]
+    for T in poses:
+        T = jaxlie.SE3.from_matrix(T)
+        for res in (inverse_box_residual, semi_inverse_box_residual):
+            for x in (e, e.to_rts(), e.to_full()):
+                r, J = tangent_jacobians(res, (T, x), (box, CAM))
+                assert np.all(np.isfinite(r)) and all(np.all(np.isfinite(j)) for j in J), (res, type(x))
