@@ -91,14 +91,15 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> jaxlie.SE3:
     """Camera-to-world pose at ``eye`` whose optical axis (+z) points at ``target``.
 
     Image x (+u) points right and image y (+v) down, with ``up`` appearing upwards.
+    Broadcasts over leading axes of ``eye`` and ``target``.
     """
     eye = jnp.asarray(eye, dtype=float)
     z = jnp.asarray(target, dtype=float) - eye
-    z = z / jnp.linalg.norm(z)
-    x = jnp.cross(z, jnp.asarray(up, dtype=float))
-    x = x / jnp.linalg.norm(x)
+    z = z / jnp.linalg.norm(z, axis=-1, keepdims=True)
+    x = jnp.cross(z, jnp.broadcast_to(jnp.asarray(up, dtype=float), z.shape))
+    x = x / jnp.linalg.norm(x, axis=-1, keepdims=True)
     y = jnp.cross(z, x)
-    R = jnp.stack([x, y, z], axis=1)
+    R = jnp.stack([x, y, z], axis=-1)
     return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), eye)
 
 
@@ -121,14 +122,17 @@ def _safe_sqrt(x):
 
 
 def conic_box(C) -> jax.Array:
-    """[u_min, v_min, u_max, v_max] of the dual conic C* (any scale)."""
+    """[u_min, v_min, u_max, v_max] of the dual conic C* (any scale; leading axes broadcast)."""
     C = jnp.asarray(C)
-    du = _safe_sqrt(C[0, 2] ** 2 - C[0, 0] * C[2, 2])
-    dv = _safe_sqrt(C[1, 2] ** 2 - C[1, 1] * C[2, 2])
-    u1, u2 = (C[0, 2] - du) / C[2, 2], (C[0, 2] + du) / C[2, 2]
-    v1, v2 = (C[1, 2] - dv) / C[2, 2], (C[1, 2] + dv) / C[2, 2]
+    c11, c22, c33 = C[..., 0, 0], C[..., 1, 1], C[..., 2, 2]
+    c13, c23 = C[..., 0, 2], C[..., 1, 2]
+    du = _safe_sqrt(c13**2 - c11 * c33)
+    dv = _safe_sqrt(c23**2 - c22 * c33)
+    u1, u2 = (c13 - du) / c33, (c13 + du) / c33
+    v1, v2 = (c23 - dv) / c33, (c23 + dv) / c33
     return jnp.stack(
-        [jnp.minimum(u1, u2), jnp.minimum(v1, v2), jnp.maximum(u1, u2), jnp.maximum(v1, v2)]
+        [jnp.minimum(u1, u2), jnp.minimum(v1, v2), jnp.maximum(u1, u2), jnp.maximum(v1, v2)],
+        axis=-1,
     )
 
 

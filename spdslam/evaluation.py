@@ -309,13 +309,41 @@ def orientation_error_deg(R_est, R_gt) -> float:
     [0°, ``MAX_ORIENTATION_ERROR_DEG``] = [0°, 2 atan √(23 − 16√2)] ≈ [0°, 62.7994°].
     """
     Re, Rg = _rotation_of(R_est, "R_est"), _rotation_of(R_gt, "R_gt")
-    M = Rg.T @ Re
-    G = _SIGNED_PERMS[:24] if np.linalg.det(M) > 0 else _SIGNED_PERMS[24:]
-    MG = M @ G  # 24×3×3
-    cos = 0.5 * (np.trace(MG, axis1=1, axis2=2) - 1.0)
-    skew = MG - MG.transpose(0, 2, 1)
-    sin = 0.5 * np.linalg.norm(skew[:, [2, 0, 1], [1, 2, 0]], axis=-1)  # ‖vee(M − Mᵀ)‖/2
-    return float(np.degrees(np.min(np.arctan2(sin, cos))))
+    return float(orientation_errors_deg(Re[None], Rg[None])[0])
+
+
+def orientation_errors_deg(R_est, R_gt) -> np.ndarray:
+    """``orientation_error_deg`` for stacks of rotation matrices (n, 3, 3) → (n,).
+
+    Rows with non-finite entries give NaN.
+    """
+    Re, Rg = np.asarray(R_est, dtype=float), np.asarray(R_gt, dtype=float)
+    if Re.shape != Rg.shape or Re.shape[-2:] != (3, 3) or Re.ndim != 3:
+        raise ValueError(f"need two (n, 3, 3) stacks, got {Re.shape} and {Rg.shape}")
+    M = np.einsum("nji,njk->nik", Rg, Re)
+    ok = np.all(np.isfinite(M), axis=(1, 2))
+    M = np.where(ok[:, None, None], M, np.eye(3))
+    proper = np.linalg.det(M) > 0
+    G = np.where(proper[:, None, None, None], _SIGNED_PERMS[None, :24], _SIGNED_PERMS[None, 24:])
+    MG = np.einsum("nij,ngjk->ngik", M, G)  # n×24×3×3
+    cos = 0.5 * (np.trace(MG, axis1=2, axis2=3) - 1.0)
+    skew = MG - np.swapaxes(MG, 2, 3)
+    sin = 0.5 * np.linalg.norm(skew[:, :, [2, 0, 1], [1, 2, 0]], axis=-1)
+    out = np.degrees(np.min(np.arctan2(sin, cos), axis=1))
+    return np.where(ok, out, np.nan)
+
+
+def cuboid_iou_arrays(center_a, rotation_a, half_a, center_b, rotation_b, half_b) -> np.ndarray:
+    """IoU of n cuboid pairs given as arrays: centres (n,3), rotations (n,3,3) with
+    orthonormal columns, half-extents (n,3) > 0 (not re-validated: the fast path of
+    ``cuboid_iou_batch``)."""
+    ca, Ra, ha, cb, Rb, hb = (np.asarray(x, dtype=float) for x in
+                              (center_a, rotation_a, half_a, center_b, rotation_b, half_b))
+    Ra, Rb = Ra.copy(), Rb.copy()
+    for R in (Ra, Rb):  # reflections describe the same solids
+        flip = np.linalg.det(R) < 0
+        R[flip, :, 2] *= -1
+    return _iou_arrays(ca, Ra, ha, cb, Rb, hb)
 
 
 def translation_error(a, b) -> float:

@@ -18,8 +18,9 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from .camera import Camera, look_at, project_box
+from .camera import Camera, conic_box
 from .ellipsoid import Ellipsoid
 
 __all__ = ["NOISE_LEVELS", "DEFAULT_CAMERA", "Scene", "Scenes", "make_scene", "make_scenes", "random_rotations"]
@@ -38,17 +39,34 @@ DEFAULT_CAMERA = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     """n rotation matrices, uniform on SO(3) (normalised Gaussian quaternions)."""
     q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.asarray(_quat_to_matrix(jnp.asarray(q)))
-
-
-_from_axes = jax.jit(jax.vmap(Ellipsoid.from_axes))
-_quat_to_matrix = jax.jit(jax.vmap(lambda w: jaxlie.SO3(w).as_matrix()))
-_exp_to_matrix = jax.jit(jax.vmap(lambda w: jaxlie.SO3.exp(w).as_matrix()))
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
 
 
 def _so3_exp(omega: np.ndarray) -> np.ndarray:
-    return np.asarray(_exp_to_matrix(jnp.asarray(omega)))
+    """Exp of rotation vectors (n, 3) → (n, 3, 3) (Rodrigues, numpy)."""
+    th = np.linalg.norm(omega, axis=1)[:, None, None]
+    K = np.zeros((len(omega), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
+    K = K - np.swapaxes(K, 1, 2)
+    small = th < 1e-12
+    a = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
+    b = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th) ** 2)
+    return np.eye(3) + a * K + b * K @ K
+
+
+def _from_axes(R, t, s) -> Ellipsoid:
+    """Batched Ellipsoid with P = R diag(s²) Rᵀ."""
+    R, s = np.asarray(R), np.asarray(s)
+    P = np.einsum("nij,nj,nkj->nik", R, s**2, R)
+    return Ellipsoid(jnp.asarray(0.5 * (P + np.swapaxes(P, 1, 2))), jnp.asarray(t, dtype=float))
 
 
 @dataclass(frozen=True)
@@ -83,11 +101,26 @@ class Scene:
     camera: Camera
 
 
-@jax.jit
-def _views_and_boxes(truth, eyes, aims, camera):
-    poses = jax.vmap(jax.vmap(look_at))(eyes, aims)
-    boxes = jax.vmap(lambda e, Ts: jax.vmap(lambda T: project_box(e, T, camera))(Ts))(truth, poses)
-    return poses, boxes
+def _views_and_boxes(truth: Ellipsoid, eyes: np.ndarray, aims: np.ndarray, camera: Camera):
+    """Poses (B, V) looking from ``eyes`` at ``aims`` (as ``camera.look_at``, up = +z) and
+    the boxes of ``truth`` in them, in numpy: nothing to compile per batch shape."""
+    z = aims - eyes
+    z /= np.linalg.norm(z, axis=-1, keepdims=True)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
+    R_wc = np.stack([x, np.cross(z, x), z], axis=-1)  # (B, V, 3, 3)
+    xyzw = Rotation.from_matrix(R_wc.reshape(-1, 3, 3)).as_quat().reshape(*R_wc.shape[:2], 4)
+    poses = jaxlie.SE3(jnp.asarray(np.concatenate([xyzw[..., 3:], xyzw[..., :3], eyes], axis=-1)))
+    R_cw = np.swapaxes(R_wc, -1, -2)
+    T_cw = np.concatenate([R_cw, -R_cw @ eyes[..., None]], axis=-1)  # (B, V, 3, 4)
+    M = np.einsum("ij,bvjk->bvik", np.asarray(camera.K), T_cw)
+    P, t = np.asarray(truth.P), np.asarray(truth.center)
+    Q = np.zeros((len(t), 4, 4))
+    Q[:, :3, :3] = P - t[:, :, None] * t[:, None, :]
+    Q[:, :3, 3] = Q[:, 3, :3] = -t
+    Q[:, 3, 3] = -1.0
+    C = np.einsum("bvij,bjk,bvlk->bvil", M, Q, M)
+    return poses, conic_box(C)
 
 
 def make_scenes(
@@ -146,7 +179,7 @@ def make_scenes(
     d = rng.uniform(*distance, (n, n_views))
     eyes = t[:, None] + d[..., None] * dirs
     aims = t[:, None] + aim_jitter * rng.normal(size=(n, n_views, 3))
-    poses, boxes = _views_and_boxes(truth, jnp.asarray(eyes), jnp.asarray(aims), camera)
+    poses, boxes = _views_and_boxes(truth, eyes, aims, camera)
     boxes = np.asarray(boxes)
     if box_noise and level["box_px"] > 0:
         boxes = boxes + rng.normal(scale=level["box_px"], size=boxes.shape)

@@ -441,3 +441,28 @@ def test_degenerate_inputs_raise():
     flat = Ellipsoid.from_axes(np.eye(3), [0, 0, 0], [1.0, 1.0, 0.0])
     with pytest.raises(ValueError):
         Cuboid.from_ellipsoid(flat)
+
+
+def test_array_versions_match_the_scalar_ones():
+    from spdslam.evaluation import (
+        Cuboid, cuboid_iou, cuboid_iou_arrays, orientation_error_deg, orientation_errors_deg,
+    )  # fmt: skip
+
+    rng = np.random.default_rng(123)
+    n = 40
+    q = rng.normal(size=(n, 2, 4))
+    import jaxlie
+
+    R = np.array([[np.asarray(jaxlie.SO3(x / np.linalg.norm(x)).as_matrix()) for x in pair] for pair in q])
+    R[::3, 0, :, 2] *= -1  # some reflections
+    c = rng.normal(scale=0.3, size=(n, 2, 3))
+    h = rng.uniform(0.2, 1.0, size=(n, 2, 3))
+    iou = cuboid_iou_arrays(c[:, 0], R[:, 0], h[:, 0], c[:, 1], R[:, 1], h[:, 1])
+    ori = orientation_errors_deg(R[:, 0], R[:, 1])
+    for i in range(n):
+        a, b = Cuboid(c[i, 0], R[i, 0], h[i, 0]), Cuboid(c[i, 1], R[i, 1], h[i, 1])
+        assert iou[i] == pytest.approx(cuboid_iou(a, b), abs=1e-12)
+        assert ori[i] == pytest.approx(orientation_error_deg(R[i, 0], R[i, 1]), abs=1e-9)
+    bad = R[:2, 0].copy()
+    bad[0, 0, 0] = np.nan
+    assert np.isnan(orientation_errors_deg(bad, R[:2, 1])[0])
