@@ -34,7 +34,7 @@ CACHE_ENV = "SPDSLAM_CACHE_DIR"
 #: Default JAX compilation-cache directory.
 DEFAULT_CACHE_DIR = Path("~/.cache/spdslam/jax")
 #: Only compilations that took at least this long are written to the persistent cache.
-CACHE_MIN_COMPILE_SECS = 0.5
+CACHE_MIN_COMPILE_SECS = 0.1
 
 app = typer.Typer(
     name="spdslam",

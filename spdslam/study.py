@@ -150,18 +150,20 @@ def _box_sigma(model: str, cfg: StudyConfig) -> float:
     return cfg.semi_sigma if model == "semi" else cfg.inverse_sigma
 
 
+_FROM_ELLIPSOID = {
+    "F": jax.jit(jax.vmap(EllipsoidFull.from_ellipsoid)),
+    "S": jax.jit(jax.vmap(EllipsoidRTS.from_ellipsoid)),
+}
+_TO_ELLIPSOID = jax.jit(jax.vmap(lambda y: y.to_ellipsoid()))
+
+
 def _convert(param: str, e: Ellipsoid):
     """Batched Ellipsoid → batched landmark of the parameterisation."""
-    cls = _PARAM_TYPES[param]
-    if cls is Ellipsoid:
-        return e
-    return jax.vmap(cls.from_ellipsoid)(e)
+    return e if param == "O" else _FROM_ELLIPSOID[param](e)
 
 
 def _to_ellipsoid(x) -> Ellipsoid:
-    if isinstance(x, Ellipsoid):
-        return x
-    return jax.vmap(lambda y: y.to_ellipsoid())(x)
+    return x if isinstance(x, Ellipsoid) else _TO_ELLIPSOID(x)
 
 
 def _template(model: str, scenes: Scenes, cfg: StudyConfig, landmark0):
