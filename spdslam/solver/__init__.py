@@ -2,9 +2,11 @@
 
 Cost F(x) = Σᵢ ½ ρᵢ(‖Wᵢ rᵢ(x)‖²) (gtsam's ``graph.error`` convention), minimised over the
 free variables; steps are taken in tangent coordinates, x ⊞ δ (``spdslam.manifold``).
+Many problems of one structure: ``BatchedProblem`` (a template problem, data and values as
+arrays with a leading batch axis) or ``solve_batched`` (a list of graphs and Values).
 """
 
-from ._batched import BatchedResult, solve_batched
+from ._batched import BatchedProblem, BatchedResult, solve_batched
 from ._graph import FactorGraph, NonlinearFactorGraph
 from ._linear import HAVE_CHOLMOD
 from ._optimizers import (
@@ -34,6 +36,7 @@ __all__ = [
     "OptimizationResult",
     "CONVERGED_REASONS",
     "solve_batched",
+    "BatchedProblem",
     "BatchedResult",
     "HAVE_CHOLMOD",
 ]
