@@ -236,8 +236,9 @@ def _axes_batch(P):
     return jax.vmap(_sorted_axes)(P)
 
 
-def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid) -> tuple[np.ndarray, np.ndarray]:
-    """IoU of the circumscribed cuboids and orientation error (deg) for a batch of estimates.
+def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid):
+    """IoU of the circumscribed cuboids, orientation error (deg) and s₃/s₁ of the estimate,
+    for a batch of estimates.
 
     A collapsed estimate (smallest radius < 1 nm, or non-finite) has no cuboid: IoU 0,
     orientation error NaN.
@@ -251,7 +252,9 @@ def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid) -> tuple[np.ndarray,
     if ok.any():
         iou[ok] = cuboid_iou_arrays(ce[ok], Re[ok], se[ok], ct[ok], Rt[ok], st[ok])
     orient = orientation_errors_deg(np.where(ok[:, None, None], Re, np.nan), Rt)
-    return iou, orient
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(np.all(np.isfinite(se), axis=1), se[:, 2] / se[:, 0], np.nan)
+    return iou, orient, ratio
 
 
 def run_study(
@@ -279,7 +282,7 @@ def run_study(
         reached = below.any(axis=1)
         first = np.where(reached, below.argmax(axis=1), -1)
         success = out["final_cost"] <= thr
-        iou, orient = _ious_and_orientation(out["estimate"], scenes.truth)
+        iou, orient, ratio = _ious_and_orientation(out["estimate"], scenes.truth)
         histories[(model, param)] = hist / np.maximum(out["initial_cost"][:, None], 1e-300)
         per_trial_s = out["seconds"] / B
         for b in range(B):
@@ -300,6 +303,7 @@ def run_study(
                     "initial_cost": float(out["initial_cost"][b]),
                     "iterations": int(out["iterations"][b]),
                     "reason": out["reason"][b],
+                    "min_radius_ratio": float(ratio[b]),
                 }
             )
         timings["solve"] += out["seconds"]
@@ -321,9 +325,13 @@ def run_study(
 
 
 # --- summaries and files -----------------------------------------------------------------
+#: An estimate whose smallest radius is below this fraction of its largest has collapsed.
+COLLAPSED_RATIO = 1e-3
+
 CSV_COLUMNS = [
     "angle", "noise", "model", "param", "trial", "success", "iterations_to_tol", "final_cost",
     "iou", "orientation_error_deg", "seconds", "truth_cost", "initial_cost", "iterations", "reason",
+    "min_radius_ratio",
 ]  # fmt: skip
 
 
@@ -339,11 +347,14 @@ def summarize(result: StudyResult) -> dict:
             for p in cfg.params:
                 rs = _select(rows, angle=int(a), noise=n, model=m, param=p)
                 succ = [r for r in rs if r["success"]]
+                collapsed = [not r["min_radius_ratio"] >= COLLAPSED_RATIO for r in rs]
                 its = [r["iterations_to_tol"] for r in succ]
                 cells.append(
                     {
                         "angle": int(a), "noise": n, "model": m, "param": p,
                         "trials": len(rs), "successes": len(succ),
+                        "failures_collapsed": sum(c and not r["success"] for c, r in zip(collapsed, rs)),
+                        "successes_collapsed": sum(c and r["success"] for c, r in zip(collapsed, rs)),
                         "success_rate": wilson(len(succ), len(rs)).as_dict(),
                         "iou_all": bootstrap([r["iou"] for r in rs]).as_dict(),
                         "iou_success": bootstrap([r["iou"] for r in succ]).as_dict(),
@@ -417,13 +428,16 @@ def table_markdown(summary: dict) -> str:
             cells.append(ours + ref)
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     lines += ["", "## 95 % confidence intervals", ""]
-    lines += ["| range | noise | model | param | success rate (Wilson) | IoU all (bootstrap) | IoU successful | iterations to tol |"]
-    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += [f"Collapsed: the estimate's smallest radius is below {COLLAPSED_RATIO:g} of its largest (a flat disc or a needle)."]
+    lines += [""]
+    lines += ["| range | noise | model | param | success rate (Wilson) | IoU all (bootstrap) | IoU successful | iterations to tol | failed (collapsed) |"]
+    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in summary["cells"]:
         sr, ia, isu, it = c["success_rate"], c["iou_all"], c["iou_success"], c["iterations_to_tol"]
         f = lambda d, k=".2f": f"{d['estimate']:{k}} [{d['low']:{k}}, {d['high']:{k}}]"  # noqa: E731
         lines.append(
-            f"| {c['angle']} | {c['noise']} | {c['model']} | {c['param']} | {f(sr)} | {f(ia)} | {f(isu)} | {f(it, '.1f')} |"
+            f"| {c['angle']} | {c['noise']} | {c['model']} | {c['param']} | {f(sr)} | {f(ia)} | {f(isu)} | "
+            f"{f(it, '.1f')} | {c['trials'] - c['successes']} ({c['failures_collapsed']}) |"
         )
     if summary["paired_iterations_O_vs_S"]:
         lines += ["", "## Iterations to tolerance, SPD (O) vs RTS (S), paired on trials where both succeed", ""]
