@@ -25,6 +25,7 @@ from .. import manifold
 __all__ = [
     "Factor",
     "tangent_jacobians",
+    "robust_weighting",
     "RobustKernel",
     "Huber",
     "Cauchy",
@@ -68,6 +69,16 @@ class Cauchy(RobustKernel):
 
     def weight(self, s):
         return 1.0 / (1.0 + s / self.k**2)
+
+
+def robust_weighting(robust: RobustKernel | None, r, J=None):
+    """(½ρ(s), √ρ'(s)·r, √ρ'(s)·J) for s = ‖r‖²: the cost term and the iteratively
+    reweighted residual and Jacobian; (½s, r, J) without a kernel."""
+    s = jnp.sum(r * r)
+    if robust is None:
+        return 0.5 * s, r, J
+    sw = jnp.sqrt(robust.weight(s))
+    return 0.5 * robust.rho(s), sw * r, (None if J is None else sw * J)
 
 
 def sqrt_information(

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import manifold
+from ..factors._base import robust_weighting
 from ._optimizers import (
     CONVERGED_REASONS,
     GaussNewtonParams,
@@ -338,14 +339,7 @@ class _Kernel:
             finite = jnp.all(jnp.isfinite(r))
             if J is not None:
                 finite &= jnp.all(jnp.isfinite(J))
-            sq = jnp.sum(r * r)
-            if spec.robust is not None:
-                half_rho = 0.5 * spec.robust.rho(sq)
-                if J is not None:
-                    sw = jnp.sqrt(spec.robust.weight(sq))
-                    r, J = sw * r, sw * J
-            else:
-                half_rho = 0.5 * sq
+            half_rho, r, J = robust_weighting(spec.robust, r, J)
             valid = (jnp.asarray(spec.valid(*xs_i, *args_i), bool)
                      if spec.valid is not None else None)
             return r, J, half_rho, valid, finite

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import manifold
-from ..factors._base import RobustKernel
+from ..factors._base import RobustKernel, robust_weighting
 
 __all__ = ["Problem", "bucket", "CHUNK"]
 
@@ -157,14 +157,7 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
         finite = jnp.all(jnp.isfinite(r))
         if J is not None:
             finite &= jnp.all(jnp.isfinite(J))
-        s = jnp.sum(r * r)
-        if spec.robust is not None:
-            half_rho = 0.5 * spec.robust.rho(s)
-            if J is not None:
-                sw = jnp.sqrt(spec.robust.weight(s))
-                r, J = sw * r, sw * J
-        else:
-            half_rho = 0.5 * s
+        half_rho, r, J = robust_weighting(spec.robust, r, J)
         half_rho = jnp.where(mask_i, half_rho, 0.0)
         valid = (
             jnp.asarray(spec.valid(*xs_i, *args_i), bool) if spec.valid is not None else None
