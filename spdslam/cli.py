@@ -103,8 +103,11 @@ def cholmod_available() -> bool:
 
 
 def sparse_solver_name() -> str:
-    """Human-readable name of the sparse linear solver the optimiser will use."""
-    if cholmod_available():
+    """Human-readable name of the sparse linear solver the optimiser will use (as the
+    solver itself decides: ``spdslam.solver.HAVE_CHOLMOD``)."""
+    from .solver import HAVE_CHOLMOD
+
+    if HAVE_CHOLMOD:
         return "CHOLMOD (scikit-sparse)"
     return "scipy.sparse (SuperLU)"
 
