@@ -35,7 +35,7 @@ from .ellipsoid import _sorted_axes
 from .evaluation import cuboid_iou_arrays, orientation_errors_deg
 from .factors import InverseBoxFactor, SemiInverseBoxFactor
 from .simulation import NOISE_LEVELS, Scenes, make_scenes
-from .solver import NonlinearFactorGraph, Values
+from .solver import BatchedProblem, NonlinearFactorGraph, Values
 from .stats import bootstrap, paired_comparison, wilson
 
 __all__ = [
@@ -190,8 +190,6 @@ def _batched_args(scenes: Scenes, cfg: StudyConfig):
 
 def _solve_structure(model, param, scenes, cfg):
     """One vmapped solve of every trial of every cell for one (model, param)."""
-    from .solver import BatchedProblem
-
     init = _convert(param, scenes.initial)
     truth = _convert(param, scenes.truth)
     first = jax.tree.map(lambda a: a[0], init)
