@@ -61,10 +61,11 @@ def _sorted_axes(P):
 
 
 def _quadric_from(P, t):
+    """[[P − ttᵀ, −t], [−tᵀ, −1]], broadcasting over leading axes."""
     P, t = jnp.asarray(P), jnp.asarray(t)
-    top = jnp.concatenate([P - jnp.outer(t, t), -t[:, None]], axis=1)
-    bottom = jnp.concatenate([-t, -jnp.ones(1, dtype=t.dtype)])[None, :]
-    return jnp.concatenate([top, bottom], axis=0)
+    top = jnp.concatenate([P - t[..., :, None] * t[..., None, :], -t[..., :, None]], axis=-1)
+    bottom = jnp.concatenate([-t, -jnp.ones_like(t[..., :1])], axis=-1)[..., None, :]
+    return jnp.concatenate([top, bottom], axis=-2)
 
 
 def _split_quadric(Q):
@@ -102,7 +103,7 @@ class Ellipsoid:
 
     # --- views ------------------------------------------------------------------------
     def dual_quadric(self) -> jax.Array:
-        """Q* (4×4), normalised so that Q*[3, 3] == −1."""
+        """Q* (4×4, or (..., 4, 4) for a batched Ellipsoid), normalised so that Q*[3, 3] == −1."""
         return _quadric_from(self.P, self.center)
 
     def axes(self):

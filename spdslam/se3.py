@@ -17,9 +17,15 @@ __all__ = ["as_pose", "from_tum", "to_tum", "from_matrix", "to_matrix", "stack"]
 
 
 def as_pose(T) -> jaxlie.SE3:
-    """A jaxlie.SE3 from an SE3 or a 4×4 homogeneous matrix."""
+    """A jaxlie.SE3 from an SE3 or a 4×4 homogeneous matrix (a concrete matrix is checked)."""
     if isinstance(T, jaxlie.SE3):
         return T
+    if isinstance(T, (np.ndarray, list, tuple)):
+        M = np.asarray(T, dtype=float)
+        if M.shape[-2:] != (4, 4):
+            raise ValueError(f"a pose must be a jaxlie.SE3 or a 4x4 matrix, got shape {M.shape}")
+        if not np.all(np.isfinite(M)):
+            raise ValueError("pose matrix has non-finite entries")
     return jaxlie.SE3.from_matrix(jnp.asarray(T, dtype=float))
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -114,11 +113,7 @@ def _views_and_boxes(truth: Ellipsoid, eyes: np.ndarray, aims: np.ndarray, camer
     R_cw = np.swapaxes(R_wc, -1, -2)
     T_cw = np.concatenate([R_cw, -R_cw @ eyes[..., None]], axis=-1)  # (B, V, 3, 4)
     M = np.einsum("ij,bvjk->bvik", np.asarray(camera.K), T_cw)
-    P, t = np.asarray(truth.P), np.asarray(truth.center)
-    Q = np.zeros((len(t), 4, 4))
-    Q[:, :3, :3] = P - t[:, :, None] * t[:, None, :]
-    Q[:, :3, 3] = Q[:, 3, :3] = -t
-    Q[:, 3, 3] = -1.0
+    Q = np.asarray(truth.dual_quadric())  # (B, 4, 4)
     C = np.einsum("bvij,bjk,bvlk->bvil", M, Q, M)
     return poses, conic_box(C)
 

@@ -20,6 +20,7 @@ from typing import Any, Hashable
 import jaxlie
 import numpy as np
 
+from ..se3 import as_pose
 from ._base import Factor, RobustKernel, sqrt_information
 
 __all__ = [
@@ -42,15 +43,8 @@ def pose_between_residual(T1: jaxlie.SE3, T2: jaxlie.SE3, T12: jaxlie.SE3):
 
 
 def as_se3(pose: Any) -> jaxlie.SE3:
-    """A ``jaxlie.SE3`` (returned with a numpy leaf) or a 4×4 homogeneous matrix → SE3."""
-    if isinstance(pose, jaxlie.SE3):
-        return jaxlie.SE3(np.asarray(pose.wxyz_xyz, dtype=float))
-    M = np.asarray(pose, dtype=float)
-    if M.shape != (4, 4):
-        raise ValueError(f"a pose must be a jaxlie.SE3 or a 4x4 matrix, got shape {M.shape}")
-    if not np.all(np.isfinite(M)):
-        raise ValueError("pose matrix has non-finite entries")
-    return jaxlie.SE3(np.asarray(jaxlie.SE3.from_matrix(M).wxyz_xyz, dtype=float))
+    """``se3.as_pose`` with a numpy leaf, so that factor data stacks without device copies."""
+    return jaxlie.SE3(np.asarray(as_pose(pose).wxyz_xyz, dtype=float))
 
 
 def PriorFactor(
