@@ -16,12 +16,13 @@ repeated runs skip most of the XLA compilation time.
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import NoReturn, Optional
+from typing import NoReturn
 
 import typer
 from rich.console import Console
@@ -48,7 +49,7 @@ console = Console()
 err_console = Console(stderr=True)
 
 #: Set by :func:`main`: the cache directory in use, or ``None`` if the cache is off.
-_cache_dir_in_use: Optional[Path] = None
+_cache_dir_in_use: Path | None = None
 
 
 # --------------------------------------------------------------------------- helpers
@@ -70,7 +71,7 @@ def cache_dir() -> Path:
     return Path(raw).expanduser()
 
 
-def enable_compilation_cache(path: Optional[Path] = None) -> Optional[Path]:
+def enable_compilation_cache(path: Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`).
 
     Returns the directory used, or ``None`` when it could not be created or configured;
@@ -184,9 +185,6 @@ def info() -> None:
     console.print(versions)
 
 
-if __name__ == "__main__":  # pragma: no cover
-    app()
-
 
 def _split(option: str, value: str, allowed=None, cast=str) -> tuple:
     items = tuple(x.strip() for x in value.split(",") if x.strip())
@@ -259,3 +257,230 @@ def simulate(
         f"wall {t['wall']:.2f} s, {t['us_per_problem_iteration']:.1f} µs per problem-iteration; "
         f"wrote {out}/trials.csv, table.md, convergence.png, summary.json"
     )
+
+
+# --------------------------------------------------------------------------- sequences
+
+_SIGMA_HELP = (
+    "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); names in "
+    "docs/sequences.md."
+)
+
+
+def _load_sequence(path: Path):
+    from .sequence import SequenceFormatError, read_sequence
+
+    try:
+        return read_sequence(path)
+    except SequenceFormatError as e:
+        fail(str(e))
+
+
+def _parse_sigmas(items) -> dict:
+    from .mapping import DEFAULT_MAPPING_SIGMAS
+
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or name.strip() not in DEFAULT_MAPPING_SIGMAS:
+            fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got {item!r}")
+        try:
+            v = float(value)
+        except ValueError:
+            fail(f"--sigma: {value!r} is not a number (in {item!r})")
+        if not (math.isfinite(v) and v >= 0):
+            fail(f"--sigma: expected a finite non-negative value, got {item!r}")
+        out[name.strip()] = v
+    return out
+
+
+def _print_metrics(metrics: dict) -> None:
+    s = metrics.get("summary")
+    if s:
+        console.print(
+            f"mean IoU {s['mean_iou']:.3f}, orientation error {s['mean_orientation_deg']:.2f}°, "
+            f"centre error {s['mean_center_error']:.3f} m ({s['matched']}/{s['ground_truth_objects']} objects)"
+        )
+    if "ate" in metrics:
+        a = metrics["ate"]
+        console.print(f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised {a['optimized']['rmse']:.4f} m")
+
+
+def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, **overrides):
+    from .mapping import run_sequence
+    from .report import write_run
+
+    try:
+        result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations, **overrides)
+    except ValueError as e:
+        fail(f"{seq.name}: {e}")
+    try:
+        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite)
+    except FileExistsError as e:
+        fail(f"--out: {e}")
+    console.print(
+        f"{result.method.name}: {len(result.objects)} objects, {result.iterations} iterations "
+        f"({result.reason}), cost {result.initial_cost:.6g} -> {result.final_cost:.6g}"
+    )
+    for k, why in result.failed.items():
+        err_console.print(f"object {k} not mapped: {why}")
+    _print_metrics(metrics)
+    console.print(f"wrote {out}")
+    return result, metrics
+
+
+@app.command()
+def run(
+    sequence: Path = typer.Argument(..., help="Sequence folder (canonical format or fr3_cabinet layout)."),
+    method: str = typer.Option("multi-spd", help="quadric-slam, multi-rts or multi-spd."),
+    out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
+    parameterization: str | None = typer.Option(None, help="Override: spd, rts or full."),
+    box_model: str | None = typer.Option(None, help="Override: inverse, semi or semi-then-inverse."),
+    robust: str | None = typer.Option(None, help="Robust kernel on box factors: none, huber, cauchy."),
+    robust_k: float | None = typer.Option(None, help="Robust kernel threshold (whitened units)."),
+    sigma: list[str] | None = typer.Option(None, help=_SIGMA_HELP),
+    max_iterations: int = typer.Option(100, min=1, help="LM iteration budget per stage."),
+    overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
+    overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
+) -> None:
+    """Map a sequence: initialise every object, optimise poses and objects jointly.
+
+    Writes OUT/map.json, OUT/trajectory.txt, OUT/map_top.png, and with ground truth
+    OUT/report.md and OUT/metrics.json, and with images OUT/overlay/.
+    """
+    from .mapping import METHODS
+
+    if method not in METHODS:
+        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    sigmas = _parse_sigmas(sigma)
+    seq = _load_sequence(sequence)
+    _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
+                   parameterization=parameterization, box_model=box_model, robust=robust,
+                   robust_k=robust_k)
+
+
+@app.command()
+def evaluate(
+    out: Path = typer.Argument(..., help="Output folder of spdslam run (or its map.json)."),
+    sequence: Path = typer.Argument(..., help="The sequence folder with ground truth."),
+) -> None:
+    """Evaluate a map against a sequence's ground truth; prints and writes
+    OUT/metrics.json and OUT/report.md."""
+    import json
+
+    import numpy as np
+
+    from .report import MapFormatError, evaluate_run, read_map, report_markdown
+    from .sequence import SequenceFormatError, _read_tum
+
+    seq = _load_sequence(sequence)
+    try:
+        m, objects = read_map(out)
+    except MapFormatError as e:
+        fail(str(e))
+    folder = out if out.is_dir() else out.parent
+    traj = folder / "trajectory.txt"
+    poses = None
+    if traj.is_file():
+        try:
+            poses = _read_tum(traj, str(traj))
+        except SequenceFormatError as e:
+            fail(str(e))
+    if not seq.objects_gt and seq.groundtruth_tum is None:
+        fail(f"{sequence}: expected ground truth (objects_gt.txt or groundtruth.txt), got neither")
+    if poses is None:
+        poses = np.column_stack([seq.timestamps, seq.poses_tum])
+    metrics = evaluate_run(m, objects, None, poses, seq)
+    (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
+    (folder / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
+    for r in metrics.get("objects", []):
+        console.print(f"object {r['id']} ({r['label']}): IoU {r['iou']:.3f}, orientation {r['orientation_deg']:.2f}°")
+    _print_metrics(metrics)
+    console.print(f"wrote {folder / 'metrics.json'} and {folder / 'report.md'}")
+
+
+@app.command("import")
+def import_(
+    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt)."),
+    dest: Path = typer.Argument(..., help="Destination folder (canonical format)."),
+    overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
+) -> None:
+    """Convert an fr3_cabinet-style folder to the canonical sequence format."""
+    from .sequence import SequenceFormatError, import_fr3_cabinet, write_sequence
+
+    try:
+        seq = import_fr3_cabinet(source)
+        write_sequence(seq, dest, overwrite=overwrite)
+    except SequenceFormatError as e:
+        fail(str(e))
+    except FileExistsError as e:
+        fail(f"{dest}: {e}")
+    console.print(f"imported {len(seq)} poses, {len(seq.detections)} detections into {dest}")
+
+
+@app.command()
+def compare(
+    sequence: Path = typer.Argument(..., help="Sequence folder with object ground truth."),
+    out: Path = typer.Option(Path("compare"), "--out", help="Output folder (one sub-folder per method)."),
+    methods: str = typer.Option("quadric-slam,multi-rts,multi-spd", help="Methods to run."),
+    overwrite: bool = typer.Option(False, help="Replace non-empty outputs."),
+) -> None:
+    """Run several methods on one sequence and write a Table-III-like OUT/table.md."""
+    from .mapping import METHODS
+    from .report import FRONT_END_NAMES, table_iii
+
+    names = _split("methods", methods, tuple(METHODS))
+    seq = _load_sequence(sequence)
+    if not seq.objects_gt:
+        fail(f"{sequence}: expected object ground truth (objects_gt.txt) to compare methods, got none")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        fail(f"--out: {out} exists and is not empty (use --overwrite)")
+    rows, fronts = [], {}
+    for name in names:
+        result, metrics = _run_and_write(seq, name, out / name, overwrite, False, {}, 100)
+        init = result.method.initialization
+        if init not in fronts:
+            fronts[init] = metrics["front_end"]["summary"]
+        rows.append(("back end", name, metrics["summary"]))
+    front_rows = [("front end", FRONT_END_NAMES[k], v) for k, v in fronts.items()]
+    table = f"# {seq.name}\n\n" + table_iii(front_rows + rows)
+    (out / "table.md").write_text(table, encoding="utf-8")
+    console.print(table)
+
+
+DEMO_MARKER = ".spdslam-demo"
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("spdslam-demo"), "--out", help="Output folder (replaced if it holds an earlier demo)."),
+    seed: int = typer.Option(0, help="Seed of the generator."),
+    frames: int = typer.Option(120, min=3, help="Camera frames."),
+    objects: int = typer.Option(8, min=1, help="Objects in the room."),
+    method: str = typer.Option("multi-spd", help="quadric-slam, multi-rts or multi-spd."),
+) -> None:
+    """The embedded default: generate a synthetic room sequence (OUT/sequence, canonical
+    format) and map it with a method (OUT/run), end to end, without any download."""
+    from .demo import make_room_sequence
+    from .mapping import METHODS
+    from .sequence import write_sequence
+
+    if method not in METHODS:
+        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).exists():
+        fail(f"--out: {out} exists, is not empty and is not an earlier demo output")
+    try:
+        seq = make_room_sequence(seed, frames, objects)
+    except ValueError as e:
+        fail(f"demo: {e}")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARKER).write_text("written by spdslam demo\n", encoding="utf-8")
+    write_sequence(seq, out / "sequence", overwrite=True)
+    console.print(
+        f"demo: {len(seq)} frames, {len(seq.objects_gt)} objects, {len(seq.detections)} boxes -> {out / 'sequence'}"
+    )
+    _run_and_write(seq, method, out / "run", True, False, {}, 100)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

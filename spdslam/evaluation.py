@@ -349,3 +349,149 @@ def cuboid_iou_arrays(center_a, rotation_a, half_a, center_b, rotation_b, half_b
 def translation_error(a, b) -> float:
     """‖c_a − c_b‖; centres (3,), ``Cuboid``s or landmarks."""
     return float(np.linalg.norm(_center_of(a, "a") - _center_of(b, "b")))
+
+
+# --- trajectories -------------------------------------------------------------------------
+
+__all__ += ["absolute_trajectory_error", "align_rigid", "associate_timestamps"]
+
+#: Relative singular-value threshold below which a point set counts as collinear.
+_RANK_TOL = 1e-9
+
+
+def _points(x, name: str) -> np.ndarray:
+    p = np.asarray(x, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite")
+    return p
+
+
+def align_rigid(src, dst, with_scale: bool = False):
+    """(R, t, s) minimising Σᵢ ‖dstᵢ − (s R srcᵢ + t)‖², R ∈ SO(3) (Horn / Umeyama 1991).
+
+    With X = src − μ_src, Y = dst − μ_dst (centred, N×3) and the cross-covariance
+    Σ = YᵀX / N = U D Vᵀ (SVD): R = U S Vᵀ, S = diag(1, 1, sign det(U Vᵀ)) (a proper
+    rotation even for reflected data); s = tr(D S) / σ²_src, σ²_src = ‖X‖²_F / N
+    (s = 1 unless ``with_scale``); t = μ_dst − s R μ_src.
+
+    ``src``, ``dst``: N×3, N ≥ 3. Raises ``ValueError`` for fewer than 3 points, non-finite
+    input, or a degenerate configuration (either set collinear or coincident, or Σ of rank
+    < 2), for which the rotation is not unique.
+    """
+    X, Y = _points(src, "src"), _points(dst, "dst")
+    if X.shape != Y.shape:
+        raise ValueError(f"src and dst must have the same shape, got {X.shape} and {Y.shape}")
+    n = X.shape[0]
+    if n < 3:
+        raise ValueError(f"rigid alignment needs at least 3 point pairs, got {n}")
+    mu_x, mu_y = X.mean(axis=0), Y.mean(axis=0)
+    X, Y = X - mu_x, Y - mu_y
+    scale = max(np.abs(X).max(), np.abs(Y).max(), np.abs(mu_x).max(), np.abs(mu_y).max(), 1e-300)
+    for name, Z in (("src", X), ("dst", Y)):
+        sv = np.linalg.svd(Z, compute_uv=False)
+        if not sv[1] > _RANK_TOL * max(sv[0], scale):
+            raise ValueError(
+                f"degenerate {name}: the points are collinear or coincide "
+                f"(singular values {sv[0]:.3g}, {sv[1]:.3g}), the rotation is not unique"
+            )
+    U, D, Vt = np.linalg.svd(Y.T @ X / n)
+    if not D[1] > _RANK_TOL * D[0]:
+        raise ValueError(
+            f"degenerate cross-covariance (singular values {D.tolist()}): the rotation is not unique"
+        )
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = (U * S) @ Vt
+    s = float(D @ S / (np.sum(X * X) / n)) if with_scale else 1.0
+    t = mu_y - s * R @ mu_x
+    return R, t, s
+
+
+def associate_timestamps(t_a, t_b, tolerance: float = 0.02):
+    """One-to-one matches (ia, ib) with |t_a[ia] − t_b[ib]| ≤ ``tolerance``.
+
+    Greedy by increasing time difference (as TUM's ``associate.py``): the closest pair is
+    matched first and both stamps are then taken. Returns two int arrays sorted by ``ia``.
+    """
+    a = np.asarray(t_a, dtype=float).ravel()
+    b = np.asarray(t_b, dtype=float).ravel()
+    tolerance = float(tolerance)
+    if not (np.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be finite and >= 0, got {tolerance}")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("timestamps must be finite")
+    empty = np.zeros(0, dtype=int)
+    if a.size == 0 or b.size == 0:
+        return empty, empty.copy()
+    order = np.argsort(b, kind="stable")
+    bs = b[order]
+    lo = np.searchsorted(bs, a - tolerance, side="left")
+    hi = np.searchsorted(bs, a + tolerance, side="right")
+    counts = hi - lo
+    ia = np.repeat(np.arange(a.size), counts)
+    if ia.size == 0:
+        return empty, empty.copy()
+    offsets = np.arange(ia.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    jb = np.repeat(lo, counts) + offsets  # index into bs
+    diff = np.abs(a[ia] - bs[jb])
+    keep = diff <= tolerance
+    ia, jb, diff = ia[keep], jb[keep], diff[keep]
+    used_a = np.zeros(a.size, bool)
+    used_b = np.zeros(b.size, bool)
+    out_a, out_b = [], []
+    for k in np.lexsort((jb, ia, diff)):  # by difference, ties by index
+        i, j = ia[k], jb[k]
+        if not used_a[i] and not used_b[j]:
+            used_a[i] = used_b[j] = True
+            out_a.append(i)
+            out_b.append(order[j])
+    out_a = np.asarray(out_a, dtype=int)
+    out_b = np.asarray(out_b, dtype=int)
+    s = np.argsort(out_a, kind="stable")
+    return out_a[s], out_b[s]
+
+
+def _tum_array(x, name: str) -> np.ndarray:
+    a = np.asarray(x, dtype=float)
+    if a.ndim != 2 or a.shape[1] != 8:
+        raise ValueError(
+            f"{name} must be TUM rows 'timestamp tx ty tz qx qy qz qw' of shape (N, 8), got {a.shape}"
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite")
+    return a
+
+
+def absolute_trajectory_error(est_tum, gt_tum, tolerance: float = 0.02, align: bool = True) -> dict:
+    """Absolute trajectory error of camera centres (TUM RGB-D benchmark convention).
+
+    Rows of ``est_tum`` and ``gt_tum`` ((N, 8) TUM arrays) are paired with
+    ``associate_timestamps``; the estimated centres pᵢ are aligned onto the ground truth's
+    gᵢ by the rigid motion (R, t) of ``align_rigid`` (SE(3), no scale; skipped when
+    ``align`` is False) and eᵢ = ‖gᵢ − (R pᵢ + t)‖. Returns ``rmse`` = √(Σ eᵢ²/n), ``mean``,
+    ``median``, ``max`` (metres) and ``pairs`` = n. Raises ``ValueError`` when fewer than
+    3 pairs match.
+    """
+    est = _tum_array(est_tum, "est_tum")
+    gt = _tum_array(gt_tum, "gt_tum")
+    ia, ib = associate_timestamps(est[:, 0], gt[:, 0], tolerance)
+    if ia.size < 3:
+        raise ValueError(
+            f"ATE needs at least 3 timestamp pairs within {tolerance} s, got {ia.size} "
+            f"({len(est)} estimated and {len(gt)} ground-truth poses)"
+        )
+    p, g = est[ia, 1:4], gt[ib, 1:4]
+    if align:
+        R, t, _ = align_rigid(p, g)
+        p = p @ R.T + t
+    e = np.linalg.norm(g - p, axis=1)
+    return {
+        "rmse": float(np.sqrt(np.mean(e * e))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "max": float(np.max(e)),
+        "pairs": int(e.size),
+    }

@@ -14,13 +14,15 @@ distance from it: x = s x' + c, so π' = Tᵀπ and Q* = T Q*' Tᵀ with T = [[s
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .camera import Camera, box_planes
 from .ellipsoid import Ellipsoid, EllipsoidFull
-from .se3 import as_pose
+from .se3 import as_pose, stack
 
-__all__ = ["InitializationError", "svd_initialize"]
+__all__ = ["InitializationError", "multi_initialize", "svd_initialize", "triangulate_rays"]
 
 _TRIU = np.triu_indices(4)
 _OFF = (_TRIU[0] != _TRIU[1]).astype(float)
@@ -70,3 +72,170 @@ def svd_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoi
     if not np.all(np.isfinite(np.asarray(e.P))) or not np.all(np.isfinite(np.asarray(e.center))):
         raise InitializationError("the fitted quadric is not finite")
     return e
+
+
+# --- multi-constraint initialisation ---------------------------------------------------------
+
+#: Starting yaws (rad) of the multi-constraint fit; with a ≠ b, [0, π) covers every
+#: horizontal orientation, and each start is refined by LM.
+_YAW_STARTS = np.arange(6) * np.pi / 6
+_START_ASPECT = 1.4  # a/b of each start: a start with a = b has zero yaw gradient
+_MULTI_ITERS = 60
+_PX_SIGMA = 2.0
+
+
+def _plane_frame(up, plane):
+    """(e1, e2, n, w0): an orthonormal frame with n the support normal (or up) and the
+    support plane at height w0 along n (0 without a plane)."""
+    if plane is not None:
+        p = np.asarray(plane, dtype=float)
+        k = np.linalg.norm(p[:3])
+        n, w0 = p[:3] / k, -p[3] / k
+        if up is not None and n @ np.asarray(up, dtype=float) < 0:
+            n, w0 = -n, -w0
+    else:
+        n, w0 = np.asarray(up, dtype=float) / np.linalg.norm(up), 0.0
+    a = np.eye(3)[np.argmin(np.abs(n))]
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1), n, w0
+
+
+def triangulate_rays(origins, directions) -> np.ndarray:
+    """The point nearest (least squares) to the lines xᵢ + λ dᵢ."""
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    M = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    A = M.sum(axis=0)
+    b = np.einsum("kij,kj->i", M, origins)
+    if np.linalg.cond(A) > 1e8:
+        raise InitializationError("the views are (nearly) parallel: cannot locate the object")
+    return np.linalg.solve(A, b)
+
+
+def _box_rays(boxes, poses, camera):
+    """Camera centres and world directions through the box centres."""
+    K = np.asarray(camera.K)
+    uv1 = np.c_[(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2, np.ones(len(boxes))]
+    rays_c = uv1 @ np.linalg.inv(K).T
+    Rs = np.stack([np.asarray(T.rotation().as_matrix()) for T in poses])
+    origins = np.stack([np.asarray(T.translation()) for T in poses])
+    return origins, np.einsum("kij,kj->ki", Rs, rays_c), Rs
+
+
+def _multi_model(theta, frame, has_plane):
+    """θ = [u, v, w, log a, log b, log c, ψ] → Ellipsoid: axes (cosψ e1 + sinψ e2,
+    −sinψ e1 + cosψ e2, n), centre u e1 + v e2 + (w0 + c if on the plane else w) n."""
+    e1, e2, n, w0 = frame
+    u, v, w, la, lb, lc, psi = (theta[i] for i in range(7))
+    r = jnp.exp(jnp.stack([la, lb, lc]))
+    x1 = jnp.cos(psi) * e1 + jnp.sin(psi) * e2
+    x2 = -jnp.sin(psi) * e1 + jnp.cos(psi) * e2
+    R = jnp.stack([x1, x2, n], axis=1)
+    h = jnp.where(has_plane, w0 + r[2], w)
+    return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
+
+
+@jax.jit
+def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w):
+    """Batched (over starts) LM on the box residuals of the constrained model."""
+    from .camera import project_box
+
+    def residual(theta):
+        e = _multi_model(theta, frame, has_plane)
+        r_box = jax.vmap(lambda T, b: project_box(e, T, camera) - b)(poses, boxes)
+        r_box = (r_box / _PX_SIGMA) * mask[:, None]
+        r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
+        return jnp.concatenate([r_box.ravel(), r_prior])
+
+    def cost(theta):
+        r = residual(theta)
+        return jnp.sum(jnp.where(jnp.isfinite(r), r**2, jnp.inf))
+
+    def lm(theta):
+        def body(_, state):
+            th, lam, c = state
+            r = residual(th)
+            J = jax.jacfwd(residual)(th)
+            J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
+            H = J.T @ J
+            g = J.T @ r
+            step = -jnp.linalg.solve(H + lam * (jnp.diag(jnp.diag(H)) + 1e-9 * jnp.eye(7)), g)
+            cand = th + step
+            cc = cost(cand)
+            ok = cc < c
+            return (jnp.where(ok, cand, th), jnp.where(ok, lam * 0.3, lam * 10.0), jnp.where(ok, cc, c))
+
+        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta)))
+        return th, c
+
+    return jax.vmap(lm)(theta0)
+
+
+def multi_initialize(
+    boxes,
+    poses,
+    camera: Camera,
+    up,
+    support_plane=None,
+    prior_radii=None,
+    prior_sigma: float = 0.2,
+    min_views: int = 2,
+) -> Ellipsoid:
+    """Multi-constraint ("Quadric-Multi") initial ellipsoid: one axis along ``up``, resting on
+    ``support_plane`` (a·x + b·y + c·z + d = 0) when one is given, with the class size prior
+    ``prior_radii`` (semi-axes, any order; sorted log radii, σ = ``prior_sigma``) when given.
+
+    Unknowns: the centre on the plane (2, or 3 without a plane), the yaw about ``up`` and the
+    three radii (the centre sits one vertical radius above the plane). They are fitted to the
+    boxes (inverse box model, 2 px) by LM from several yaws; the centre and radii start from
+    the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views.
+    """
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    poses = [as_pose(T) for T in poses]
+    if len(poses) != len(boxes):
+        raise ValueError(f"{len(boxes)} boxes but {len(poses)} poses")
+    if len(boxes) < max(min_views, 2):
+        raise InitializationError(f"needs at least {max(min_views, 2)} views, got {len(boxes)}")
+    if up is None:
+        raise ValueError("multi-constraint initialisation needs the up direction")
+    frame = _plane_frame(up, support_plane)
+    e1, e2, n, w0 = frame
+    origins, dirs, Rs = _box_rays(boxes, poses, camera)
+    c0 = triangulate_rays(origins, dirs)
+    depth = np.einsum("ki,ki->k", c0 - origins, Rs[:, :, 2])
+    if np.median(depth) <= 0:
+        raise InitializationError("the triangulated centre is behind the cameras")
+    depth = np.maximum(depth, 1e-3)
+    half_w = np.median((boxes[:, 2] - boxes[:, 0]) * depth / (2 * camera.fx))
+    half_h = np.median((boxes[:, 3] - boxes[:, 1]) * depth / (2 * camera.fy))
+    r_h = max(half_w, 1e-3)
+    r_v = max(half_h, 1e-3)
+    w = c0 @ n
+    if support_plane is not None:
+        r_v = max(0.5 * (r_v + max(w - w0, 1e-3)), 1e-3)
+    starts = []
+    for psi in _YAW_STARTS:
+        starts.append(
+            [c0 @ e1, c0 @ e2, w, np.log(r_h * np.sqrt(_START_ASPECT)),
+             np.log(r_h / np.sqrt(_START_ASPECT)), np.log(r_v), psi]
+        )
+    bucket_n = 1 << int(np.ceil(np.log2(max(len(boxes), 4))))
+    pad = bucket_n - len(boxes)
+    poses_b = stack(poses + [poses[0]] * pad)
+    boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
+    mask = np.r_[np.ones(len(boxes)), np.zeros(pad)]
+    if prior_radii is None:
+        prior_log, prior_w = np.zeros(3), 0.0
+    else:
+        prior_log, prior_w = np.sort(np.log(np.asarray(prior_radii, dtype=float))), 1.0 / prior_sigma
+    frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
+    thetas, costs = _multi_fit(
+        jnp.asarray(starts), frame_j, jnp.asarray(support_plane is not None), poses_b,
+        jnp.asarray(boxes_b), jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w,
+    )
+    costs = np.asarray(costs)
+    if not np.any(np.isfinite(costs)):
+        raise InitializationError("the constrained fit diverged from every start")
+    best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
+    e = _multi_model(thetas[best], frame_j, support_plane is not None)
+    return Ellipsoid(jnp.asarray(e.P), jnp.asarray(e.center))

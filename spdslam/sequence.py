@@ -53,6 +53,9 @@ __all__ = [
 MATCH_TOLERANCE = 0.02
 _MATCH_SLACK = 1e-9  # float noise on the tolerance
 
+#: Per-step accuracy (m, rad) given to the fr3_cabinet trajectory: motion capture.
+FR3_TRAJECTORY_SIGMA = (1e-4, 1e-4)
+
 #: COCO class indices (YOLO numbering) with a name in the importer; others become "class<k>".
 COCO_LABELS = {28: "suitcase"}
 
@@ -163,13 +166,20 @@ class ClassPrior:
 @dataclass(frozen=True, eq=False)
 class Priors:
     """Scene priors: support planes ``[a, b, c, d]`` (ax + by + cz + d = 0), the up
-    direction and per-class size priors."""
+    direction, per-class size priors, and the accuracy of the trajectory's relative motion
+    per frame step ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: the back end's default)."""
 
     support_planes: list = field(default_factory=list)
     up: np.ndarray | None = None
     classes: dict = field(default_factory=dict)
+    trajectory_sigma: np.ndarray | None = None
 
     def __post_init__(self):
+        if self.trajectory_sigma is not None:
+            ts = _frozen_array(self.trajectory_sigma, (2,))
+            if not (np.all(np.isfinite(ts)) and np.all(ts > 0)):
+                raise ValueError(f"trajectory_sigma must be 2 positive numbers, got {ts.tolist()}")
+            object.__setattr__(self, "trajectory_sigma", ts)
         object.__setattr__(
             self, "support_planes", [_frozen_array(p, (4,)) for p in self.support_planes]
         )
@@ -187,6 +197,10 @@ class Priors:
         if (self.up is None) != (other.up is None):
             return False
         if self.up is not None and not _close(self.up, other.up):
+            return False
+        if (self.trajectory_sigma is None) != (other.trajectory_sigma is None):
+            return False
+        if self.trajectory_sigma is not None and not _close(self.trajectory_sigma, other.trajectory_sigma):
             return False
         return self.classes == other.classes
 
@@ -494,12 +508,12 @@ def read_camera(path, name: str | None = None) -> Camera:
 
 
 def read_priors(path, name: str | None = None) -> Priors:
-    """``priors.yaml``: optional keys support_planes, up, classes."""
+    """``priors.yaml``: optional keys support_planes, up, classes, trajectory_sigma."""
     path = Path(path)
     name = name or str(path)
     root = _yaml_root(path, name)
-    planes, up, classes = [], None, {}
-    allowed = ("support_planes", "up", "classes")
+    planes, up, classes, tsig = [], None, {}, None
+    allowed = ("support_planes", "up", "classes", "trajectory_sigma")
     import yaml
 
     for key, knode, vnode in _mapping(name, root, "the priors"):
@@ -515,6 +529,10 @@ def read_priors(path, name: str | None = None) -> Priors:
             up = _yvector(name, vnode, 3, "up")
             if not np.linalg.norm(up) > 0:
                 raise SequenceFormatError(name, _line(vnode), "a non-zero up vector", str(up.tolist()))
+        elif key == "trajectory_sigma":
+            tsig = _yvector(name, vnode, 2, "trajectory_sigma [metres, radians]")
+            if not np.all(tsig > 0):
+                raise SequenceFormatError(name, _line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
         elif key == "classes":
             for label, lk, cnode in _mapping(name, vnode, "classes"):
                 radii = sigma = None
@@ -537,7 +555,7 @@ def read_priors(path, name: str | None = None) -> Priors:
                 classes[label] = ClassPrior(radii, sigma)
         else:
             _unknown_key(name, knode, key, allowed, "priors.yaml")
-    return Priors(planes, up, classes)
+    return Priors(planes, up, classes, tsig)
 
 
 def read_detections(path, timestamps, name: str | None = None) -> list:
@@ -668,7 +686,8 @@ def import_fr3_cabinet(folder) -> Sequence:
     - ``TUM3.yaml`` intrinsics (``Camera.fx: …`` lines; 640×480 unless given);
     - ``truth_objects.txt`` rows ``x y z yaw hx hy hz`` → ``Cuboid.from_yaw``; the object's id
       is its row index and its label that of the detections with that instance;
-    - priors: the floor z = 0 ([0, 0, 1, 0]) and up = +z;
+    - priors: the floor z = 0 ([0, 0, 1, 0]), up = +z, and ``trajectory_sigma`` =
+      (1e-4 m, 1e-4 rad) per step: the trajectory is the motion-capture ground truth;
     - ``rgb.txt`` images when present.
     """
     folder = Path(folder)
@@ -725,7 +744,9 @@ def import_fr3_cabinet(folder) -> Sequence:
     images = None
     if (folder / "rgb.txt").is_file():
         images = read_images(folder / "rgb.txt", folder)
-    priors = Priors([np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {})
+    priors = Priors(
+        [np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {}, FR3_TRAJECTORY_SIGMA
+    )
     return Sequence(
         folder.name, camera, timestamps, traj[:, 1:], detections, objects, traj.copy(), priors, images
     )
@@ -801,6 +822,8 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
         text += "classes:" + ("\n" if p.classes else " {}\n")
         for label, cp in p.classes.items():
             text += f"  {json.dumps(str(label))}: {{radii: {_ylist(cp.radii)}, sigma: {_yf(cp.sigma)}}}\n"
+        if p.trajectory_sigma is not None:
+            text += f"trajectory_sigma: {_ylist(p.trajectory_sigma)}\n"
         (out / "priors.yaml").write_text(text, encoding="utf-8")
     if seq.images is not None:
         lines = ["# timestamp path\n"]

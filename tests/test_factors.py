@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 from scipy.optimize import brentq
 
@@ -148,8 +149,11 @@ def test_classic_orientation_depends_on_axis_order():
     swapped = EllipsoidRTS.from_axes(np.eye(3)[:, perm], np.zeros(3), radii[perm])
     np.testing.assert_allclose(swapped.to_ellipsoid().P, upright.to_ellipsoid().P, atol=1e-12)
     z = np.eye(3)[2]
-    assert float(classic_orientation_residual(upright, up, z)[0]) < 1e-7
-    np.testing.assert_allclose(classic_orientation_residual(swapped, up, z)[0], np.pi / 2, atol=1e-9)
+    assert float(np.linalg.norm(classic_orientation_residual(upright, up, z))) < 1e-12
+    # sin 90°: the largest pull there is
+    np.testing.assert_allclose(np.linalg.norm(classic_orientation_residual(swapped, up, z)), 1.0, atol=1e-12)
+    tilted = EllipsoidRTS.from_axes(Rotation.from_rotvec([0.3, 0, 0]).as_matrix(), np.zeros(3), radii)
+    np.testing.assert_allclose(np.linalg.norm(classic_orientation_residual(tilted, up, z)), np.sin(0.3))
     # …while the improved form sees the same object.
     assert np.linalg.norm(orientation_residual(swapped, up)) < 1e-12
     with pytest.raises(TypeError, match="RTS"):

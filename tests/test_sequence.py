@@ -146,6 +146,8 @@ BAD = [
     ("priors.yaml", "classes:\n  chair: {radii: [1, 1, 1]}\n", 2, "radii and sigma"),
     ("priors.yaml", "classes:\n  chair: {radii: [1, 1, 1], sigma: -1}\n", 2, "positive sigma"),
     ("priors.yaml", "support_planes:\n  - [0, 0, 0, 1]\n", 2, "non-zero normal"),
+    ("priors.yaml", "trajectory_sigma: [0.01]\n", 1, "a list of 2 numbers for trajectory_sigma"),
+    ("priors.yaml", "trajectory_sigma: [0.01, 0]\n", 1, "a positive trajectory_sigma"),
 ]
 
 
@@ -192,6 +194,7 @@ def synthetic() -> Sequence:
         [np.array([0, 0, 1.0, 0]), np.array([0, 1.0, 0, -1e-7])],
         np.array([0, 0, 1.0]),
         {"chair": ClassPrior([0.3, 0.3, 0.5], 0.05), "table": ClassPrior([1, 1, 0.4], 2e-12)},
+        np.array([0.003, 1e-3]),
     )
     gt = np.column_stack([t + 0.001, poses])
     return Sequence("syn", cam, t, poses, dets, objs, gt, priors, {0.0: "/data/img 0.png".replace(" ", "_")})

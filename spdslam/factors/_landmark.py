@@ -47,7 +47,7 @@ DEFAULT_SIGMAS = {
     "inverse_box": 2.0,  # px per box edge
     "semi_inverse_box": 0.01,  # m² per edge plane (≈ 2 px for a 0.3 m object at 3 m, f = 500)
     "orientation": 0.05,  # per component of (Log P m) × m
-    "classic_orientation": 0.05,  # rad
+    "classic_orientation": 0.05,  # per component of ±n × m (≈ rad)
     "shape": 0.1,  # per axis ratio
     "size": 0.1,  # log of the geometric-mean radius ratio
     "support_plane": 0.01,  # m²
@@ -144,13 +144,15 @@ def orientation_residual(landmark, direction):
 
 
 def classic_orientation_residual(landmark, direction, axis):
-    """Classic form: the angle between one fixed object axis n = R e_axis and m (rad, ≥ 0),
+    """Classic form: one fixed object axis n = R e_axis parallel to m,
 
-        θ = atan2(‖n × m‖, |n·m|),
+        r = sign(n·m) (n × m)   ∈ R³,   ‖r‖ = sin θ,
 
-    blind to the axis sign but not to its order: a fixed column of an RTS rotation, so an
-    object whose rotation has the wrong axis up is pulled by up to 90°. ``axis`` is a
-    one-hot 3-vector selecting the column.
+    θ ∈ [0, 90°] the angle between the line of n and m: blind to the axis sign but not to
+    its order (a fixed column of an RTS rotation), so an object whose rotation has another
+    axis up is pulled by up to 90°. Smooth at θ = 0 (an angle θ ≥ 0 would have a kink
+    there that stalls Gauss-Newton); the sign flips only at θ = 90°. ``axis`` is a one-hot
+    3-vector selecting the column.
     """
     if not isinstance(landmark, EllipsoidRTS):
         raise TypeError(
@@ -159,10 +161,7 @@ def classic_orientation_residual(landmark, direction, axis):
         )
     m = _unit(direction)
     n = landmark.rotation.as_matrix() @ axis
-    c = jnp.cross(n, m)
-    s2 = jnp.sum(c**2)
-    sin = jnp.sqrt(jnp.where(s2 > 1e-30, s2, 1e-30))
-    return jnp.atleast_1d(jnp.arctan2(sin, jnp.abs(n @ m)))
+    return jnp.where(n @ m < 0, -1.0, 1.0) * jnp.cross(n, m)
 
 
 def OrientationFactor(
@@ -198,7 +197,7 @@ def ClassicOrientationFactor(
         classic_orientation_residual,
         (landmark_key,),
         (m / np.linalg.norm(m), np.eye(3)[axis]),
-        sqrt_information(1, sigma=sigma),
+        sqrt_information(3, sigma=sigma),
         robust,
         None,
         "classic_orientation",

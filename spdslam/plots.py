@@ -1,0 +1,425 @@
+"""Figures of a map and of its projection into the images (PNG, matplotlib's Agg canvas).
+
+- ``plot_map_top``: a top view, the orthographic projection along ``up``. With B the 2×3
+  matrix whose rows are an orthonormal basis of the plane ⟂ up, the ellipsoid
+  {t + L u : ‖u‖ ≤ 1} (P = L Lᵀ) projects to {B t + B L u}, the ellipse with centre B t and
+  2×2 shape B P Bᵀ (``top_view_ellipse``). A cuboid's footprint is the convex hull of its
+  8 projected corners.
+- ``plot_overlay``: an image with each landmark's projected outline. The dual conic
+  C* = M Q* Mᵀ (M = K [R_cw | t_cw]), scaled to C*₃₃ = −1, is [[S − ccᵀ, −c], [−cᵀ, −1]]
+  for the ellipse {x : (x − c)ᵀ S⁻¹ (x − c) ≤ 1} whose point conic is C ∝ (C*)⁻¹
+  (``conic_ellipse``); the outline is c + S^½ (cos θ, sin θ) (``conic_outline``) and its
+  bounding box c ± √diag S is ``camera.project_box``.
+- ``write_overlays``: one overlay per frame of a ``Sequence`` with an image and detections.
+
+matplotlib is imported inside the functions (``matplotlib.figure.Figure``, which renders
+with Agg and does not touch pyplot's global state), never when spdslam is imported.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "camera_centers",
+    "conic_box",
+    "conic_ellipse",
+    "conic_outline",
+    "ellipse_points",
+    "ellipsoid_dual_conic",
+    "ellipsoid_in_front",
+    "plane_basis",
+    "plot_map_top",
+    "plot_overlay",
+    "pose_matrix",
+    "projection_matrix",
+    "top_view_ellipse",
+    "write_overlays",
+]
+
+_COLORS = ("tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink",
+           "tab:olive", "tab:cyan", "tab:red", "tab:green", "tab:gray")  # fmt: skip
+
+
+# --- geometry (pure numpy) ----------------------------------------------------------------
+
+
+def plane_basis(up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """B (2×3): rows e₁, e₂, an orthonormal basis of the plane ⟂ ``up`` with (e₁, e₂, up)
+    right-handed. e₁ is the world axis (x, else y) most orthogonal to up, projected onto
+    the plane; for up = +z, B = [x; y]."""
+    u = np.asarray(up, dtype=float).reshape(3)
+    n = float(np.linalg.norm(u))
+    if not (np.isfinite(n) and n > 0):
+        raise ValueError(f"up must be a finite non-zero 3-vector, got {u.tolist()}")
+    u = u / n
+    a = np.eye(3)[0] if abs(u[0]) < 0.9 else np.eye(3)[1]
+    e1 = a - (a @ u) * u
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2])
+
+
+def top_view_ellipse(P, center, basis) -> tuple[np.ndarray, np.ndarray]:
+    """(c, S): the orthographic projection of the ellipsoid (P, t) onto the plane spanned by
+    the rows of ``basis`` (2×3, orthonormal) is the ellipse c = B t, S = B P Bᵀ."""
+    B = np.asarray(basis, dtype=float)
+    P = np.asarray(P, dtype=float)
+    t = np.asarray(center, dtype=float)
+    S = B @ P @ B.T
+    return B @ t, 0.5 * (S + S.T)
+
+
+def ellipse_points(center, S, n: int = 100) -> np.ndarray:
+    """n points (n×2) c + S^½ (cos θ, sin θ), θ = 2πk/n, on the ellipse
+    {x : (x − c)ᵀ S⁻¹ (x − c) = 1}; the first point is repeated at the end (n+1 rows)."""
+    S = np.asarray(S, dtype=float)
+    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    if not np.all(w > 0):
+        raise ValueError(f"the ellipse's shape matrix must be positive definite, eigenvalues {w.tolist()}")
+    theta = np.linspace(0.0, 2.0 * np.pi, int(n) + 1)
+    unit = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    return np.asarray(center, dtype=float) + (unit * np.sqrt(w)) @ V.T
+
+
+def conic_ellipse(Cstar) -> tuple[np.ndarray, np.ndarray]:
+    """(c, S) of the ellipse of a dual conic C* (any non-zero scale or sign).
+
+    C*/(−C*₃₃) = [[S − ccᵀ, −c], [−cᵀ, −1]]: c = −C̃*[:2, 2], S = C̃*[:2, :2] + ccᵀ.
+    Raises ``ValueError`` when C* is not a real ellipse (C*₃₃ = 0: a parabola; S not
+    positive definite: a hyperbola or nothing), e.g. a landmark not wholly in front.
+    """
+    C = np.asarray(Cstar, dtype=float)
+    if C.shape != (3, 3) or not np.all(np.isfinite(C)):
+        raise ValueError(f"a dual conic must be a finite 3×3 matrix, got shape {C.shape}")
+    C = 0.5 * (C + C.T)
+    scale = np.abs(C).max()
+    if not abs(C[2, 2]) > 1e-12 * scale:
+        raise ValueError("not an ellipse: C*₃₃ = 0 (the conic is a parabola or degenerate)")
+    C = C / -C[2, 2]
+    c = -C[:2, 2]
+    S = C[:2, :2] + np.outer(c, c)
+    if not (S[0, 0] > 0 and np.linalg.det(S) > 0):
+        raise ValueError("not an ellipse: the dual conic's shape is not positive definite")
+    return c, S
+
+
+def conic_outline(Cstar, n: int = 100) -> np.ndarray:
+    """(n+1)×2 points of the ellipse of the dual conic C* (closed: first point repeated).
+
+    Each x̄ = (u, v, 1) satisfies x̄ᵀ C x̄ = 0 with C = (C*)⁻¹; see ``conic_ellipse``.
+    """
+    c, S = conic_ellipse(Cstar)
+    return ellipse_points(c, S, n)
+
+
+def conic_box(Cstar) -> np.ndarray:
+    """[u_min, v_min, u_max, v_max] = [c − √diag S, c + √diag S] of a dual conic's ellipse
+    (the same box as ``camera.conic_box``, in numpy)."""
+    c, S = conic_ellipse(Cstar)
+    r = np.sqrt(np.diag(S))
+    return np.concatenate([c - r, c + r])
+
+
+def pose_matrix(T_wc) -> np.ndarray:
+    """4×4 camera-to-world matrix from a jaxlie.SE3, a 4×4 matrix or TUM ``tx ty tz qx qy
+    qz qw`` (7,)."""
+    if isinstance(T_wc, (np.ndarray, list, tuple)) and np.shape(T_wc) in ((7,), (4, 4)):
+        v = np.asarray(T_wc, dtype=float)
+        if not np.all(np.isfinite(v)):
+            raise ValueError("pose has non-finite entries")
+        if v.shape == (4, 4):
+            return v.copy()
+        from .sequence import quat_to_matrix
+
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(v[3:])
+        T[:3, 3] = v[:3]
+        return T
+    from .se3 import to_matrix
+
+    return np.asarray(to_matrix(T_wc), dtype=float)
+
+
+def projection_matrix(T_wc, camera) -> np.ndarray:
+    """M = K [R_wcᵀ | −R_wcᵀ c] (3×4, numpy) for a camera-to-world pose (any ``pose_matrix``
+    input) and a ``Camera``."""
+    T = pose_matrix(T_wc)
+    R, c = T[:3, :3], T[:3, 3]
+    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    return K @ np.column_stack([R.T, -R.T @ c])
+
+
+def _dual_quadric(P, center) -> np.ndarray:
+    """Q* = [[P − ttᵀ, −t], [−tᵀ, −1]]."""
+    P, t = np.asarray(P, dtype=float), np.asarray(center, dtype=float)
+    Q = np.empty((4, 4))
+    Q[:3, :3] = P - np.outer(t, t)
+    Q[:3, 3] = Q[3, :3] = -t
+    Q[3, 3] = -1.0
+    return Q
+
+
+def ellipsoid_dual_conic(P, center, T_wc, camera) -> np.ndarray:
+    """C* = M Q* Mᵀ (3×3) of the ellipsoid (P, t) seen from T_wc (numpy
+    ``camera.project_dual_quadric``)."""
+    M = projection_matrix(T_wc, camera)
+    return M @ _dual_quadric(P, center) @ M.T
+
+
+def ellipsoid_in_front(P, center, T_wc, min_depth: float = 0.0) -> bool:
+    """True when every point of the ellipsoid has camera depth > ``min_depth``:
+    a·(t − c) − √(aᵀ P a) > min_depth, a the optical axis (numpy ``camera.in_front``)."""
+    T = pose_matrix(T_wc)
+    a = T[:3, 2]
+    P, t = np.asarray(P, dtype=float), np.asarray(center, dtype=float)
+    return bool(a @ (t - T[:3, 3]) - np.sqrt(max(float(a @ P @ a), 0.0)) > min_depth)
+
+
+def camera_centers(trajectory) -> np.ndarray:
+    """Camera centres (N×3) of TUM rows: (N, 7) ``tx ty tz qx qy qz qw`` or (N, 8) with a
+    leading timestamp."""
+    a = np.asarray(trajectory, dtype=float)
+    if a.ndim != 2 or a.shape[1] not in (7, 8):
+        raise ValueError(f"a trajectory must be TUM rows of shape (N, 7) or (N, 8), got {a.shape}")
+    return a[:, 1:4] if a.shape[1] == 8 else a[:, 0:3]
+
+
+def _landmark(e) -> tuple[np.ndarray, np.ndarray]:
+    """(P, t) as numpy from an object with ``.P`` and ``.center``, or any spdslam landmark."""
+    if not hasattr(e, "P"):
+        from .ellipsoid import as_ellipsoid
+
+        e = as_ellipsoid(e)
+    return np.asarray(e.P, dtype=float), np.asarray(e.center, dtype=float)
+
+
+def _figure(**kw):
+    from matplotlib.figure import Figure
+
+    return Figure(**kw)
+
+
+def _save(fig, path, dpi) -> Path:
+    path = Path(path)
+    fig.savefig(path, dpi=dpi, format="png")
+    return path
+
+
+# --- top view -------------------------------------------------------------------------------
+
+
+def _axis_name(e: np.ndarray) -> str:
+    for k, name in enumerate("xyz"):
+        if abs(abs(e[k]) - 1.0) < 1e-12:
+            return ("−" if e[k] < 0 else "") + name
+    return "(" + ", ".join(f"{x:.2f}" for x in e) + ")"
+
+
+def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None,
+                 gt_trajectory=None, up=(0.0, 0.0, 1.0), title=None, dpi: int = 110) -> Path:  # fmt: skip
+    """Top view of a map, saved as PNG at ``path``; returns ``Path(path)``.
+
+    ``ellipsoids``: landmarks (``.P`` and ``.center``), drawn as their silhouettes
+    (``top_view_ellipse``) with ``labels`` (default: their indices) at the centres;
+    ``gt_cuboids``: ``Cuboid``s or objects with ``.cuboid`` (e.g. ``GroundTruthObject``),
+    drawn dashed as footprints; ``trajectory`` / ``gt_trajectory``: TUM rows (N, 7) or
+    (N, 8) of the estimated and ground-truth camera poses. ``up`` is the viewing direction
+    (the plot's axes are ``plane_basis(up)``).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    B = plane_basis(up)
+    ellipsoids = list(ellipsoids)
+    if labels is not None and len(labels) != len(ellipsoids):
+        raise ValueError(f"need one label per ellipsoid, got {len(labels)} for {len(ellipsoids)}")
+    fig = _figure(figsize=(7.0, 6.0))
+    ax = fig.add_subplot()
+    for i, e in enumerate(ellipsoids):
+        P, t = _landmark(e)
+        c, S = top_view_ellipse(P, t, B)
+        xy = ellipse_points(c, S, 120)
+        color = _COLORS[i % len(_COLORS)]
+        ax.fill(xy[:, 0], xy[:, 1], color=color, alpha=0.15, lw=0)
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=color, lw=1.5,
+                label="estimated ellipsoids" if i == 0 else None)  # fmt: skip
+        text = str(i) if labels is None else str(labels[i])
+        ax.annotate(text, c, ha="center", va="center", fontsize=8, color=color)
+    for i, g in enumerate(gt_cuboids or []):
+        cub = getattr(g, "cuboid", g)
+        pts = np.asarray(cub.corners(), dtype=float) @ B.T
+        try:
+            hull = pts[ConvexHull(pts).vertices]
+        except QhullError:  # a footprint of zero area (a cuboid seen edge-on cannot be)
+            hull = pts
+        hull = np.vstack([hull, hull[:1]])
+        ax.plot(hull[:, 0], hull[:, 1], "--", color="black", lw=1.0,
+                label="ground-truth cuboids" if i == 0 else None)  # fmt: skip
+    for traj, style, color, name in (
+        (gt_trajectory, "--", "0.45", "ground-truth trajectory"),
+        (trajectory, "-", "tab:red", "estimated trajectory"),
+    ):
+        if traj is None:
+            continue
+        xy = camera_centers(traj) @ B.T
+        if len(xy) == 0:
+            continue
+        ax.plot(xy[:, 0], xy[:, 1], style, color=color, lw=1.0, label=name)
+        ax.plot(xy[:1, 0], xy[:1, 1], "o", color=color, ms=4)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(f"{_axis_name(B[0])} [m]")
+    ax.set_ylabel(f"{_axis_name(B[1])} [m]")
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8, loc="best")
+    ax.set_title(title if title is not None else f"top view (up = {_axis_name(np.cross(B[0], B[1]))})")
+    fig.tight_layout()
+    return _save(fig, path, dpi)
+
+
+# --- image overlays -------------------------------------------------------------------------
+
+
+def _read_image(image):
+    if image is None:
+        return None
+    if isinstance(image, np.ndarray):
+        return image
+    import matplotlib.image as mpimg
+
+    return mpimg.imread(str(image))  # PNG natively, JPEG and others through Pillow
+
+
+def _box_of(b):
+    """(box (4,), label or None) of a box array or an object with ``.box`` (a Detection)."""
+    if hasattr(b, "box"):
+        return np.asarray(b.box, dtype=float), getattr(b, "label", None)
+    return np.asarray(b, dtype=float).reshape(4), None
+
+
+def plot_overlay(path, image, camera, T_wc, ellipsoids, boxes=None, labels=None,
+                 dpi: int = 100, n_points: int = 100) -> Path:  # fmt: skip
+    """One view saved as PNG at ``path`` (``camera.width`` × ``camera.height`` pixels at the
+    given dpi); returns ``Path(path)``.
+
+    ``image``: a file (``matplotlib.image.imread``), an array, or None for a blank canvas;
+    it is stretched to the camera's size. ``T_wc``: camera-to-world pose (jaxlie.SE3, 4×4
+    or TUM (7,)). Each landmark of ``ellipsoids`` wholly in front of the camera is drawn as
+    its projected outline (``conic_outline``) with its closed-form box (red dashed) and
+    ``labels[i]``; ``boxes`` (arrays [x1, y1, x2, y2] or ``Detection``s) in green. Image
+    coordinates: origin top left, v down, pixel centres at integers.
+    """
+    w, h = float(camera.width), float(camera.height)
+    ellipsoids = list(ellipsoids)
+    if labels is not None and len(labels) != len(ellipsoids):
+        raise ValueError(f"need one label per ellipsoid, got {len(labels)} for {len(ellipsoids)}")
+    T = pose_matrix(T_wc)
+    M = projection_matrix(T, camera)
+    from matplotlib.patches import Rectangle
+
+    fig = _figure(figsize=(w / dpi, h / dpi))
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    extent = (-0.5, w - 0.5, h - 0.5, -0.5)
+    img = _read_image(image)
+    if img is not None:
+        ax.imshow(img, extent=extent, interpolation="nearest", cmap="gray" if img.ndim == 2 else None)
+    else:
+        ax.set_facecolor("0.93")
+    lw = max(1.0, w / 640.0 * 1.2)
+    fs = max(6.0, w / 640.0 * 8.0)
+    for b in boxes or []:
+        box, lab = _box_of(b)
+        ax.add_patch(Rectangle((box[0], box[1]), box[2] - box[0], box[3] - box[1],
+                               fill=False, ec="lime", lw=lw))  # fmt: skip
+        if lab:
+            ax.text(box[0], box[3], f" {lab}", color="lime", fontsize=fs, va="top", clip_on=True)
+    for i, e in enumerate(ellipsoids):
+        P, t = _landmark(e)
+        if not ellipsoid_in_front(P, t, T):
+            continue
+        Cs = M @ _dual_quadric(P, t) @ M.T
+        try:
+            c, S = conic_ellipse(Cs)
+        except ValueError:
+            continue
+        color = _COLORS[i % len(_COLORS)]
+        uv = ellipse_points(c, S, n_points)
+        ax.plot(uv[:, 0], uv[:, 1], "-", color=color, lw=lw)
+        r = np.sqrt(np.diag(S))
+        ax.add_patch(Rectangle(tuple(c - r), 2 * r[0], 2 * r[1], fill=False, ec="red", ls="--", lw=lw))
+        text = str(i) if labels is None else str(labels[i])
+        ax.text(c[0] - r[0], c[1] - r[1], f"{text} ", color="red", fontsize=fs,
+                ha="left", va="bottom", clip_on=True)  # fmt: skip
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_axis_off()
+    return _save(fig, path, dpi)
+
+
+def _image_for(sequence, frame: int, detections, tolerance: float):
+    """(timestamp, path) of the frame's image: the image nearest to the detections' stamp
+    (else the pose's) within ``tolerance``, or None."""
+    keys = np.array(sorted(sequence.images), dtype=float)
+    if keys.size == 0:
+        return None
+    t = detections[0].timestamp if detections else float(sequence.timestamps[frame])
+    k = int(np.argmin(np.abs(keys - t)))
+    if abs(keys[k] - t) > tolerance:
+        return None
+    return float(keys[k]), sequence.images[float(keys[k])]
+
+
+def write_overlays(folder, sequence, ellipsoids, poses_tum, frames=None, max_frames=None,
+                   labels=None, dpi: int = 80) -> list[Path]:  # fmt: skip
+    """Overlays ``folder/<timestamp>.png`` (the image's timestamp, ``repr`` of the float) for
+    the frames of ``sequence`` that have detections and an image; returns the written paths.
+
+    ``poses_tum``: the poses to project with, (N, 7) ``tx ty tz qx qy qz qw`` (or (N, 8)
+    with timestamps), row = frame index, N = len(sequence). ``frames``: the frame indices
+    to consider (default all); ``max_frames``: at most this many of the eligible frames,
+    evenly spaced (first and last included). A frame's image is the one whose timestamp is
+    nearest its detections' (within ``spdslam.sequence.MATCH_TOLERANCE``). Returns [] when the
+    sequence has no images.
+    """
+    from .sequence import MATCH_TOLERANCE
+
+    if not sequence.images:
+        return []
+    poses = np.asarray(poses_tum, dtype=float)
+    if poses.ndim == 2 and poses.shape[1] == 8:
+        poses = poses[:, 1:]
+    if poses.ndim != 2 or poses.shape != (len(sequence), 7):
+        raise ValueError(
+            f"poses_tum must have shape ({len(sequence)}, 7) (one row per frame), got {poses.shape}"
+        )
+    ellipsoids = list(ellipsoids)
+    by_frame: dict[int, list] = {}
+    for d in sequence.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    candidates = range(len(sequence)) if frames is None else [int(f) for f in frames]
+    jobs = []
+    for f in candidates:
+        if not 0 <= f < len(sequence):
+            raise ValueError(f"frame {f} out of range [0, {len(sequence)})")
+        dets = by_frame.get(f, [])
+        if not dets:
+            continue
+        found = _image_for(sequence, f, dets, MATCH_TOLERANCE + 1e-9)
+        if found is None or not Path(found[1]).is_file():
+            continue
+        jobs.append((f, dets, *found))
+    if max_frames is not None and len(jobs) > max_frames:
+        if max_frames <= 0:
+            return []
+        keep = np.unique(np.round(np.linspace(0, len(jobs) - 1, int(max_frames))).astype(int))
+        jobs = [jobs[k] for k in keep]
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for f, dets, t, image in jobs:
+        target = folder / f"{t!r}.png"
+        pose = poses[f]
+        out.append(plot_overlay(target, image, sequence.camera, pose, ellipsoids, dets, labels, dpi))
+    return out

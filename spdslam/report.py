@@ -1,0 +1,273 @@
+"""Metrics, tables and output folders of a sequence run (``spdslam run`` / ``evaluate``).
+
+Per object (matched to the ground truth by id when every estimated id is a ground-truth id,
+else by a Hungarian assignment on 3D IoU among objects of the same label):
+
+- IoU between the circumscribed oriented cuboid of the estimate and the ground-truth cuboid
+  (exact convex-polytope intersection, ``evaluation.cuboid_iou``);
+- orientation error: the smallest rotation aligning the estimate's axes with the ground
+  truth's, whatever their order and sign (``evaluation.orientation_error_deg``);
+- centre error (m).
+
+Per sequence: the mean IoU over the ground-truth objects (an object the method did not
+map counts 0), the mean orientation and centre errors over the mapped ones, and the
+trajectory ATE (RMSE after SE(3) alignment) when ground-truth poses exist.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .ellipsoid import Ellipsoid
+from .evaluation import (
+    Cuboid,
+    absolute_trajectory_error,
+    cuboid_iou,
+    orientation_error_deg,
+)
+
+__all__ = [
+    "MapFormatError",
+    "ObjectMetrics",
+    "evaluate_objects",
+    "evaluate_run",
+    "match_objects",
+    "read_map",
+    "table_iii",
+    "write_run",
+]
+
+
+class MapFormatError(ValueError):
+    """A malformed map.json: ``"<file>: expected …, got …"``."""
+
+
+@dataclass(frozen=True)
+class ObjectMetrics:
+    id: int
+    label: str
+    gt_id: int | None
+    iou: float
+    orientation_deg: float
+    center_error: float
+
+    def as_dict(self) -> dict:
+        return {
+            "id": int(self.id), "label": self.label, "gt_id": self.gt_id,
+            "iou": float(self.iou), "orientation_deg": float(self.orientation_deg),
+            "center_error": float(self.center_error),
+        }
+
+
+def match_objects(objects, gt_objects) -> dict:
+    """{estimated id: ground-truth id}; by id when the ids agree, else Hungarian on IoU."""
+    gt_ids = {int(g.id) for g in gt_objects}
+    if objects and all(int(o.id) in gt_ids for o in objects):
+        return {int(o.id): int(o.id) for o in objects}
+    from scipy.optimize import linear_sum_assignment
+
+    iou = np.zeros((len(objects), len(gt_objects)))
+    for i, o in enumerate(objects):
+        c = Cuboid.from_ellipsoid(o.ellipsoid)
+        for j, g in enumerate(gt_objects):
+            if o.label == g.label:
+                iou[i, j] = cuboid_iou(c, g.cuboid)
+    rows, cols = linear_sum_assignment(-iou)
+    return {int(objects[i].id): int(gt_objects[j].id) for i, j in zip(rows, cols) if iou[i, j] > 0}
+
+
+def evaluate_objects(objects, gt_objects) -> tuple[list, dict]:
+    """(per-object metrics, summary) of a list of objects with ``id, label, ellipsoid``."""
+    match = match_objects(objects, gt_objects)
+    gts = {int(g.id): g for g in gt_objects}
+    rows = []
+    for o in objects:
+        g = gts.get(match.get(int(o.id)))
+        if g is None:
+            rows.append(ObjectMetrics(o.id, o.label, None, 0.0, float("nan"), float("nan")))
+            continue
+        c = Cuboid.from_ellipsoid(o.ellipsoid)
+        rows.append(ObjectMetrics(
+            o.id, o.label, int(g.id), cuboid_iou(c, g.cuboid),
+            orientation_error_deg(c.rotation, g.cuboid.rotation),
+            float(np.linalg.norm(c.center - g.cuboid.center)),
+        ))
+    matched = [r for r in rows if r.gt_id is not None]
+    n_gt = len(gt_objects)
+    summary = {
+        "objects": len(objects),
+        "ground_truth_objects": n_gt,
+        "matched": len(matched),
+        "mean_iou": float(sum(r.iou for r in matched) / n_gt) if n_gt else float("nan"),
+        "mean_orientation_deg": float(np.mean([r.orientation_deg for r in matched])) if matched else float("nan"),
+        "mean_center_error": float(np.mean([r.center_error for r in matched])) if matched else float("nan"),
+    }
+    return rows, summary
+
+
+def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq) -> dict:
+    """Metrics of a run against the sequence's ground truth (what exists of it)."""
+    out = {"sequence": seq.name, "method": map_dict["method"]}
+    if seq.objects_gt:
+        rows, summary = evaluate_objects(objects, seq.objects_gt)
+        out["objects"] = [r.as_dict() for r in rows]
+        out["summary"] = summary
+        if initial_objects is not None:
+            rows0, summary0 = evaluate_objects(initial_objects, seq.objects_gt)
+            out["front_end"] = {"objects": [r.as_dict() for r in rows0], "summary": summary0}
+    if seq.groundtruth_tum is not None:
+        traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
+        out["ate"] = {
+            "input": absolute_trajectory_error(traj_in, seq.groundtruth_tum),
+            "optimized": absolute_trajectory_error(np.asarray(poses_tum), seq.groundtruth_tum),
+        }
+    return out
+
+
+FRONT_END_NAMES = {"svd": "Quadric-SVD", "multi": "Quadric-Multi"}
+
+
+def table_iii(rows) -> str:
+    """A Markdown table like the paper's Table III from ``(stage, method, summary)`` rows."""
+    lines = [
+        "| stage | method | mean IoU | orientation error (°) | centre error (m) | objects |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for stage, name, s in rows:
+        lines.append(
+            f"| {stage} | {name} | {s['mean_iou']:.3f} | {s['mean_orientation_deg']:.2f} | "
+            f"{s['mean_center_error']:.3f} | {s['matched']}/{s['ground_truth_objects']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def report_markdown(metrics: dict, map_dict: dict) -> str:
+    lines = [f"# {map_dict['method']} on {metrics['sequence']}", ""]
+    lines.append(
+        f"Parameterisation {map_dict['parameterization']}, {map_dict['iterations']} iterations "
+        f"({map_dict.get('reason', '')}), final cost {map_dict['final_cost']:.6g}."
+    )
+    lines.append("")
+    if "summary" in metrics:
+        rows = []
+        if "front_end" in metrics:
+            init = map_dict.get("settings", {}).get("initialization", "")
+            rows.append(("front end", FRONT_END_NAMES.get(init, init), metrics["front_end"]["summary"]))
+        rows.append(("back end", map_dict["method"], metrics["summary"]))
+        lines += [table_iii(rows), "## Objects", "",
+                  "| id | label | IoU | orientation error (°) | centre error (m) |",
+                  "| --- | --- | --- | --- | --- |"]
+        for r in metrics["objects"]:
+            lines.append(f"| {r['id']} | {r['label']} | {r['iou']:.3f} | {r['orientation_deg']:.2f} | "
+                         f"{r['center_error']:.3f} |")
+        lines.append("")
+    else:
+        lines += ["No object ground truth (objects_gt.txt): no object metrics.", ""]
+    if "ate" in metrics:
+        a = metrics["ate"]
+        ate = (f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised "
+               f"{a['optimized']['rmse']:.4f} m ({a['optimized']['pairs']} poses).")
+        lines += ["## Trajectory", "", ate, ""]
+    failed = map_dict.get("failed") or {}
+    if failed:
+        lines += ["## Objects not mapped", ""] + [f"- {k}: {v}" for k, v in failed.items()] + [""]
+    for n in map_dict.get("notes") or []:
+        lines.append(f"- note: {n}")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _tum_text(rows) -> str:
+    return "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "".join(
+        " ".join(repr(float(x)) for x in r) + "\n" for r in np.asarray(rows)
+    )
+
+
+def _atomic_folder(out: Path, overwrite: bool):
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty (use --overwrite)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+
+
+def _move_into_place(tmp: Path, out: Path) -> None:
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
+        os.replace(out, old / "x")
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)
+
+
+def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
+              overwrite: bool = False) -> dict:
+    """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
+    map_top.png and overlay/ (with images) into ``out``, atomically. Returns the metrics."""
+    from .plots import plot_map_top, write_overlays
+
+    out = Path(out)
+    tmp = _atomic_folder(out, overwrite)
+    try:
+        m = result.as_dict()
+        (tmp / "map.json").write_text(json.dumps(m, indent=1) + "\n", encoding="utf-8")
+        (tmp / "trajectory.txt").write_text(_tum_text(result.poses_tum), encoding="utf-8")
+        metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
+        if "summary" in metrics or "ate" in metrics:
+            (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
+            (tmp / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
+        up = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
+        plot_map_top(
+            tmp / "map_top.png", [o.ellipsoid for o in result.objects],
+            labels=[f"{o.label} {o.id}" for o in result.objects],
+            gt_cuboids=[g.cuboid for g in seq.objects_gt] if seq.objects_gt else None,
+            trajectory=result.poses_tum, gt_trajectory=seq.groundtruth_tum, up=up,
+            title=f"{result.method.name} on {seq.name}",
+        )
+        if overlay and seq.images:
+            write_overlays(tmp / "overlay", seq, [o.ellipsoid for o in result.objects],
+                           result.poses_tum, max_frames=max_overlays,
+                           labels=[f"{o.label} {o.id}" for o in result.objects])
+        _move_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return metrics
+
+
+def read_map(path) -> tuple[dict, list]:
+    """(map dict, objects with ``id, label, ellipsoid``) of a map.json."""
+    from .mapping import MapObject
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "map.json"
+    try:
+        m = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got no such file") from None
+    except json.JSONDecodeError as e:
+        raise MapFormatError(f"{path}:{e.lineno}: expected JSON, got {e.msg}") from None
+    objs = []
+    for k in ("method", "parameterization", "iterations", "final_cost", "objects"):
+        if k not in m:
+            raise MapFormatError(f"{path}: expected the key {k!r}, got keys {sorted(m)}")
+    for i, o in enumerate(m["objects"]):
+        try:
+            P = np.asarray(o["P"], dtype=float)
+            c = np.asarray(o["center"], dtype=float)
+            ok = P.shape == (3, 3) and c.shape == (3,) and np.all(np.isfinite(P)) and np.all(np.isfinite(c))
+            ok = ok and np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise MapFormatError(f"{path}: expected object {i} with a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
+        objs.append(MapObject(int(o["id"]), str(o["label"]), Ellipsoid(P, c)))
+    return m, objs
