@@ -288,8 +288,8 @@ def _parse_sigmas(items) -> dict:
             v = float(value)
         except ValueError:
             fail(f"--sigma: {value!r} is not a number (in {item!r})")
-        if not (math.isfinite(v) and v >= 0):
-            fail(f"--sigma: expected a finite non-negative value, got {item!r}")
+        if not (math.isfinite(v) and (v > 0 or (v == 0 and name.strip() == "inverse_box_relative"))):
+            fail(f"--sigma: expected a finite positive value, got {item!r}")
         out[name.strip()] = v
     return out
 
@@ -306,10 +306,18 @@ def _print_metrics(metrics: dict) -> None:
         console.print(f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised {a['optimized']['rmse']:.4f} m")
 
 
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        fail(f"--out: {out} exists and is not a folder")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        fail(f"--out: {out} exists and is not empty (use --overwrite)")
+
+
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, **overrides):
     from .mapping import run_sequence
     from .report import write_run
 
+    _check_out(out, overwrite)
     try:
         result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations, **overrides)
     except ValueError as e:
@@ -390,9 +398,16 @@ def evaluate(
         fail(f"{sequence}: expected ground truth (objects_gt.txt or groundtruth.txt), got neither")
     if poses is None:
         poses = np.column_stack([seq.timestamps, seq.poses_tum])
-    metrics = evaluate_run(m, objects, None, poses, seq)
-    (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
-    (folder / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
+    try:
+        metrics = evaluate_run(m, objects, None, poses, seq)
+        texts = {"metrics.json": json.dumps(metrics, indent=1) + "\n",
+                 "report.md": report_markdown(metrics, m)}
+    except (TypeError, ValueError, KeyError) as e:
+        fail(f"{folder / 'map.json'}: expected a map written by spdslam run, got {type(e).__name__}: {e}")
+    for name, text in texts.items():
+        tmp = folder / f".{name}.tmp"
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, folder / name)
     for r in metrics.get("objects", []):
         console.print(f"object {r['id']} ({r['label']}): IoU {r['iou']:.3f}, orientation {r['orientation_deg']:.2f}°")
     _print_metrics(metrics)
@@ -408,6 +423,8 @@ def import_(
     """Convert an fr3_cabinet-style folder to the canonical sequence format."""
     from .sequence import SequenceFormatError, import_fr3_cabinet, write_sequence
 
+    if not source.is_dir():
+        fail(f"{source}: expected an fr3_cabinet-style folder, got no such folder")
     try:
         seq = import_fr3_cabinet(source)
         write_sequence(seq, dest, overwrite=overwrite)
@@ -433,8 +450,7 @@ def compare(
     seq = _load_sequence(sequence)
     if not seq.objects_gt:
         fail(f"{sequence}: expected object ground truth (objects_gt.txt) to compare methods, got none")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        fail(f"--out: {out} exists and is not empty (use --overwrite)")
+    _check_out(out, overwrite)
     rows, fronts = [], {}
     for name in names:
         result, metrics = _run_and_write(seq, name, out / name, overwrite, False, {}, 100)
@@ -467,6 +483,8 @@ def demo(
 
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    if out.exists() and not out.is_dir():
+        fail(f"--out: {out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).exists():
         fail(f"--out: {out} exists, is not empty and is not an earlier demo output")
     try:

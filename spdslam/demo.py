@@ -368,7 +368,7 @@ def make_room_sequence(
     objects: int = 8,
     *,
     box_noise_px: float = 2.0,
-    drift: float = 0.01,
+    drift: float = 0.005,
     room_size: float | None = None,
     camera: Camera | None = None,
     size_jitter: float = 0.1,

@@ -251,23 +251,27 @@ def read_map(path) -> tuple[dict, list]:
         path = path / "map.json"
     try:
         m = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got no such file") from None
-    except json.JSONDecodeError as e:
-        raise MapFormatError(f"{path}:{e.lineno}: expected JSON, got {e.msg}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise MapFormatError(f"{path}:{getattr(e, 'lineno', 1)}: expected JSON, got {e}") from None
+    if not isinstance(m, dict):
+        raise MapFormatError(f"{path}: expected a JSON object, got {type(m).__name__}")
+    for k, types in (("method", str), ("parameterization", str), ("iterations", int),
+                     ("final_cost", (int, float)), ("objects", list)):
+        if k not in m or not isinstance(m[k], types) or isinstance(m[k], bool):
+            raise MapFormatError(f"{path}: expected the key {k!r} ({getattr(types, '__name__', 'number')}), got {str(m.get(k, 'nothing'))[:40]}")
     objs = []
-    for k in ("method", "parameterization", "iterations", "final_cost", "objects"):
-        if k not in m:
-            raise MapFormatError(f"{path}: expected the key {k!r}, got keys {sorted(m)}")
     for i, o in enumerate(m["objects"]):
         try:
             P = np.asarray(o["P"], dtype=float)
             c = np.asarray(o["center"], dtype=float)
+            oid, label = int(o["id"]), str(o["label"])
             ok = P.shape == (3, 3) and c.shape == (3,) and np.all(np.isfinite(P)) and np.all(np.isfinite(c))
             ok = ok and np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, IndexError):
             ok = False
         if not ok:
-            raise MapFormatError(f"{path}: expected object {i} with a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
-        objs.append(MapObject(int(o["id"]), str(o["label"]), Ellipsoid(P, c)))
+            raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
+        objs.append(MapObject(oid, label, Ellipsoid(P, c)))
     return m, objs

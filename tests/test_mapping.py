@@ -1,0 +1,134 @@
+"""The sequence pipeline: multi-constraint initialisation, methods, end-to-end targets."""
+
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from spdslam import Ellipsoid
+from spdslam.camera import look_at, project_box
+from spdslam.demo import make_room_sequence
+from spdslam.evaluation import Cuboid, cuboid_iou, orientation_error_deg
+from spdslam.initialization import InitializationError, multi_initialize, triangulate_rays
+from spdslam.mapping import METHODS, Method, mapping_sigmas, run_sequence, tracks_from_instances
+from spdslam.report import evaluate_objects
+from spdslam.sequence import Detection, Sequence, read_sequence
+from spdslam.simulation import DEFAULT_CAMERA
+
+FR3 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "tum_fr3_cabinet"
+
+
+def _upright(yaw=0.4, radii=(0.6, 0.35, 0.3), xy=(1.0, -0.5)):
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    return Ellipsoid.from_axes(R, [xy[0], xy[1], radii[2]], radii)
+
+
+def _views(target, n=6, radius=3.5, height=1.4):
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    eyes = np.c_[target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), np.full(n, height)]
+    return [look_at(e, target) for e in eyes]
+
+
+def test_multi_initialize_recovers_a_noise_free_upright_object():
+    e = _upright()
+    poses = _views(np.asarray(e.center))
+    boxes = np.stack([np.asarray(project_box(e, T, DEFAULT_CAMERA)) for T in poses])
+    got = multi_initialize(boxes, poses, DEFAULT_CAMERA, up=[0, 0, 1], support_plane=[0, 0, 1, 0])
+    np.testing.assert_allclose(got.center, e.center, atol=1e-6)
+    np.testing.assert_allclose(got.P, e.P, atol=1e-6)
+    # without the support plane the height is free, and still recovered
+    got = multi_initialize(boxes[:4], poses[:4], DEFAULT_CAMERA, up=[0, 0, 1])
+    np.testing.assert_allclose(got.P, e.P, atol=1e-5)
+
+
+def test_multi_initialize_errors():
+    e = _upright()
+    poses = _views(np.asarray(e.center), n=3)
+    boxes = np.stack([np.asarray(project_box(e, T, DEFAULT_CAMERA)) for T in poses])
+    with pytest.raises(InitializationError, match="at least 2 views"):
+        multi_initialize(boxes[:1], poses[:1], DEFAULT_CAMERA, up=[0, 0, 1])
+    with pytest.raises(ValueError, match="up direction"):
+        multi_initialize(boxes, poses, DEFAULT_CAMERA, up=None)
+    with pytest.raises(InitializationError, match="parallel"):
+        triangulate_rays(np.zeros((3, 3)), np.tile([1.0, 0, 0], (3, 1)))
+
+
+def test_methods_mirror_table_iii_and_validate():
+    assert METHODS["quadric-slam"].initialization == "svd"
+    assert METHODS["quadric-slam"].parameterization == "rts"
+    assert METHODS["multi-rts"].orientation == "classic"
+    assert METHODS["multi-spd"].parameterization == "spd"
+    with pytest.raises(ValueError, match="parameterization must be one of"):
+        Method("x", parameterization="quat")
+    with pytest.raises(ValueError, match="classic orientation"):
+        Method("x", parameterization="spd", orientation="classic")
+    seq = make_room_sequence(0, frames=30, objects=1)
+    with pytest.raises(ValueError, match="unknown method"):
+        run_sequence(seq, "orb-slam")
+    with pytest.raises(ValueError, match="unknown sigma"):
+        mapping_sigmas(seq, {"inverse_boxx": 1.0})
+    assert mapping_sigmas(seq)["odometry_translation"] == seq.priors.trajectory_sigma[0]
+
+
+def test_manual_association_needs_instances():
+    seq = make_room_sequence(0, frames=30, objects=1)
+    d = seq.detections[0]
+    stripped = Sequence(seq.name, seq.camera, seq.timestamps, seq.poses_tum,
+                        [Detection(d.frame, d.timestamp, d.box, d.label, d.score)] + seq.detections[1:])
+    with pytest.raises(ValueError, match="1 of .* detections have no instance id"):
+        tracks_from_instances(stripped)
+
+
+def test_too_few_views_is_reported_not_mapped():
+    seq = make_room_sequence(3, frames=60, objects=3)
+    lost = seq.detections[0].instance
+    kept = [d for d in seq.detections if d.instance != lost]
+    kept += [d for d in seq.detections if d.instance == lost][:2]
+    seq2 = Sequence(seq.name, seq.camera, seq.timestamps, seq.poses_tum, kept,
+                    seq.objects_gt, seq.groundtruth_tum, seq.priors)
+    r = run_sequence(seq2, "multi-spd")
+    assert lost in r.failed and "2 views" in r.failed[lost]
+    assert lost not in {o.id for o in r.objects} and len(r.objects) == 2
+    assert all(np.all(np.isfinite(np.asarray(o.ellipsoid.P))) for o in r.objects)
+
+
+def test_demo_end_to_end_with_manual_association():
+    """The issue's target: the default demo room, multi-spd, mean IoU ≥ 0.8."""
+    seq = make_room_sequence(0)
+    r = run_sequence(seq, "multi-spd")
+    _, s = evaluate_objects(r.objects, seq.objects_gt)
+    assert s["matched"] == len(seq.objects_gt)
+    assert s["mean_iou"] >= 0.8, s
+    # the back end improves on its front end and on the input trajectory
+    _, s0 = evaluate_objects(r.initial_objects, seq.objects_gt)
+    assert s["mean_iou"] > s0["mean_iou"]
+    moved = np.linalg.norm(r.poses_tum[:, 1:4] - seq.groundtruth_tum[:, 1:4], axis=1).mean()
+    before = np.linalg.norm(seq.poses_tum[:, :3] - seq.groundtruth_tum[:, 1:4], axis=1).mean()
+    assert moved < before
+
+
+@pytest.mark.skipif(not FR3.is_dir(), reason=f"fr3_cabinet data not found at {FR3}")
+def test_fr3_cabinet_multi_spd_target():
+    """The issue's target on real data: IoU ≥ 0.35 and orientation error ≤ 1.5°."""
+    seq = read_sequence(FR3)
+    r = run_sequence(seq, "multi-spd")
+    (o,) = r.objects
+    c = Cuboid.from_ellipsoid(o.ellipsoid)
+    gt = seq.objects_gt[0].cuboid
+    iou, rot = cuboid_iou(c, gt), orientation_error_deg(c.rotation, gt.rotation)
+    print(f"fr3_cabinet multi-spd: IoU {iou:.3f}, orientation error {rot:.2f} deg")
+    assert iou >= 0.35 and rot <= 1.5
+
+
+def test_run_is_deterministic_and_finite():
+    seq = make_room_sequence(5, frames=40, objects=2)
+    a = run_sequence(seq, "multi-spd")
+    b = run_sequence(seq, "multi-spd")
+    assert [o.id for o in a.objects] == [o.id for o in b.objects]
+    for x, y in zip(a.objects, b.objects):
+        np.testing.assert_allclose(x.ellipsoid.P, y.ellipsoid.P, rtol=1e-9, atol=1e-12)
+    assert np.all(np.isfinite(a.poses_tum))
+    assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda v: bool(np.all(np.isfinite(v))),
+                                                         [o.ellipsoid for o in a.objects]))
