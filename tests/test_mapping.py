@@ -10,8 +10,18 @@ from spdslam import Ellipsoid
 from spdslam.camera import look_at, project_box
 from spdslam.demo import make_room_sequence
 from spdslam.evaluation import Cuboid, cuboid_iou, orientation_error_deg
-from spdslam.initialization import InitializationError, multi_initialize, triangulate_rays
-from spdslam.mapping import METHODS, Method, mapping_sigmas, run_sequence, tracks_from_instances
+from spdslam.initialization import (
+    InitializationError,
+    multi_initialize,
+    triangulate_rays,
+)
+from spdslam.mapping import (
+    METHODS,
+    Method,
+    mapping_sigmas,
+    run_sequence,
+    tracks_from_instances,
+)
 from spdslam.report import evaluate_objects
 from spdslam.sequence import Detection, Sequence, read_sequence
 from spdslam.simulation import DEFAULT_CAMERA
