@@ -32,6 +32,17 @@ class InitializationError(ValueError):
     """The boxes do not determine an ellipsoid (too few views, degenerate geometry)."""
 
 
+def _views(boxes, poses, min_views: int):
+    """(boxes (k, 4), poses as SE3) with k ≥ ``min_views``, else InitializationError."""
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    poses = [as_pose(T) for T in poses]
+    if len(poses) != len(boxes):
+        raise ValueError(f"{len(boxes)} boxes but {len(poses)} poses")
+    if len(boxes) < min_views:
+        raise InitializationError(f"needs at least {min_views} views, got {len(boxes)}")
+    return boxes, poses
+
+
 def svd_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoid:
     """Quadric-SVD initial ellipsoid from ``boxes`` (k, 4) seen from camera-to-world ``poses``.
 
@@ -39,12 +50,7 @@ def svd_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoi
     boxes, a null space that is not one-dimensional, or a solution that is not an ellipsoid
     in front of the cameras.
     """
-    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
-    poses = [as_pose(T) for T in poses]
-    if len(poses) != len(boxes):
-        raise ValueError(f"{len(boxes)} boxes but {len(poses)} poses")
-    if len(boxes) < max(min_views, 3):
-        raise InitializationError(f"needs at least {max(min_views, 3)} views, got {len(boxes)}")
+    boxes, poses = _views(boxes, poses, max(min_views, 3))
     planes = np.concatenate([np.asarray(box_planes(b, T, camera)) for b, T in zip(boxes, poses)])
     centres = np.array([np.asarray(T.translation()) for T in poses])
     c = centres.mean(axis=0)
@@ -190,12 +196,7 @@ def multi_initialize(
     boxes (inverse box model, 2 px) by LM from several yaws; the centre and radii start from
     the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views.
     """
-    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
-    poses = [as_pose(T) for T in poses]
-    if len(poses) != len(boxes):
-        raise ValueError(f"{len(boxes)} boxes but {len(poses)} poses")
-    if len(boxes) < max(min_views, 2):
-        raise InitializationError(f"needs at least {max(min_views, 2)} views, got {len(boxes)}")
+    boxes, poses = _views(boxes, poses, max(min_views, 2))
     if up is None:
         raise ValueError("multi-constraint initialisation needs the up direction")
     frame = _plane_frame(up, support_plane)
