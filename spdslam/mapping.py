@@ -31,6 +31,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import jax
+import jaxlie
 import numpy as np
 
 from .camera import in_front
@@ -64,6 +65,7 @@ __all__ = [
     "build_graph",
     "initialize_objects",
     "mapping_sigmas",
+    "trajectory_poses",
     "object_key",
     "pose_key",
     "run_sequence",
@@ -246,13 +248,28 @@ def _support_plane(priors, e: Ellipsoid):
     return best
 
 
+def _up(priors):
+    """The up direction: ``priors.up``, else the first support plane's normal, else None."""
+    if priors is None:
+        return None
+    if priors.up is not None:
+        return np.asarray(priors.up)
+    return np.asarray(priors.support_planes[0][:3]) if priors.support_planes else None
+
+
+def trajectory_poses(seq: Sequence) -> list:
+    """The trajectory as one ``jaxlie.SE3`` per frame (one batched conversion, then views)."""
+    rows = np.asarray(from_tum(np.asarray(seq.poses_tum)).wxyz_xyz)
+    return [jaxlie.SE3(r) for r in rows]
+
+
 def _class_prior(priors, label):
     if priors is None:
         return None
     return priors.classes.get(label)
 
 
-def initialize_objects(seq: Sequence, tracks, method: Method, min_views: int = 3):
+def initialize_objects(seq: Sequence, tracks, method: Method, min_views: int = 3, poses=None):
     """Front end: (initial ellipsoids {id: Ellipsoid}, failures {id: reason}, notes).
 
     Views where the initial ellipsoid is not wholly in front of the camera are dropped from
@@ -260,17 +277,15 @@ def initialize_objects(seq: Sequence, tracks, method: Method, min_views: int = 3
     ``min_views`` views is a failure.
     """
     priors = seq.priors
-    up = None if priors is None else priors.up
-    if up is None and priors is not None and priors.support_planes:
-        up = np.asarray(priors.support_planes[0][:3])
+    up = _up(priors)
     init, failed, notes = {}, {}, []
     use_multi = method.initialization == "multi"
     if use_multi and up is None:
         notes.append("no up direction or support plane in the priors: Quadric-SVD initialisation")
         use_multi = False
-    poses = from_tum(np.asarray(seq.poses_tum))
+    poses = trajectory_poses(seq) if poses is None else poses
     for tr in tracks:
-        Ts = [jax.tree_util.tree_map(lambda a, i=i: a[i], poses) for i in tr.frames]
+        Ts = [poses[i] for i in tr.frames]
         if len(tr.frames) < min_views:
             failed[tr.id] = f"{len(tr.frames)} views, needs at least {min_views}"
             continue
@@ -295,7 +310,7 @@ def initialize_objects(seq: Sequence, tracks, method: Method, min_views: int = 3
     return init, failed, notes
 
 
-def _landmark(e: Ellipsoid, method: Method, up):
+def _landmark(e: Ellipsoid, method: Method):
     if method.parameterization == "spd":
         return e
     if method.parameterization == "full":
@@ -316,20 +331,19 @@ def build_graph(seq: Sequence, tracks, landmarks: dict, method: Method, box_mode
                 sigmas: dict | None = None):
     """The factor graph of a sequence for the given landmarks {id: landmark value}."""
     s = mapping_sigmas(seq, sigmas)
-    poses = from_tum(np.asarray(seq.poses_tum))
-    n = len(seq)
+    batched = from_tum(np.asarray(seq.poses_tum))
+    q = batched.wxyz_xyz
+    steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # T_i⁻¹ T_{i+1}
     graph = NonlinearFactorGraph()
-    first = jax.tree_util.tree_map(lambda a: a[0], poses)
+    first = jaxlie.SE3(np.asarray(batched.wxyz_xyz[0]))
     graph.add(PriorFactor(pose_key(0), first, sigma=s["first_pose"]))
     odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
-    for i in range(n - 1):
-        Ti = jax.tree_util.tree_map(lambda a, i=i: a[i], poses)
-        Tj = jax.tree_util.tree_map(lambda a, i=i: a[i + 1], poses)
-        graph.add(BetweenFactor(pose_key(i), pose_key(i + 1), Ti.inverse() @ Tj, sigma=odo))
+    for i, step in enumerate(steps):
+        graph.add(BetweenFactor(pose_key(i), pose_key(i + 1), jaxlie.SE3(step), sigma=odo))
     robust = _robust(method)
     box_factor = InverseBoxFactor if box_model == "inverse" else SemiInverseBoxFactor
     priors = seq.priors
-    up = None if priors is None else priors.up
+    up = _up(priors)
     for tr in tracks:
         if tr.id not in landmarks:
             continue
@@ -380,16 +394,14 @@ def mapping_sigmas(seq: Sequence, sigmas: dict | None = None) -> dict:
 def _drop_invisible(seq, tracks, init, notes, min_views):
     """Remove views where the initial ellipsoid is not in front of the camera."""
     poses = from_tum(np.asarray(seq.poses_tum))
+    visible = jax.jit(jax.vmap(lambda e, T: in_front(e, T, 1e-3), in_axes=(None, 0)))
     kept, failed = [], {}
     for tr in tracks:
         if tr.id not in init:
             kept.append(tr)
             continue
         e = init[tr.id]
-        ok = np.array([
-            bool(in_front(e, jax.tree_util.tree_map(lambda a, i=i: a[i], poses), 1e-3))
-            for i in tr.frames
-        ])
+        ok = np.asarray(visible(e, jaxlie.SE3(poses.wxyz_xyz[tr.frames])))
         if not ok.all():
             notes.append(
                 f"object {tr.id}: {int((~ok).sum())} of {ok.size} views dropped (the initial "
@@ -422,17 +434,16 @@ def run_sequence(
     method = method.replace(**overrides)
     if tracks is None:
         tracks = tracks_from_instances(seq)
-    init, failed, notes = initialize_objects(seq, tracks, method, min_views)
+    poses = trajectory_poses(seq)
+    init, failed, notes = initialize_objects(seq, tracks, method, min_views, poses)
     tracks, more_failed = _drop_invisible(seq, tracks, init, notes, min_views)
     failed.update(more_failed)
     for k in more_failed:
         init.pop(k, None)
-    up = None if seq.priors is None else seq.priors.up
-    landmarks = {k: _landmark(e, method, up) for k, e in init.items()}
-    poses = from_tum(np.asarray(seq.poses_tum))
+    landmarks = {k: _landmark(e, method) for k, e in init.items()}
     values = Values()
-    for i in range(len(seq)):
-        values[pose_key(i)] = jax.tree_util.tree_map(lambda a, i=i: a[i], poses)
+    for i, T in enumerate(poses):
+        values[pose_key(i)] = T
     for k, lm in landmarks.items():
         values[object_key(k)] = lm
 

@@ -116,66 +116,52 @@ def conic_outline(Cstar, n: int = 100) -> np.ndarray:
 
 
 def conic_box(Cstar) -> np.ndarray:
-    """[u_min, v_min, u_max, v_max] = [c − √diag S, c + √diag S] of a dual conic's ellipse
-    (the same box as ``camera.conic_box``, in numpy)."""
-    c, S = conic_ellipse(Cstar)
-    r = np.sqrt(np.diag(S))
-    return np.concatenate([c - r, c + r])
+    """[u_min, v_min, u_max, v_max] of a dual conic's ellipse (``camera.conic_box``)."""
+    from .camera import conic_box as _conic_box
+
+    return np.asarray(_conic_box(np.asarray(Cstar, dtype=float)))
 
 
-def pose_matrix(T_wc) -> np.ndarray:
-    """4×4 camera-to-world matrix from a jaxlie.SE3, a 4×4 matrix or TUM ``tx ty tz qx qy
-    qz qw`` (7,)."""
-    if isinstance(T_wc, (np.ndarray, list, tuple)) and np.shape(T_wc) in ((7,), (4, 4)):
+def _pose(T_wc):
+    """jaxlie.SE3 from an SE3, a 4×4 matrix or TUM ``tx ty tz qx qy qz qw`` (7,)."""
+    from .se3 import as_pose, from_tum
+
+    if isinstance(T_wc, (np.ndarray, list, tuple)) and np.shape(T_wc) == (7,):
         v = np.asarray(T_wc, dtype=float)
         if not np.all(np.isfinite(v)):
             raise ValueError("pose has non-finite entries")
-        if v.shape == (4, 4):
-            return v.copy()
-        from .sequence import quat_to_matrix
+        return from_tum(v)
+    return as_pose(T_wc)
 
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(v[3:])
-        T[:3, 3] = v[:3]
-        return T
-    from .se3 import to_matrix
 
-    return np.asarray(to_matrix(T_wc), dtype=float)
+def pose_matrix(T_wc) -> np.ndarray:
+    """4×4 camera-to-world matrix of any ``_pose`` input."""
+    return np.asarray(_pose(T_wc).as_matrix(), dtype=float)
 
 
 def projection_matrix(T_wc, camera) -> np.ndarray:
-    """M = K [R_wcᵀ | −R_wcᵀ c] (3×4, numpy) for a camera-to-world pose (any ``pose_matrix``
-    input) and a ``Camera``."""
-    T = pose_matrix(T_wc)
-    R, c = T[:3, :3], T[:3, 3]
-    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
-    return K @ np.column_stack([R.T, -R.T @ c])
+    """M = K [R_wcᵀ | −R_wcᵀ c] (3×4) for a camera-to-world pose (``camera.projection_matrix``)."""
+    from .camera import projection_matrix as _projection_matrix
 
-
-def _dual_quadric(P, center) -> np.ndarray:
-    """Q* = [[P − ttᵀ, −t], [−tᵀ, −1]]."""
-    P, t = np.asarray(P, dtype=float), np.asarray(center, dtype=float)
-    Q = np.empty((4, 4))
-    Q[:3, :3] = P - np.outer(t, t)
-    Q[:3, 3] = Q[3, :3] = -t
-    Q[3, 3] = -1.0
-    return Q
+    return np.asarray(_projection_matrix(_pose(T_wc), camera))
 
 
 def ellipsoid_dual_conic(P, center, T_wc, camera) -> np.ndarray:
-    """C* = M Q* Mᵀ (3×3) of the ellipsoid (P, t) seen from T_wc (numpy
-    ``camera.project_dual_quadric``)."""
-    M = projection_matrix(T_wc, camera)
-    return M @ _dual_quadric(P, center) @ M.T
+    """C* = M Q* Mᵀ (3×3) of the ellipsoid (P, t) seen from T_wc (``camera.project_dual_quadric``)."""
+    from .camera import project_dual_quadric
+    from .ellipsoid import Ellipsoid
+
+    Q = Ellipsoid(np.asarray(P, dtype=float), np.asarray(center, dtype=float)).dual_quadric()
+    return np.asarray(project_dual_quadric(Q, _pose(T_wc), camera))
 
 
 def ellipsoid_in_front(P, center, T_wc, min_depth: float = 0.0) -> bool:
-    """True when every point of the ellipsoid has camera depth > ``min_depth``:
-    a·(t − c) − √(aᵀ P a) > min_depth, a the optical axis (numpy ``camera.in_front``)."""
-    T = pose_matrix(T_wc)
-    a = T[:3, 2]
-    P, t = np.asarray(P, dtype=float), np.asarray(center, dtype=float)
-    return bool(a @ (t - T[:3, 3]) - np.sqrt(max(float(a @ P @ a), 0.0)) > min_depth)
+    """True when every point of the ellipsoid has camera depth > ``min_depth`` (``camera.in_front``)."""
+    from .camera import in_front
+    from .ellipsoid import Ellipsoid
+
+    e = Ellipsoid(np.asarray(P, dtype=float), np.asarray(center, dtype=float))
+    return bool(in_front(e, _pose(T_wc), min_depth))
 
 
 def camera_centers(trajectory) -> np.ndarray:
@@ -315,8 +301,7 @@ def plot_overlay(path, image, camera, T_wc, ellipsoids, boxes=None, labels=None,
     ellipsoids = list(ellipsoids)
     if labels is not None and len(labels) != len(ellipsoids):
         raise ValueError(f"need one label per ellipsoid, got {len(labels)} for {len(ellipsoids)}")
-    T = pose_matrix(T_wc)
-    M = projection_matrix(T, camera)
+    T_wc = _pose(T_wc)
     from matplotlib.patches import Rectangle
 
     fig = _figure(figsize=(w / dpi, h / dpi))
@@ -337,9 +322,9 @@ def plot_overlay(path, image, camera, T_wc, ellipsoids, boxes=None, labels=None,
             ax.text(box[0], box[3], f" {lab}", color="lime", fontsize=fs, va="top", clip_on=True)
     for i, e in enumerate(ellipsoids):
         P, t = _landmark(e)
-        if not ellipsoid_in_front(P, t, T):
+        if not ellipsoid_in_front(P, t, T_wc):
             continue
-        Cs = M @ _dual_quadric(P, t) @ M.T
+        Cs = ellipsoid_dual_conic(P, t, T_wc, camera)
         try:
             c, S = conic_ellipse(Cs)
         except ValueError:

@@ -17,9 +17,6 @@ trajectory ATE (RMSE after SE(3) alignment) when ground-truth poses exist.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +29,7 @@ from .evaluation import (
     cuboid_iou,
     orientation_error_deg,
 )
+from .sequence import write_folder_atomically
 
 __all__ = [
     "MapFormatError",
@@ -189,33 +187,13 @@ def _tum_text(rows) -> str:
     )
 
 
-def _atomic_folder(out: Path, overwrite: bool):
-    out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise FileExistsError(f"{out} exists and is not empty (use --overwrite)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-
-
-def _move_into_place(tmp: Path, out: Path) -> None:
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
-        os.replace(out, old / "x")
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
-
-
 def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
               overwrite: bool = False) -> dict:
     """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
     map_top.png and overlay/ (with images) into ``out``, atomically. Returns the metrics."""
     from .plots import plot_map_top, write_overlays
 
-    out = Path(out)
-    tmp = _atomic_folder(out, overwrite)
-    try:
+    def write(tmp: Path) -> dict:
         m = result.as_dict()
         (tmp / "map.json").write_text(json.dumps(m, indent=1) + "\n", encoding="utf-8")
         (tmp / "trajectory.txt").write_text(_tum_text(result.poses_tum), encoding="utf-8")
@@ -235,11 +213,9 @@ def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None =
             write_overlays(tmp / "overlay", seq, [o.ellipsoid for o in result.objects],
                            result.poses_tum, max_frames=max_overlays,
                            labels=[f"{o.label} {o.id}" for o in result.objects])
-        _move_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return metrics
+        return metrics
+
+    return write_folder_atomically(out, write, overwrite)
 
 
 def read_map(path) -> tuple[dict, list]:

@@ -41,6 +41,7 @@ __all__ = [
     "Sequence",
     "read_sequence",
     "write_sequence",
+    "write_folder_atomically",
     "import_fr3_cabinet",
     "is_fr3_cabinet",
     "quat_to_matrix",
@@ -841,25 +842,22 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
         (out / "rgb.txt").write_text("".join(lines), encoding="utf-8")
 
 
-def write_sequence(seq: Sequence, folder, overwrite: bool = False) -> Path:
-    """Write ``seq`` in the canonical format into ``folder``, atomically.
-
-    The files are written into a temporary folder beside ``folder`` that is renamed into
-    place at the end, so ``folder`` is never left half-written. An existing non-empty
-    ``folder`` raises ``FileExistsError`` unless ``overwrite``. Images are not copied:
-    ``rgb.txt`` lists them relative to ``folder`` when inside it, else by absolute path.
-    """
+def write_folder_atomically(folder, write, overwrite: bool = False):
+    """Run ``write(tmp)`` on a temporary folder beside ``folder``, then rename it into place,
+    so ``folder`` is never half-written; returns what ``write`` returns. An existing
+    non-empty ``folder`` raises ``FileExistsError`` unless ``overwrite`` (it is replaced
+    only once the new one is complete); on failure nothing changes."""
     folder = Path(folder)
     parent = folder.parent
     parent.mkdir(parents=True, exist_ok=True)
     if folder.exists() and not folder.is_dir():
         raise FileExistsError(f"{folder} exists and is not a folder")
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise FileExistsError(f"{folder} exists and is not empty (use overwrite=True)")
+        raise FileExistsError(f"{folder} exists and is not empty (use overwrite)")
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=parent))
     backup = None
     try:
-        _write_files(seq, tmp, folder)
+        out = write(tmp)
         if folder.is_dir():
             backup = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=parent))
             backup.rmdir()
@@ -872,4 +870,16 @@ def write_sequence(seq: Sequence, folder, overwrite: bool = False) -> Path:
         raise
     if backup is not None:
         shutil.rmtree(backup, ignore_errors=True)
+    return out
+
+
+def write_sequence(seq: Sequence, folder, overwrite: bool = False) -> Path:
+    """Write ``seq`` in the canonical format into ``folder``, atomically.
+
+    The files are written into a temporary folder beside ``folder`` that is renamed into
+    place at the end, so ``folder`` is never left half-written. An existing non-empty
+    ``folder`` raises ``FileExistsError`` unless ``overwrite``. Images are not copied:
+    ``rgb.txt`` lists them relative to ``folder`` when inside it, else by absolute path.
+    """
+    write_folder_atomically(folder, lambda tmp: _write_files(seq, tmp, folder), overwrite)
     return folder
