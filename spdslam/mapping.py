@@ -34,6 +34,7 @@ import jax
 import jaxlie
 import numpy as np
 
+from .association import Track, tracks_from_instances
 from .camera import in_front
 from .ellipsoid import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid
 from .factors import (
@@ -65,11 +66,11 @@ __all__ = [
     "build_graph",
     "initialize_objects",
     "mapping_sigmas",
-    "trajectory_poses",
     "object_key",
     "pose_key",
     "run_sequence",
     "tracks_from_instances",
+    "trajectory_poses",
 ]
 
 PARAMETERIZATIONS = ("spd", "rts", "full")
@@ -151,16 +152,6 @@ def object_key(i: int):
 
 
 @dataclass(frozen=True)
-class Track:
-    """The detections of one object: its id, label, frame indices and boxes (k, 4)."""
-
-    id: int
-    label: str
-    frames: np.ndarray
-    boxes: np.ndarray
-
-
-@dataclass(frozen=True)
 class MapObject:
     """An object of the map: id, label and ellipsoid (P, t)."""
 
@@ -211,28 +202,6 @@ class MapResult:
             "failed": {str(k): v for k, v in self.failed.items()},
             "notes": list(self.notes),
         }
-
-
-def tracks_from_instances(seq: Sequence) -> list:
-    """Group detections by their ``instance`` id (manual association)."""
-    missing = [d for d in seq.detections if d.instance is None]
-    if missing:
-        raise ValueError(
-            f"{len(missing)} of {len(seq.detections)} detections have no instance id; "
-            "manual association needs the instance column"
-        )
-    groups: dict = {}
-    for d in seq.detections:
-        groups.setdefault(d.instance, []).append(d)
-    tracks = []
-    for k in sorted(groups):
-        ds = sorted(groups[k], key=lambda d: d.frame)
-        labels = sorted({d.label for d in ds})
-        label = max(labels, key=lambda lab: sum(d.label == lab for d in ds))
-        tracks.append(
-            Track(int(k), label, np.array([d.frame for d in ds]), np.array([d.box for d in ds]))
-        )
-    return tracks
 
 
 def _support_plane(priors, e: Ellipsoid):
