@@ -52,6 +52,8 @@ __all__ = [
 
 #: A detection timestamp matches the nearest trajectory pose within this many seconds.
 MATCH_TOLERANCE = 0.02
+#: Object silhouettes a class prior can declare (``shape:`` in priors.yaml).
+OBJECT_SHAPES = ("ellipsoid", "cuboid")
 _MATCH_SLACK = 1e-9  # float noise on the tolerance
 
 #: Per-step accuracy (m, rad) given to the fr3_cabinet trajectory: motion capture.
@@ -149,19 +151,28 @@ class GroundTruthObject:
 
 @dataclass(frozen=True, eq=False)
 class ClassPrior:
-    """Prior size of a class: radii (3,) and their standard deviation ``sigma``."""
+    """Prior of a class: radii (3,), their standard deviation ``sigma``, and the ``shape``
+    whose silhouette the detector boxes (``"ellipsoid"`` or ``"cuboid"``: box-like objects
+    such as cabinets, monitors or tables; the radii are then the cuboid's half-extents)."""
 
     radii: np.ndarray
     sigma: float
+    shape: str = "ellipsoid"
 
     def __post_init__(self):
         object.__setattr__(self, "radii", _frozen_array(self.radii, (3,)))
         object.__setattr__(self, "sigma", float(self.sigma))
+        if self.shape not in OBJECT_SHAPES:
+            raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
 
     def __eq__(self, other):
         if not isinstance(other, ClassPrior):
             return NotImplemented
-        return _close(self.radii, other.radii) and _close(self.sigma, other.sigma)
+        return (
+            _close(self.radii, other.radii)
+            and _close(self.sigma, other.sigma)
+            and self.shape == other.shape
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -537,6 +548,7 @@ def read_priors(path, name: str | None = None) -> Priors:
         elif key == "classes":
             for label, lk, cnode in _mapping(name, vnode, "classes"):
                 radii = sigma = None
+                shape = "ellipsoid"
                 for ck, ckn, cv in _mapping(name, cnode, f"class {label!r}"):
                     if ck == "radii":
                         radii = _yvector(name, cv, 3, f"the radii of {label!r}")
@@ -546,14 +558,21 @@ def read_priors(path, name: str | None = None) -> Priors:
                         sigma = _ynumber(name, cv, f"the sigma of {label!r}")
                         if not sigma > 0:
                             raise SequenceFormatError(name, _line(cv), f"a positive sigma for {label!r}", repr(sigma))
+                    elif ck == "shape":
+                        shape = _scalar(cv)
+                        if shape not in OBJECT_SHAPES:
+                            raise SequenceFormatError(
+                                name, _line(cv), f"shape {' or '.join(OBJECT_SHAPES)} for {label!r}",
+                                _kind(cv),
+                            )
                     else:
-                        _unknown_key(name, ckn, ck, ("radii", "sigma"), f"class {label!r}")
+                        _unknown_key(name, ckn, ck, ("radii", "sigma", "shape"), f"class {label!r}")
                 if radii is None or sigma is None:
                     raise SequenceFormatError(
                         name, _line(lk), f"radii and sigma for class {label!r}",
                         "radii missing" if radii is None else "sigma missing",
                     )
-                classes[label] = ClassPrior(radii, sigma)
+                classes[label] = ClassPrior(radii, sigma, shape)
         else:
             _unknown_key(name, knode, key, allowed, "priors.yaml")
     return Priors(planes, up, classes, tsig)
@@ -822,7 +841,8 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
             text += f"up: {_ylist(p.up)}\n"
         text += "classes:" + ("\n" if p.classes else " {}\n")
         for label, cp in p.classes.items():
-            text += f"  {json.dumps(str(label))}: {{radii: {_ylist(cp.radii)}, sigma: {_yf(cp.sigma)}}}\n"
+            shape = "" if cp.shape == "ellipsoid" else f", shape: {cp.shape}"
+            text += f"  {json.dumps(str(label))}: {{radii: {_ylist(cp.radii)}, sigma: {_yf(cp.sigma)}{shape}}}\n"
         if p.trajectory_sigma is not None:
             text += f"trajectory_sigma: {_ylist(p.trajectory_sigma)}\n"
         (out / "priors.yaml").write_text(text, encoding="utf-8")

@@ -146,6 +146,8 @@ BAD = [
     ("priors.yaml", "classes:\n  chair: {radii: [1, 1, 1]}\n", 2, "radii and sigma"),
     ("priors.yaml", "classes:\n  chair: {radii: [1, 1, 1], sigma: -1}\n", 2, "positive sigma"),
     ("priors.yaml", "support_planes:\n  - [0, 0, 0, 1]\n", 2, "non-zero normal"),
+    ("priors.yaml", "classes:\n  c: {radii: [1, 1, 1], sigma: 1, shape: box}\n", 2, "shape ellipsoid or cuboid"),
+    ("priors.yaml", "classes:\n  c: {radii: [1, 1, 1], sigma: 1, shape: [1]}\n", 2, "got a list"),
     ("priors.yaml", "trajectory_sigma: [0.01]\n", 1, "a list of 2 numbers for trajectory_sigma"),
     ("priors.yaml", "trajectory_sigma: [0.01, 0]\n", 1, "a positive trajectory_sigma"),
 ]
@@ -193,7 +195,7 @@ def synthetic() -> Sequence:
     priors = Priors(
         [np.array([0, 0, 1.0, 0]), np.array([0, 1.0, 0, -1e-7])],
         np.array([0, 0, 1.0]),
-        {"chair": ClassPrior([0.3, 0.3, 0.5], 0.05), "table": ClassPrior([1, 1, 0.4], 2e-12)},
+        {"chair": ClassPrior([0.3, 0.3, 0.5], 0.05), "table": ClassPrior([1, 1, 0.4], 2e-12, "cuboid")},
         np.array([0.003, 1e-3]),
     )
     gt = np.column_stack([t + 0.001, poses])
