@@ -474,9 +474,20 @@ def demo(
     frames: int = typer.Option(120, min=3, help="Camera frames."),
     objects: int = typer.Option(8, min=1, help="Objects in the room."),
     method: str = typer.Option("multi-spd", help="quadric-slam, multi-rts or multi-spd."),
+    truncation: bool = typer.Option(False, "--truncation/--no-truncation", help="Keep objects partly outside the image (boxes clipped to it)."),
+    outliers: float = typer.Option(0.0, help="False detections (instance -1), as a fraction of the true ones, in [0, 1)."),
+    missed: float = typer.Option(0.0, help="Fraction of the true detections dropped, in [0, 1)."),
+    cuboids: bool = typer.Option(False, "--cuboids", help="Box-shaped objects (boxes of their 8 projected corners)."),
+    no_ids: bool = typer.Option(False, "--no-ids", help="Write the detections without the instance column."),
 ) -> None:
     """The embedded default: generate a synthetic room sequence (OUT/sequence, canonical
-    format) and map it with a method (OUT/run), end to end, without any download."""
+    format) and map it with a method (OUT/run), end to end, without any download.
+
+    With --no-ids only OUT/sequence is written: mapping detections without instance ids
+    needs automatic data association, which this command does not offer yet."""
+    import dataclasses
+    import shutil
+
     from .demo import make_room_sequence
     from .mapping import METHODS
     from .sequence import write_sequence
@@ -488,15 +499,32 @@ def demo(
     if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).exists():
         fail(f"--out: {out} exists, is not empty and is not an earlier demo output")
     try:
-        seq = make_room_sequence(seed, frames, objects)
+        seq = make_room_sequence(
+            seed, frames, objects, truncation=truncation, outliers=outliers, missed=missed,
+            object_shape="cuboid" if cuboids else "ellipsoid",
+        )
     except ValueError as e:
         fail(f"demo: {e}")
+    n_false = sum(d.instance < 0 for d in seq.detections)
+    if no_ids:
+        seq = dataclasses.replace(
+            seq, detections=[dataclasses.replace(d, instance=None) for d in seq.detections]
+        )
     out.mkdir(parents=True, exist_ok=True)
     (out / DEMO_MARKER).write_text("written by spdslam demo\n", encoding="utf-8")
     write_sequence(seq, out / "sequence", overwrite=True)
     console.print(
-        f"demo: {len(seq)} frames, {len(seq.objects_gt)} objects, {len(seq.detections)} boxes -> {out / 'sequence'}"
+        f"demo: {len(seq)} frames, {len(seq.objects_gt)} objects, {len(seq.detections)} boxes "
+        f"({n_false} false) -> {out / 'sequence'}"
     )
+    if no_ids:
+        # Manual association needs the ids; automatic association is not in the CLI yet.
+        # A run left by an earlier demo would not belong to this sequence: remove it.
+        shutil.rmtree(out / "run", ignore_errors=True)
+        fail(
+            f"demo: {out / 'run'} not written: the detections have no instance ids (--no-ids) "
+            "and mapping them needs automatic data association, which spdslam demo does not offer yet"
+        )
     _run_and_write(seq, method, out / "run", True, False, {}, 100)
 
 

@@ -1,5 +1,6 @@
-"""A deterministic synthetic room: many upright ellipsoid objects, a closed camera loop with
-odometry drift, and the boxes of the objects in every frame (``make_room_sequence``).
+"""A deterministic synthetic room: many upright ellipsoid (or cuboid) objects, a closed
+camera loop with odometry drift, and the boxes of the objects in every frame, optionally
+truncated, missed or mixed with false boxes (``make_room_sequence``).
 
 Conventions (as everywhere in spdslam): world +z is up and the floor is z = 0; poses are
 camera-to-world ``T_wc`` (TUM ``tx ty tz qx qy qz qw``); boxes are ``[u_min, v_min, u_max,
@@ -8,9 +9,12 @@ v_max]`` in pixels; timestamps are ``k / 10`` s (10 Hz from 0.0).
 Objects. Object i is an ellipsoid with one axis vertical: R = R_z(ψᵢ) (ψᵢ uniform),
 radii s = s̄(label)·(1 + j·U(−1, 1)) per axis (s̄ from ``ROOM_CLASSES``, j = ``size_jitter``),
 centre (x, y, s₃), so it stands on the floor. Its ground truth is the circumscribed cuboid
-(centre, R, half-extents s), so a perfect estimate has IoU 1. Objects lie in rectangular
-*strips* of the square room ``[−L/2, L/2]²``, with footprint discs of radius √(s₁² + s₂²)
-at least ``OBJECT_GAP`` apart (rejection sampling, largest first), hence disjoint cuboids.
+(centre, R, half-extents s), so a perfect estimate has IoU 1. With ``object_shape="cuboid"``
+the object *is* that cuboid (the detector boxes its silhouette; the class priors say
+``shape="cuboid"``) and the landmark ellipsoid (P = R diag(s²) Rᵀ, t) is the inscribed one.
+Objects lie in rectangular *strips* of the square room ``[−L/2, L/2]²``, with footprint
+discs of radius √(s₁² + s₂²) at least ``OBJECT_GAP`` apart (rejection sampling, largest
+first), hence disjoint cuboids.
 
 Camera. A closed counter-clockwise loop with rounded corners: along the bottom edge of a
 strip, up its right end, back along its top edge, a U-turn into the next strip's bottom
@@ -28,13 +32,27 @@ K (P_c − x xᵀ) Kᵀ, P_c = R_cw P R_cwᵀ and x the camera-frame centre, and
 
     u = c_x + f_x (D₁₃ ± √(D₁₃² − D₁₁D₃₃)) / D₃₃,  v = c_y + f_y (D₂₃ ± √(D₂₃² − D₂₂D₃₃)) / D₃₃,
 
-D = P_c − x xᵀ. A box is kept when the whole ellipsoid is in front (depth > ``MIN_DEPTH``),
-its centre no deeper than ``MAX_DEPTH`` (a detector's range; without it every object of
-a large room would be seen in every frame), the camera outside it, the box inside the
-image with a ``MARGIN_PX`` margin and at least ``MIN_BOX_PX`` wide and high. Then
-N(0, ``box_noise_px``²) is added to each coordinate and boxes no longer inside the image or
-no longer proper (x2 > x1, y2 > y1) are dropped. Label = class, score 1, instance = id.
-Occlusion is not modelled. All (frame, object) pairs are processed in vectorised chunks.
+D = P_c − x xᵀ. A cuboid's box is that of its 8 projected corners x + R_cw R diag(s) σ,
+σ ∈ {±1}³ (u = c_x + f_x X/Z, v = c_y + f_y Y/Z). A box is kept when the whole object is in
+front (depth > ``MIN_DEPTH``: x₃ − √(a₃ᵀ P a₃), resp. every corner), its centre no deeper
+than ``MAX_DEPTH`` (a detector's range; without it every object of a large room would be
+seen in every frame), the camera outside it, the box inside the image with a ``MARGIN_PX``
+margin and at least ``MIN_BOX_PX`` wide and high. Then N(0, ``box_noise_px``²) is added to
+each coordinate and boxes no longer inside the image or no longer proper (x2 > x1, y2 > y1)
+are dropped. Label = class, score 1, instance = id. Occlusion is not modelled. All (frame,
+object) pairs are processed in vectorised chunks, culled first by the projected centre (or,
+with truncation, by the bounding sphere against the four planes of the image edges).
+
+Detector imperfections (all off by default). ``truncation``: the box may extend beyond the
+image; it is kept when its visible part, box ∩ [0, W] × [0, H], is at least ``MIN_BOX_PX``
+wide and high (no margin), and after the noise it is clipped to [0, W] × [0, H], so a
+truncated box touches the image border. ``missed`` = m: round(m·n) of the n true detections,
+chosen uniformly without replacement, are dropped. ``outliers`` = r: round(r·n') false
+boxes are added, n' the true detections left: each has the width and height of a random
+true box, its corner uniform in [0, W − w] × [0, H − h], a uniform random frame, a label
+uniform over the labels present, score U(0.3, 1) and instance −1 (a known false detection,
+left out by manual association). Detections stay frame-major (in a frame: true ones by
+object id, then the false ones).
 
 Drift. ``groundtruth_tum`` holds the true poses T_k; the trajectory ``poses_tum`` (the
 back end's odometry/initial values) is T'₀ = T₀, T'_k = T'_{k−1} (T_{k−1}⁻¹ T_k) E_k with
@@ -42,12 +60,15 @@ E_k = (Exp(ω_k), v_k) in the frame of camera k, v_k ~ N(0, drift² I₃) metres
 ω_k ~ N(0, (drift/2)² I₃) radians per step, so it drifts like a random walk.
 
 Randomness: independent streams spawned from ``np.random.SeedSequence(seed)`` for the objects,
-their placement, the camera wobble, the drift and the box noise, so the same seed gives the
-same sequence and e.g. changing ``drift`` changes nothing but the trajectory.
+their placement, the camera wobble, the drift, the box noise, the missed and the false
+detections, so the same seed gives the same sequence and e.g. changing ``drift`` changes
+nothing but the trajectory. ``SeedSequence.spawn(n)[:5]`` does not depend on n, so the
+last two streams left the sequences of the earlier five-stream generator unchanged.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import numbers
 
@@ -56,7 +77,14 @@ from scipy.spatial.transform import Rotation
 
 from .camera import Camera
 from .evaluation import Cuboid
-from .sequence import ClassPrior, Detection, GroundTruthObject, Priors, Sequence
+from .sequence import (
+    OBJECT_SHAPES,
+    ClassPrior,
+    Detection,
+    GroundTruthObject,
+    Priors,
+    Sequence,
+)
 from .simulation import DEFAULT_CAMERA
 
 __all__ = ["ROOM_CLASSES", "make_room_sequence"]
@@ -268,13 +296,33 @@ def _tum(centres: np.ndarray, R_wc: np.ndarray) -> np.ndarray:
 # --- detections -----------------------------------------------------------------------------
 
 
-def _boxes(centres, R_wc, t, P, camera: Camera):
-    """(frame, object, box) of every valid noise-free detection, frame-major order."""
+_CORNER_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3))).T  # (3, 8)
+
+
+def _frustum_planes(camera: Camera) -> np.ndarray:
+    """Unit normals (4, 3), camera frame, of the planes through the optical centre and the
+    image lines u = m, u = W − m, v = m, v = H − m (m = MIN_BOX_PX), pointing to the image:
+    a point (x, y, z), z > 0, projects to u ≥ m iff f_x x + (c_x − m) z ≥ 0, and so on."""
+    fx, fy, cx, cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+    W, H, m = float(camera.width), float(camera.height), MIN_BOX_PX
+    n = np.array([
+        [fx, 0.0, cx - m], [-fx, 0.0, W - m - cx], [0.0, fy, cy - m], [0.0, -fy, H - m - cy],
+    ])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _boxes(centres, R_wc, t, P, R_obj, radii, camera: Camera, shape: str, truncation: bool):
+    """(frame, object, box) of every valid noise-free detection, frame-major order; boxes
+    are unclipped (with ``truncation`` they may extend beyond the image)."""
     F, O = centres.shape[0], t.shape[0]
     fx, fy, cx, cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     W, H = float(camera.width), float(camera.height)
+    cuboid = shape == "cuboid"
     Pinv = np.linalg.inv(P)
     P9 = P.reshape(O, 9).T
+    # bounding-sphere radius of each object (truncation cull)
+    bound = np.linalg.norm(radii, axis=1) if cuboid else radii.max(axis=1)
+    planes = _frustum_planes(camera)
     step = max(1, _CHUNK_PAIRS // O)
     out_f, out_o, out_b = [], [], []
     for f0 in range(0, F, step):
@@ -282,47 +330,98 @@ def _boxes(centres, R_wc, t, P, camera: Camera):
         a1, a2, a3 = R[:, :, 0], R[:, :, 1], R[:, :, 2]
         # Camera-frame coordinates of the centres, (f, o): x_i = a_iᵀ (t − c).
         z = a3 @ t.T - np.sum(a3 * c, axis=1)[:, None]
-        half2 = (a3[:, :, None] * a3[:, None, :]).reshape(-1, 9) @ P9  # a₃ᵀ P a₃
-        keep = (z - np.sqrt(np.maximum(half2, 0.0)) > MIN_DEPTH) & (z <= MAX_DEPTH)
-        # The centre projects inside the projected ellipse: cull by it first.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cx + fx * (a1 @ t.T - np.sum(a1 * c, axis=1)[:, None]) / z
-            v = cy + fy * (a2 @ t.T - np.sum(a2 * c, axis=1)[:, None]) / z
-        keep &= (u > MARGIN_PX) & (u < W - MARGIN_PX) & (v > MARGIN_PX) & (v < H - MARGIN_PX)
+        if cuboid:  # depth half-extent of the cuboid: Σ_k s_k |a₃ · r_k|
+            half = sum(radii[:, k] * np.abs(a3 @ R_obj[:, :, k].T) for k in range(3))
+        else:  # of the ellipsoid: √(a₃ᵀ P a₃)
+            half2 = (a3[:, :, None] * a3[:, None, :]).reshape(-1, 9) @ P9
+            half = np.sqrt(np.maximum(half2, 0.0))
+        keep = (z - half > MIN_DEPTH) & (z <= MAX_DEPTH)
+        if truncation:
+            # Cull unless the bounding sphere reaches into each of the four half-spaces
+            # (a conservative test: at least MIN_BOX_PX of the outline may be visible).
+            for n_c in planes:
+                n_w = R @ n_c  # (f, 3): the plane normal in the world frame
+                keep &= n_w @ t.T - np.sum(n_w * c, axis=1)[:, None] >= -bound
+        else:
+            # The centre projects inside the projected outline: cull by it first.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = cx + fx * (a1 @ t.T - np.sum(a1 * c, axis=1)[:, None]) / z
+                v = cy + fy * (a2 @ t.T - np.sum(a2 * c, axis=1)[:, None]) / z
+            keep &= (u > MARGIN_PX) & (u < W - MARGIN_PX) & (v > MARGIN_PX) & (v < H - MARGIN_PX)
         fi, oi = np.nonzero(keep)
         if fi.size == 0:
             continue
         A = R[fi]  # (n, 3, 3): columns a₁ a₂ a₃
         d = t[oi] - c[fi]
         x = np.einsum("nij,ni->nj", A, d)  # camera-frame centres
-        PA = P[oi] @ A
-        Pc = np.einsum("nij,nik->njk", A, PA)  # R_cw P R_cwᵀ
-        D = Pc - x[:, :, None] * x[:, None, :]
-        d11, d22, d33, d13, d23 = D[:, 0, 0], D[:, 1, 1], D[:, 2, 2], D[:, 0, 2], D[:, 1, 2]
-        du = np.sqrt(np.maximum(d13**2 - d11 * d33, 0.0))
-        dv = np.sqrt(np.maximum(d23**2 - d22 * d33, 0.0))
-        u1, u2 = cx + fx * (d13 - du) / d33, cx + fx * (d13 + du) / d33
-        v1, v2 = cy + fy * (d23 - dv) / d33, cy + fy * (d23 + dv) / d33
-        box = np.stack(
-            [np.minimum(u1, u2), np.minimum(v1, v2), np.maximum(u1, u2), np.maximum(v1, v2)],
-            axis=1,
-        )
-        outside = np.einsum("ni,nij,nj->n", d, Pinv[oi], d) >= 1.0  # camera not inside
-        ok = (
-            outside
-            & (box[:, 0] >= MARGIN_PX)
-            & (box[:, 1] >= MARGIN_PX)
-            & (box[:, 2] <= W - MARGIN_PX)
-            & (box[:, 3] <= H - MARGIN_PX)
-            & (box[:, 2] - box[:, 0] >= MIN_BOX_PX)
-            & (box[:, 3] - box[:, 1] >= MIN_BOX_PX)
-        )
+        if cuboid:
+            # camera-frame corners x + R_cw R diag(s) σ, σ ∈ {±1}³; box of their projections
+            B = np.einsum("nji,njk->nik", A, R_obj[oi]) * radii[oi][:, None, :]
+            X = x[:, :, None] + B @ _CORNER_SIGNS  # (n, 3, 8)
+            front = np.all(X[:, 2] > MIN_DEPTH, axis=1)
+            Z = np.where(front[:, None], X[:, 2], 1.0)
+            u8, v8 = cx + fx * X[:, 0] / Z, cy + fy * X[:, 1] / Z
+            box = np.stack([u8.min(1), v8.min(1), u8.max(1), v8.max(1)], axis=1)
+            local = np.einsum("nji,nj->ni", R_obj[oi], -d)  # camera centre in the object frame
+            outside = front & np.any(np.abs(local) >= radii[oi], axis=1)
+        else:
+            PA = P[oi] @ A
+            Pc = np.einsum("nij,nik->njk", A, PA)  # R_cw P R_cwᵀ
+            D = Pc - x[:, :, None] * x[:, None, :]
+            d11, d22, d33, d13, d23 = D[:, 0, 0], D[:, 1, 1], D[:, 2, 2], D[:, 0, 2], D[:, 1, 2]
+            du = np.sqrt(np.maximum(d13**2 - d11 * d33, 0.0))
+            dv = np.sqrt(np.maximum(d23**2 - d22 * d33, 0.0))
+            u1, u2 = cx + fx * (d13 - du) / d33, cx + fx * (d13 + du) / d33
+            v1, v2 = cy + fy * (d23 - dv) / d33, cy + fy * (d23 + dv) / d33
+            box = np.stack(
+                [np.minimum(u1, u2), np.minimum(v1, v2), np.maximum(u1, u2), np.maximum(v1, v2)],
+                axis=1,
+            )
+            outside = np.einsum("ni,nij,nj->n", d, Pinv[oi], d) >= 1.0  # camera not inside
+        if truncation:  # the visible part, box ∩ [0, W] × [0, H]
+            ok = (
+                outside
+                & (np.minimum(box[:, 2], W) - np.maximum(box[:, 0], 0.0) >= MIN_BOX_PX)
+                & (np.minimum(box[:, 3], H) - np.maximum(box[:, 1], 0.0) >= MIN_BOX_PX)
+            )
+        else:
+            ok = (
+                outside
+                & (box[:, 0] >= MARGIN_PX)
+                & (box[:, 1] >= MARGIN_PX)
+                & (box[:, 2] <= W - MARGIN_PX)
+                & (box[:, 3] <= H - MARGIN_PX)
+                & (box[:, 2] - box[:, 0] >= MIN_BOX_PX)
+                & (box[:, 3] - box[:, 1] >= MIN_BOX_PX)
+            )
         out_f.append(fi[ok] + f0)
         out_o.append(oi[ok])
         out_b.append(box[ok])
     if not out_f:
         return np.zeros(0, int), np.zeros(0, int), np.zeros((0, 4))
     return np.concatenate(out_f), np.concatenate(out_o), np.concatenate(out_b)
+
+
+def _false_detections(rng, n, fi, oi, boxes, scores, frames: int, n_labels: int, W, H):
+    """The detections with n false ones added, frame-major (within a frame the true ones
+    first, in object order). A false box has the size (w, h) of a random true box, its corner
+    uniform in [0, W − w] × [0, H − h], a uniform random frame, label index ℓ uniform
+    (stored as object −1 − ℓ) and score U(0.3, 1)."""
+    wh = boxes[rng.integers(fi.size, size=n)]
+    wh = wh[:, 2:] - wh[:, :2]
+    lo = rng.uniform(size=(n, 2)) * (np.array([W, H]) - wh)
+    false_boxes = np.concatenate([lo, np.minimum(lo + wh, [W, H])], axis=1)
+    false_f = rng.integers(frames, size=n)
+    false_o = -1 - rng.integers(n_labels, size=n)
+    false_s = rng.uniform(0.3, 1.0, size=n)
+    f = np.concatenate([fi, false_f])
+    order = np.argsort(f, kind="stable")
+    return (
+        f[order],
+        np.concatenate([oi, false_o])[order],
+        np.concatenate([boxes, false_boxes])[order],
+        np.concatenate([scores, false_s])[order],
+    )
 
 
 # --- drift ----------------------------------------------------------------------------------
@@ -373,6 +472,10 @@ def make_room_sequence(
     camera: Camera | None = None,
     size_jitter: float = 0.1,
     name: str = "demo_room",
+    truncation: bool = False,
+    outliers: float = 0.0,
+    missed: float = 0.0,
+    object_shape: str = "ellipsoid",
 ) -> Sequence:
     """A synthetic room sequence (see the module docstring for the model).
 
@@ -385,9 +488,17 @@ def make_room_sequence(
     the intrinsics (default ``simulation.DEFAULT_CAMERA``, 640×480, f = 500 px);
     ``size_jitter`` ∈ [0, 1) the relative spread of the radii about the class means.
 
-    Returns a ``Sequence`` with the drifted trajectory, the detections, ``objects_gt`` (the
-    circumscribed cuboids), ``groundtruth_tum`` (the true poses) and ``priors`` (the floor
-    z = 0, up = +z, a ``ClassPrior(class mean, 0.2)`` per label present).
+    Detector imperfections (all off by default, when the sequence for a seed is unchanged):
+    ``truncation`` keeps objects partly outside the image, their boxes clipped to the image;
+    ``outliers`` ∈ [0, 1) adds round(outliers · n) false boxes (instance −1), n the number of
+    true detections; ``missed`` ∈ [0, 1) drops that fraction of the true detections;
+    ``object_shape`` ``"ellipsoid"`` or ``"cuboid"`` (objects are boxes, boxed by their 8
+    projected corners).
+
+    Returns a ``Sequence`` with the drifted trajectory, the detections (frame-major), ``objects_gt``
+    (the cuboids: circumscribing the ellipsoids, or the cuboid objects themselves),
+    ``groundtruth_tum`` (the true poses) and ``priors`` (the floor z = 0, up = +z, a
+    ``ClassPrior(class mean, 0.2, object_shape)`` per label present).
     """
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
@@ -409,9 +520,20 @@ def make_room_sequence(
         raise ValueError(f"camera must be a Camera with scalar intrinsics, got {camera!r}")
     if not isinstance(name, str) or not name or any(ch.isspace() for ch in name):
         raise ValueError(f"name must be a non-empty string without whitespace, got {name!r}")
+    if not isinstance(truncation, (bool, np.bool_)):
+        raise ValueError(f"truncation must be True or False, got {truncation!r}")
+    truncation = bool(truncation)
+    outliers = _real("outliers", outliers, 0.0, 1.0)
+    missed = _real("missed", missed, 0.0, 1.0)
+    if object_shape not in OBJECT_SHAPES:
+        raise ValueError(
+            f"object_shape must be one of {', '.join(OBJECT_SHAPES)}, got {object_shape!r}"
+        )
 
-    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(5)]
-    rng_obj, rng_place, rng_cam, rng_drift, rng_box = streams
+    # SeedSequence.spawn(n)[:5] does not depend on n: the first five streams are those of
+    # the generator before the detector imperfections existed.
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(7)]
+    rng_obj, rng_place, rng_cam, rng_drift, rng_box, rng_missed, rng_false = streams
 
     # Objects: labels, radii, yaw.
     names = list(ROOM_CLASSES)
@@ -448,9 +570,13 @@ def make_room_sequence(
     poses = _drift(rng_drift, centres, R_wc, drift)
 
     # Detections.
-    fi, oi, boxes = _boxes(centres, R_wc, t_obj, P_obj, camera)
+    fi, oi, boxes = _boxes(
+        centres, R_wc, t_obj, P_obj, R_obj, radii, camera, object_shape, truncation
+    )
     boxes = boxes + box_noise_px * rng_box.standard_normal(size=boxes.shape)
     W, H = float(camera.width), float(camera.height)
+    if truncation:
+        boxes = np.clip(boxes, 0.0, [W, H, W, H])
     ok = (
         (boxes[:, 2] > boxes[:, 0])
         & (boxes[:, 3] > boxes[:, 1])
@@ -460,22 +586,34 @@ def make_room_sequence(
         & (boxes[:, 3] <= H)
     )
     fi, oi, boxes = fi[ok], oi[ok], boxes[ok]
-    boxes.setflags(write=False)
+    if missed > 0.0:
+        drop = rng_missed.choice(fi.size, size=round(missed * fi.size), replace=False)
+        kept = np.ones(fi.size, bool)
+        kept[drop] = False
+        fi, oi, boxes = fi[kept], oi[kept], boxes[kept]
     labels = [names[i] for i in label_idx]
+    present = sorted(set(labels), key=names.index)
+    scores = np.ones(fi.size)
+    n_false = round(outliers * fi.size)
+    if n_false:
+        fi, oi, boxes, scores = _false_detections(
+            rng_false, n_false, fi, oi, boxes, scores, frames, len(present), W, H
+        )
+    boxes.setflags(write=False)
     ts = timestamps.tolist()
+    # oi ≥ 0: object oi; oi < 0: a false detection of label present[−oi − 1]
     detections = [
-        Detection(f, ts[f], b, labels[o], 1.0, o)
-        for f, o, b in zip(fi.tolist(), oi.tolist(), boxes)
+        Detection(f, ts[f], b, labels[o] if o >= 0 else present[-o - 1], s, max(o, -1))
+        for f, o, b, s in zip(fi.tolist(), oi.tolist(), boxes, scores.tolist())
     ]
 
     objects_gt = [
         GroundTruthObject(i, labels[i], Cuboid(t_obj[i], R_obj[i], radii[i])) for i in range(objects)
     ]
-    present = set(labels)
     priors = Priors(
         support_planes=[[0.0, 0.0, 1.0, 0.0]],
         up=[0.0, 0.0, 1.0],
-        classes={n: ClassPrior(ROOM_CLASSES[n], PRIOR_SIGMA) for n in names if n in present},
+        classes={n: ClassPrior(ROOM_CLASSES[n], PRIOR_SIGMA, object_shape) for n in present},
         # the generator knows how accurate its odometry is (a floor keeps σ > 0 at drift 0)
         trajectory_sigma=[max(drift, 1e-4), max(drift / 2, 1e-4)],
     )
