@@ -3,17 +3,36 @@
 Manual association (:func:`tracks_from_instances`) groups detections by their ``instance``
 id. A negative instance id marks a detection known to be false (clutter, e.g. injected by
 the demo generator): it belongs to no object and manual association leaves it out.
+
+Automatic association (:func:`associate`) uses only the boxes, labels, trajectory, camera
+and priors: per-frame Hungarian tracking on projected-box IoU, k-detection confirmation,
+merging of duplicates by SPD log-map distance and centre distance, and batch re-assignment
+of every frame against all landmarks. :func:`association_scores` measures precision and
+recall against the instance ids.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
-from .sequence import Sequence
+from .sequence import Sequence, quat_to_matrix
 
-__all__ = ["Track", "tracks_from_instances"]
+__all__ = [
+    "Track",
+    "tracks_from_instances",
+    "AssociationSettings",
+    "Association",
+    "associate",
+    "associate_detailed",
+    "merge_tracks",
+    "association_scores",
+    "spd_distance",
+]
 
 
 @dataclass(frozen=True)
@@ -48,3 +67,655 @@ def tracks_from_instances(seq: Sequence) -> list:
             Track(int(k), label, np.array([d.frame for d in ds]), np.array([d.box for d in ds]))
         )
     return tracks
+
+
+# --- automatic association -------------------------------------------------------------------
+#
+# Everything below is numpy/scipy: the association runs thousands of tiny geometric problems
+# (one per frame, tracklet or pair of tracklets), where per-call JAX dispatch would dominate.
+
+_BIG = 1e6  # cost of a forbidden pairing in the Hungarian assignment
+_MIN_DEPTH = 0.05  # m: a landmark must lie this far in front of the camera to be predicted
+
+
+@dataclass(frozen=True)
+class AssociationSettings:
+    """Parameters of :func:`associate` (defaults tuned on the demo rooms, checked on fr3).
+
+    ``min_detections`` k: a track becomes a landmark once it has k detections; shorter ones
+    are discarded. ``iou_gate``: least IoU between a detection and a predicted box (clipped
+    to the image) for them to be paired. ``max_gap``: frames a tracklet may go unseen and
+    still be continued. Merging: ``spd_gate`` is the largest affine-invariant log-map
+    distance ‖Log(P₁^-½ P₂ P₁^-½)‖_F between the shapes of two tracks, ``centre_gate`` the
+    largest Mahalanobis distance between their centres, with ``centre_tolerance``·(r̄₁ + r̄₂)
+    (mean radii) added as isotropic model error and drift. ``window`` (frames): σ of the
+    time weights of the landmarks used in the batch re-assignment; ``iterations``: its
+    rounds at most. Landmark fit: ``ray_sigma`` (rad), angular accuracy of the ray through a
+    box centre; ``size_sigma``, relative accuracy of the depth guessed from a box's size and
+    its class prior (``default_radius`` m when the class has none); ``truncation_margin``
+    (px): a box edge this close to the image border is truncated.
+    """
+
+    min_detections: int = 3
+    iou_gate: float = 0.2
+    max_gap: int = 10
+    spd_gate: float = 2.5
+    centre_gate: float = 3.0
+    centre_tolerance: float = 0.5
+    window: float = 15.0
+    iterations: int = 3
+    ray_sigma: float = 0.02
+    size_sigma: float = 0.5
+    default_radius: float = 0.3
+    truncation_margin: float = 2.0
+
+    def __post_init__(self):
+        k = self.min_detections
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise ValueError(f"min_detections must be an integer >= 1, got {k!r}")
+        if not (isinstance(self.iterations, (int, np.integer)) and self.iterations >= 0):
+            raise ValueError(f"iterations must be an integer >= 0, got {self.iterations!r}")
+        if not (isinstance(self.max_gap, (int, np.integer)) and self.max_gap >= 0):
+            raise ValueError(f"max_gap must be an integer >= 0, got {self.max_gap!r}")
+        if not 0.0 < self.iou_gate < 1.0:
+            raise ValueError(f"iou_gate must be in (0, 1), got {self.iou_gate!r}")
+        for name in ("spd_gate", "centre_gate", "centre_tolerance", "window", "ray_sigma",
+                     "size_sigma", "default_radius"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+        if not (np.isfinite(self.truncation_margin) and self.truncation_margin >= 0):
+            raise ValueError(f"truncation_margin must be >= 0, got {self.truncation_margin!r}")
+
+
+@dataclass(frozen=True)
+class Association:
+    """Result of :func:`associate_detailed`: the ``tracks``; ``assignment`` (n,), the track
+    id of every detection of the sequence (in ``seq.detections`` order; −1: left out);
+    ``centres`` (m, 3) and ``shapes`` (m, 3, 3) of the landmark fitted to each track (the
+    association's own coarse model, not a map); ``stats`` counts and timing."""
+
+    tracks: list
+    assignment: np.ndarray
+    centres: np.ndarray
+    shapes: np.ndarray
+    stats: dict
+
+
+def spd_distance(P1, P2) -> np.ndarray:
+    """Affine-invariant distance d(P₁, P₂) = ‖Log(P₁^-½ P₂ P₁^-½)‖_F (paper eq. 22), batched.
+
+    P₁^-½ P₂ P₁^-½ is similar to L⁻¹ P₂ L⁻ᵀ (P₁ = L Lᵀ, Cholesky), so d = √(Σᵢ log² λᵢ) with
+    λᵢ the eigenvalues of that symmetric matrix. Raises ``ValueError`` if P₁ is not SPD.
+    """
+    P1, P2 = np.asarray(P1, dtype=float), np.asarray(P2, dtype=float)
+    try:
+        L = np.linalg.cholesky(P1)
+    except np.linalg.LinAlgError:
+        raise ValueError("spd_distance: P1 is not symmetric positive definite") from None
+    Li = np.linalg.inv(L)
+    S = Li @ P2 @ np.swapaxes(Li, -1, -2)
+    lam = np.linalg.eigvalsh(0.5 * (S + np.swapaxes(S, -1, -2)))
+    if np.any(lam <= 0):
+        raise ValueError("spd_distance: P2 is not symmetric positive definite")
+    return np.sqrt(np.sum(np.log(lam) ** 2, axis=-1))
+
+
+def _iou(a, b) -> np.ndarray:
+    """IoU of boxes [u₁, v₁, u₂, v₂] (broadcast over leading axes); 0 for empty boxes."""
+    iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    ih = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    inter = iw * ih
+    area_a = np.clip(a[..., 2] - a[..., 0], 0, None) * np.clip(a[..., 3] - a[..., 1], 0, None)
+    area_b = np.clip(b[..., 2] - b[..., 0], 0, None) * np.clip(b[..., 3] - b[..., 1], 0, None)
+    union = area_a + area_b - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A track's coarse landmark: centre X, shape P, mean radius r̄ = √(r_h r_v), the
+    information matrix A of X (its covariance is A⁻¹), the support plane used (or None)
+    and whether the fit is usable."""
+
+    X: np.ndarray
+    P: np.ndarray
+    radius: float
+    info: np.ndarray
+    plane: np.ndarray | None
+    ok: bool
+
+
+_BAD_FIT = _Fit(np.zeros(3), np.eye(3), 0.0, np.eye(3), None, False)
+
+
+class _Scene:
+    """The sequence as arrays, and the per-detection terms of the landmark fit.
+
+    Landmark model. A track's landmark is an ellipsoid (X, P): X minimises
+
+        Σᵢ w⊥ᵢ ‖(I − dᵢdᵢᵀ)(X − oᵢ)‖² + (Σᵢ wρᵢ (dᵢᵀ(X − oᵢ) − ρᵢ)²) / n + w_π (nᵀX + δ − r_v)²
+
+    over its n detections i (camera centre oᵢ, unit world ray dᵢ through the box centre):
+    the rays' least-squares intersection (w⊥ = 1/(σ_ray ρᵢ)², σ ×4 for a truncated box),
+    regularised by the range guessed from the box size and the class prior (ρᵢ =
+    f̄·2r̄/√(wh) / (dᵢ·zᵢ), r̄ the geometric mean of the prior radii or ``default_radius``;
+    wρ = 1/(σ_size ρᵢ)², averaged so that it weighs as one view) and, when the priors have
+    support planes nᵀx + δ = 0, by resting on the nearest one (σ_π = 0.25 r_v + 2 cm; a second
+    pass after a plane-free one). The shape is upright, P = r_h²(I − uuᵀ) + r_v² uuᵀ (u = up;
+    a sphere without one), r_h = median wᵢzᵢ/(2f_x), r_v = median hᵢzᵢ/(2f_y) over the
+    untruncated box widths and heights (zᵢ the depth of X in view i): the apparent ellipsoid
+    of the boxes, enough to predict boxes, compare shapes and gate. Weighted fits (weights
+    per detection) serve the time-local landmarks of the batch re-assignment.
+    """
+
+    def __init__(self, seq: Sequence, s: AssociationSettings):
+        dets = seq.detections
+        cam = seq.camera
+        self.fx, self.fy, self.cx, self.cy = (float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+        self.W, self.H = float(cam.width), float(cam.height)
+        self.intrinsics = (self.fx, self.fy, self.cx, self.cy)
+        n = len(dets)
+        self.F = len(seq)
+        self.frame = np.array([d.frame for d in dets], dtype=int).reshape(n)
+        if n and (self.frame.min() < 0 or self.frame.max() >= self.F):
+            raise ValueError(
+                f"detection frames must lie in [0, {self.F}), got {self.frame.min()}..{self.frame.max()}"
+            )
+        self.box = np.array([d.box for d in dets], dtype=float).reshape(n, 4)
+        bad = ~np.all(np.isfinite(self.box), axis=1) | (self.box[:, 2] <= self.box[:, 0]) | (
+            self.box[:, 3] <= self.box[:, 1]
+        )
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ValueError(
+                f"detection {i} (frame {dets[i].frame}) has an invalid box {self.box[i].tolist()}"
+            )
+        self.labels = sorted({d.label for d in dets})
+        lab_idx = {lab: k for k, lab in enumerate(self.labels)}
+        self.label = np.array([lab_idx[d.label] for d in dets], dtype=int).reshape(n)
+        poses = np.asarray(seq.poses_tum, dtype=float)
+        if not np.all(np.isfinite(poses)):
+            raise ValueError("the trajectory (poses_tum) has non-finite values")
+        self.R = quat_to_matrix(poses[:, 3:7]).reshape(self.F, 3, 3)  # R_wc
+        self.C = poses[:, :3]
+        self.up, self.planes = _up_and_planes(seq.priors)
+        # per detection: ray, truncation, prior range, fit terms
+        m = s.truncation_margin
+        b = self.box
+        tr = np.stack([b[:, 0] <= m, b[:, 1] <= m, b[:, 2] >= self.W - m, b[:, 3] >= self.H - m], 1)
+        self.w_ok = ~(tr[:, 0] | tr[:, 2])  # width untruncated
+        self.h_ok = ~(tr[:, 1] | tr[:, 3])
+        u = 0.5 * (b[:, 0] + b[:, 2])
+        v = 0.5 * (b[:, 1] + b[:, 3])
+        ray_c = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones(n)], 1)
+        ray_c /= np.linalg.norm(ray_c, axis=1, keepdims=True)
+        self.ray = np.einsum("nij,nj->ni", self.R[self.frame], ray_c)
+        self.origin = self.C[self.frame]
+        radius = np.full(n, s.default_radius)
+        classes = {} if seq.priors is None else seq.priors.classes
+        for lab, k in lab_idx.items():
+            cp = classes.get(lab)
+            if cp is not None:
+                radius[self.label == k] = float(np.exp(np.mean(np.log(np.asarray(cp.radii)))))
+        w, h = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
+        size_px = np.where(
+            self.w_ok & self.h_ok, np.sqrt(w * h),
+            np.where(self.w_ok, w, np.where(self.h_ok, h, np.maximum(w, h))),
+        )
+        range0 = np.sqrt(self.fx * self.fy) * 2.0 * radius / size_px / ray_c[:, 2]
+        self.radius0 = radius
+        sig_ray = s.ray_sigma * np.where(self.w_ok & self.h_ok, 1.0, 4.0)
+        w_perp = 1.0 / (sig_ray * range0) ** 2
+        w_rng = 1.0 / (s.size_sigma * range0) ** 2
+        w_rng = np.where(self.w_ok | self.h_ok, w_rng, 0.01 * w_rng)
+        d = self.ray
+        ddT = d[:, :, None] * d[:, None, :]
+        self.A_perp = w_perp[:, None, None] * (np.eye(3)[None] - ddT)
+        self.b_perp = np.einsum("nij,nj->ni", self.A_perp, self.origin)
+        self.A_rng = w_rng[:, None, None] * ddT
+        self.b_rng = (w_rng * (np.einsum("ni,ni->n", d, self.origin) + range0))[:, None] * d
+        self.by_frame = [np.flatnonzero(self.frame == f) for f in range(self.F)]
+
+    # -- landmark fit and prediction --------------------------------------------------------
+
+    def _normal(self, idx, W, plane=None, r_v=None):
+        """Normal equations (A, b) (leading axes of W (…, n) batch) of the centre fit."""
+        A = np.einsum("...n,nij->...ij", W, self.A_perp[idx])
+        b = np.einsum("...n,ni->...i", W, self.b_perp[idx])
+        tot = np.maximum(W.sum(-1), 1e-300)[..., None]
+        A = A + np.einsum("...n,nij->...ij", W, self.A_rng[idx]) / tot[..., None]
+        b = b + np.einsum("...n,ni->...i", W, self.b_rng[idx]) / tot
+        if plane is not None:
+            nrm, delta = plane[:3], plane[3]
+            w_pl = 1.0 / (0.25 * r_v + 0.02) ** 2
+            A = A + w_pl * np.outer(nrm, nrm)
+            b = b + w_pl * (r_v - delta) * nrm
+        return A, b
+
+    def _radii(self, idx, X, fallback):
+        """(r_h, r_v) from the untruncated box sizes at the depths of X."""
+        f = self.frame[idx]
+        z = np.einsum("ni,ni->n", self.R[f][:, :, 2], X - self.C[f])
+        front = z > _MIN_DEPTH
+        if not front.any():
+            return None
+        b = self.box[idx]
+        wz = ((b[:, 2] - b[:, 0]) * z / (2 * self.fx))[front & self.w_ok[idx]]
+        hz = ((b[:, 3] - b[:, 1]) * z / (2 * self.fy))[front & self.h_ok[idx]]
+        r_h = float(np.median(wz)) if wz.size else None
+        r_v = float(np.median(hz)) if hz.size else None
+        r_h = r_h if r_h is not None else (r_v if r_v is not None else fallback)
+        r_v = r_v if r_v is not None else r_h
+        return r_h, r_v
+
+    def fit(self, idx) -> _Fit:
+        """The coarse landmark of detections ``idx`` (see the class docstring)."""
+        idx = np.asarray(idx, dtype=int)
+        W = np.ones(idx.size)
+        fallback = float(np.median(self.radius0[idx]))
+        plane, r_v = None, None
+        for _ in range(2 if self.planes is not None else 1):
+            A, b = self._normal(idx, W, plane, r_v)
+            try:
+                X = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:
+                return _BAD_FIT
+            radii = self._radii(idx, X, fallback) if np.all(np.isfinite(X)) else None
+            if radii is None:
+                return _BAD_FIT
+            r_h, r_v = radii
+            if self.planes is not None and plane is None:
+                # the plane nearest to the bottom of the first estimate: |nᵀX + δ − r_v|
+                gap = np.abs(self.planes[:, :3] @ X + self.planes[:, 3] - r_v)
+                plane = self.planes[int(np.argmin(gap))]
+        if self.up is None:
+            P = r_h * r_v * np.eye(3)
+        else:
+            uu = np.outer(self.up, self.up)
+            P = r_h**2 * (np.eye(3) - uu) + r_v**2 * uu
+        return _Fit(X, P, float(np.sqrt(r_h * r_v)), A, plane, True)
+
+    def local_centres(self, idx, fit: _Fit, frames, window: float) -> np.ndarray:
+        """Centres (m, 3) of the landmark of ``idx`` seen at each of ``frames`` (m,): the fit
+        with weights exp(−½((fᵢ − f)/window)²) on its detections, so that each frame sees a
+        landmark consistent with the nearby (equally drifted) part of the trajectory."""
+        df = (self.frame[idx][None, :] - np.asarray(frames)[:, None]) / window
+        W = np.exp(-0.5 * df**2) + 1e-12
+        r_v = np.sqrt(fit.P[2, 2]) if self.up is None else float(np.sqrt(self.up @ fit.P @ self.up))
+        A, b = self._normal(idx, W, fit.plane, r_v)
+        return np.linalg.solve(A, b[..., None])[..., 0]
+
+    def project(self, X, P, frames):
+        """Boxes (m, 4) of landmarks (X (m, 3), P (m, 3, 3)) in ``frames`` (m,), clipped to
+        the image (zeros where invisible), and whether each is visible (wholly in front,
+        non-empty after clipping)."""
+        box, ok = _project_boxes(X, P, self.R[frames], self.C[frames], self.intrinsics)
+        box = np.clip(box, 0.0, [self.W, self.H, self.W, self.H])
+        ok &= (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+        return np.where(ok[:, None], box, 0.0), ok
+
+
+def _project_boxes(X, P, R_wc, c, intrinsics):
+    """Untruncated boxes (m, 4) of ellipsoids (X (m, 3), P (m, 3, 3)) seen by cameras
+    (R_wc (m, 3, 3), centres c (m, 3)), and whether each is wholly in front (depth margin
+    ``_MIN_DEPTH``); numpy, batched. Camera frame: x = R_wcᵀ(X − c), P_c = R_wcᵀ P R_wc,
+    D = P_c − x xᵀ; the box is u = c_x + f_x (D₁₃ ± √(D₁₃² − D₁₁D₃₃)) / D₃₃ and likewise v
+    (``camera.conic_box`` of C* = K D Kᵀ). Boxes of landmarks not in front are not boxes."""
+    fx, fy, cx, cy = intrinsics
+    x = np.einsum("mji,mj->mi", R_wc, X - c)
+    Pc = np.einsum("mji,mjk,mkl->mil", R_wc, P, R_wc)
+    D = Pc - x[:, :, None] * x[:, None, :]
+    ok = x[:, 2] - np.sqrt(np.maximum(Pc[:, 2, 2], 0.0)) > _MIN_DEPTH
+    d33 = np.where(ok, D[:, 2, 2], -1.0)
+    du = np.sqrt(np.maximum(D[:, 0, 2] ** 2 - D[:, 0, 0] * d33, 0.0))
+    dv = np.sqrt(np.maximum(D[:, 1, 2] ** 2 - D[:, 1, 1] * d33, 0.0))
+    u1, u2 = cx + fx * (D[:, 0, 2] - du) / d33, cx + fx * (D[:, 0, 2] + du) / d33
+    v1, v2 = cy + fy * (D[:, 1, 2] - dv) / d33, cy + fy * (D[:, 1, 2] + dv) / d33
+    box = np.stack([np.minimum(u1, u2), np.minimum(v1, v2), np.maximum(u1, u2), np.maximum(v1, v2)], 1)
+    return box, ok
+
+
+def _up_and_planes(priors):
+    """(unit up or None, support planes (k, 4) with unit normals or None). Up is
+    ``priors.up``, else the first plane's normal; planes are turned to face up."""
+    if priors is None:
+        return None, None
+    planes = None
+    if priors.support_planes:
+        planes = np.array([np.asarray(p, dtype=float) for p in priors.support_planes])
+        planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    up = priors.up if priors.up is not None else (None if planes is None else planes[0, :3])
+    if up is None:
+        return None, planes
+    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    if planes is not None:
+        planes = np.where((planes[:, :3] @ up < 0)[:, None], -planes, planes)
+    return up, planes
+
+
+def _hungarian(cost, allowed):
+    """Pairs (rows, cols) of the min-cost assignment among allowed entries."""
+    if cost.size == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    r, c = linear_sum_assignment(np.where(allowed, cost, _BIG))
+    keep = allowed[r, c]
+    return r[keep], c[keep]
+
+
+# -- stage 1: tracklets ------------------------------------------------------------------------
+
+
+def _tracklets(sc: _Scene, s: AssociationSettings, dets_mask=None) -> list:
+    """Frame-by-frame tracking: Hungarian on 1 − IoU(predicted box, detection) between the
+    tracklets seen in the last ``max_gap`` frames and the frame's detections (same label,
+    IoU ≥ ``iou_gate``); a detection that passes no gate starts a new tracklet. Only the
+    detections where ``dets_mask`` is True take part (all by default)."""
+    groups, label, last, fits = [], [], [], []
+    for f in range(sc.F):
+        dets = sc.by_frame[f]
+        if dets_mask is not None:
+            dets = dets[dets_mask[dets]]
+        if dets.size == 0:
+            continue
+        act = [t for t in range(len(groups)) if fits[t].ok and f - last[t] <= s.max_gap]
+        matched = np.zeros(dets.size, bool)
+        if act:
+            boxes, vis = sc.project(
+                np.array([fits[t].X for t in act]), np.array([fits[t].P for t in act]),
+                np.full(len(act), f),
+            )
+            iou = _iou(boxes[:, None], sc.box[dets][None])
+            allowed = (
+                vis[:, None]
+                & (np.array([label[t] for t in act])[:, None] == sc.label[dets][None])
+                & (iou >= s.iou_gate)
+            )
+            rows, cols = _hungarian(1.0 - iou, allowed)
+            for r, c in zip(rows, cols):
+                t = act[r]
+                groups[t].append(dets[c])
+                last[t] = f
+                fits[t] = sc.fit(groups[t])
+                matched[c] = True
+        for c in np.flatnonzero(~matched):
+            groups.append([dets[c]])
+            label.append(sc.label[dets[c]])
+            last.append(f)
+            fits.append(sc.fit([dets[c]]))
+    return [np.array(g, dtype=int) for g in groups]
+
+
+# -- stage 2: merging --------------------------------------------------------------------------
+
+
+def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]:
+    """Agglomerative merging of tracks (duplicates: re-entries after a gap, split tracks).
+
+    Two tracks a, b may merge when they have the same label, share no frame, their shapes
+    are within ``spd_gate`` in the affine-invariant log-map distance
+    d_P = ‖Log(P_a^-½ P_b P_a^-½)‖_F, and their centres within ``centre_gate`` in the
+    Mahalanobis distance d_X² = δᵀ(A_a⁻¹ + A_b⁻¹ + τ²I)⁻¹δ, δ = X_a − X_b, A the fits'
+    information matrices, τ = ``centre_tolerance``·(r̄_a + r̄_b) (model error and drift).
+    Cost d_X/centre_gate + d_P/spd_gate; the cheapest pair merges first, then the merged
+    track's costs are recomputed. Returns (groups, number of merges)."""
+    groups = [np.sort(np.asarray(g, dtype=int)) for g in groups]
+    fits = [sc.fit(g) for g in groups]
+    alive = [True] * len(groups)
+    covs = [np.linalg.inv(f.info) if f.ok else None for f in fits]
+
+    def pair_cost(a, b):
+        fa, fb = fits[a], fits[b]
+        if sc.label[groups[a][0]] != sc.label[groups[b][0]] or not (fa.ok and fb.ok):
+            return None
+        if np.intersect1d(sc.frame[groups[a]], sc.frame[groups[b]]).size:
+            return None
+        d_spd = float(spd_distance(fa.P, fb.P))
+        if d_spd > s.spd_gate:
+            return None
+        tau = s.centre_tolerance * (fa.radius + fb.radius)
+        delta = fa.X - fb.X
+        d_x = float(np.sqrt(delta @ np.linalg.solve(covs[a] + covs[b] + tau**2 * np.eye(3), delta)))
+        if d_x > s.centre_gate:
+            return None
+        return d_x / s.centre_gate + d_spd / s.spd_gate
+
+    costs = {}
+    for a in range(len(groups)):
+        for b in range(a + 1, len(groups)):
+            c = pair_cost(a, b)
+            if c is not None:
+                costs[(a, b)] = c
+    merges = 0
+    while costs:
+        a, b = min(costs, key=costs.get)
+        groups.append(np.sort(np.concatenate([groups[a], groups[b]])))
+        fits.append(sc.fit(groups[-1]))
+        covs.append(np.linalg.inv(fits[-1].info) if fits[-1].ok else None)
+        alive[a] = alive[b] = False
+        alive.append(True)
+        merges += 1
+        costs = {k: v for k, v in costs.items() if a not in k and b not in k}
+        new = len(groups) - 1
+        for o in range(new):
+            if alive[o]:
+                c = pair_cost(o, new)
+                if c is not None:
+                    costs[(o, new)] = c
+    return [g for g, al in zip(groups, alive) if al], merges
+
+
+# -- stage 3: batch re-assignment --------------------------------------------------------------
+
+
+def _reassign(sc: _Scene, groups: list, s: AssociationSettings) -> list:
+    """Every frame's detections against every landmark: Hungarian on 1 − IoU(projected
+    box clipped to the image, detection), same label, IoU ≥ ``iou_gate``. The landmark seen
+    from frame f is its time-local fit (``_Scene.local_centres``, σ = ``window`` frames), so
+    that odometry drift between distant parts of the sequence does not break the boxes.
+    Returns the new groups (possibly empty or short: the caller filters them)."""
+    fits = [sc.fit(g) for g in groups]
+    keep = [i for i, fit in enumerate(fits) if fit.ok]
+    owner = np.full(sc.frame.size, -1)
+    if not keep or sc.frame.size == 0:
+        return []
+    L = len(keep)
+    iou = np.zeros((sc.frame.size, L))
+    labs = np.array([sc.label[groups[i][0]] for i in keep])
+    for j, i in enumerate(keep):
+        di = np.flatnonzero(sc.label == labs[j])
+        frames, inv = np.unique(sc.frame[di], return_inverse=True)
+        X = sc.local_centres(groups[i], fits[i], frames, s.window)[inv]
+        boxes, vis = sc.project(X, np.broadcast_to(fits[i].P, (di.size, 3, 3)), sc.frame[di])
+        iou[di, j] = np.where(vis, _iou(boxes, sc.box[di]), 0.0)
+    allowed = (sc.label[:, None] == labs[None, :]) & (iou >= s.iou_gate)
+    for dets in sc.by_frame:
+        if dets.size == 0 or not allowed[dets].any():
+            continue
+        rows, cols = _hungarian(1.0 - iou[dets], allowed[dets])
+        owner[dets[rows]] = cols
+    return [np.flatnonzero(owner == j) for j in range(L)]
+
+
+def associate_detailed(seq: Sequence, settings: AssociationSettings | None = None, **overrides) -> Association:
+    """Automatic data association over the whole sequence (batch mode), from the boxes,
+    labels, trajectory ``seq.poses_tum``, camera and priors only (never ``Detection.instance``).
+
+    1. Tracklets: per frame, Hungarian assignment of the detections to the recent tracklets on
+       1 − IoU between the detection and the tracklet's landmark projected into the frame
+       (clipped to the image: truncated detections), different labels forbidden, IoU gated;
+       an unassigned detection starts a tentative tracklet. A tracklet's landmark is the
+       coarse ellipsoid of ``_Scene`` (rays' intersection, box sizes, class and plane priors).
+    2. Landmarks: tracklets with at least ``min_detections`` (k) detections; shorter ones
+       are discarded (this removes false detections).
+    3. Merging of duplicates (an object re-entering view, split tracks) by label, shared
+       frames, SPD log-map distance of the shapes and Mahalanobis distance of the centres
+       (``_merge``).
+    4. ``iterations`` rounds of batch re-assignment: each frame's detections are assigned
+       afresh to all landmarks by Hungarian on the projected-box IoU (time-local landmarks,
+       robust to drift); the detections left over are tracked again (step 1) into new
+       candidate tracks; tracks shorter than k are discarded and duplicates merged (step 3).
+
+    Tracks are numbered 0, 1, … in order of their first frame. ``settings`` (or keyword
+    ``overrides`` of :class:`AssociationSettings`) tune it.
+    """
+    t0 = time.perf_counter()
+    if settings is None:
+        settings = AssociationSettings(**overrides)
+    elif overrides:
+        settings = dataclasses.replace(settings, **overrides)
+    s = settings
+    sc = _Scene(seq, s)
+    tracklets = _tracklets(sc, s)
+    groups = [g for g in tracklets if g.size >= s.min_detections]
+    stats = {"tracklets": len(tracklets), "tentative_discarded": len(tracklets) - len(groups)}
+    groups, merges = _merge(sc, groups, s)
+    rounds = 0
+    for _ in range(s.iterations):
+        rounds += 1
+        new = _reassign(sc, groups, s)
+        left = np.ones(sc.frame.size, bool)
+        for g in new:
+            left[g] = False
+        new += _tracklets(sc, s, left)
+        new = [g for g in new if g.size >= s.min_detections]
+        new, m = _merge(sc, new, s)
+        merges += m
+        new = sorted((np.sort(g) for g in new), key=lambda g: g[0])
+        same = len(new) == len(groups) and all(
+            np.array_equal(a, b) for a, b in zip(new, sorted(groups, key=lambda g: g[0]))
+        )
+        groups = new
+        if same:
+            break
+    groups.sort(key=lambda g: (sc.frame[g].min(), g[0]))
+    assignment = np.full(sc.frame.size, -1)
+    tracks, centres, shapes = [], [], []
+    for k, g in enumerate(groups):
+        g = g[np.argsort(sc.frame[g], kind="stable")]
+        assignment[g] = k
+        tracks.append(Track(k, sc.labels[sc.label[g[0]]], sc.frame[g].copy(), sc.box[g].copy()))
+        fit = sc.fit(g)
+        centres.append(fit.X)
+        shapes.append(fit.P)
+    stats.update(
+        merges=merges,
+        rounds=rounds,
+        tracks=len(tracks),
+        assigned=int((assignment >= 0).sum()),
+        detections=int(sc.frame.size),
+        seconds=time.perf_counter() - t0,
+    )
+    return Association(
+        tracks, assignment, np.array(centres).reshape(-1, 3), np.array(shapes).reshape(-1, 3, 3), stats
+    )
+
+
+def associate(seq: Sequence, settings: AssociationSettings | None = None, **overrides) -> list:
+    """Automatic data association: the tracks (see :func:`associate_detailed`)."""
+    return associate_detailed(seq, settings, **overrides).tracks
+
+
+def _detection_indices(tracks, seq: Sequence) -> list:
+    """For each track, the indices in ``seq.detections`` of its (frame, box) pairs; raises
+    ``ValueError`` for a pair that is no detection or a detection used twice."""
+    lookup: dict = {}
+    for i, d in enumerate(seq.detections):
+        lookup.setdefault((d.frame, np.asarray(d.box, dtype=float).tobytes()), []).append(i)
+    used = np.zeros(len(seq.detections), bool)
+    out = []
+    for tr in tracks:
+        frames = np.asarray(tr.frames, dtype=int).reshape(-1)
+        boxes = np.asarray(tr.boxes, dtype=float).reshape(-1, 4)
+        if frames.size != boxes.shape[0]:
+            raise ValueError(f"track {tr.id}: {frames.size} frames but {boxes.shape[0]} boxes")
+        idx = []
+        for f, b in zip(frames.tolist(), boxes):
+            free = [i for i in lookup.get((f, b.tobytes()), []) if not used[i]]
+            if not free:
+                raise ValueError(
+                    f"track {tr.id}: frame {f} box {b.tolist()} is not a detection of the "
+                    "sequence (or is already in another track)"
+                )
+            used[free[0]] = True
+            idx.append(free[0])
+        out.append(np.array(idx, dtype=int))
+    return out
+
+
+def merge_tracks(tracks, seq: Sequence, settings: AssociationSettings | None = None, **overrides) -> list:
+    """Merge duplicate tracks of the same object (the merging step of :func:`associate`):
+    same label, no shared frame, log-map shape distance, centre distance and joint
+    reprojection within the gates of ``settings``. Returns new tracks numbered by first
+    frame; each track's boxes must be detections of ``seq``."""
+    s = settings if settings is not None else AssociationSettings(**overrides)
+    if settings is not None and overrides:
+        s = dataclasses.replace(settings, **overrides)
+    sc = _Scene(seq, s)
+    groups, _ = _merge(sc, _detection_indices(tracks, seq), s)
+    groups = [g[np.argsort(sc.frame[g], kind="stable")] for g in groups if g.size]
+    groups.sort(key=lambda g: (sc.frame[g[0]], g[0]))
+    return [Track(k, sc.labels[sc.label[g[0]]], sc.frame[g].copy(), sc.box[g].copy())
+            for k, g in enumerate(groups)]
+
+
+def association_scores(tracks, seq: Sequence) -> dict:
+    """Precision and recall of ``tracks`` against the sequence's instance ids.
+
+    Each track maps to the ground-truth instance (id ≥ 0) holding the majority of its
+    detections (ties: the smaller id; a track of false detections only maps to none), and
+    each instance keeps at most one track: the one with the most of its detections (ties:
+    the earlier track); the other tracks map to none. A detection is *correct* when its
+    track maps to the detection's own instance. Then
+
+        precision = correct / detections in tracks,
+        recall    = correct / detections with instance ≥ 0,
+
+    so false detections (instance < 0) in a track count against precision only. An empty
+    denominator gives 1.0 (nothing claimed, nothing to find). Tracks are matched to the
+    detections by (frame, box); a box that is no detection of ``seq`` raises ``ValueError``,
+    and so does a sequence without instance ids.
+
+    Returns {precision, recall, correct, assigned, true_detections, false_assigned,
+    tracks, instances, matched_instances, mapping {track id: instance or None}}.
+    """
+    inst = np.array([-1 if d.instance is None else d.instance for d in seq.detections], dtype=int)
+    if any(d.instance is None for d in seq.detections):
+        raise ValueError("association scores need the instance ids of the detections")
+    idx = _detection_indices(tracks, seq)
+    best: dict = {}  # instance -> (count, -order, track order)
+    target = []
+    for k, g in enumerate(idx):
+        ids, counts = np.unique(inst[g][inst[g] >= 0], return_counts=True)
+        if ids.size == 0:
+            target.append(None)
+            continue
+        m = int(ids[np.argmax(counts)])  # np.unique sorts: argmax takes the smaller id on ties
+        target.append(m)
+        c = int(counts.max())
+        if m not in best or c > best[m][0]:
+            best[m] = (c, k)
+    mapping = {}
+    correct = 0
+    for k, (tr, g) in enumerate(zip(tracks, idx)):
+        m = target[k]
+        if m is not None and best[m][1] != k:
+            m = None
+        mapping[int(tr.id)] = m
+        if m is not None:
+            correct += int(np.sum(inst[g] == m))
+    assigned = int(sum(g.size for g in idx))
+    n_true = int(np.sum(inst >= 0))
+    false_assigned = int(sum(np.sum(inst[g] < 0) for g in idx))
+    return {
+        "precision": correct / assigned if assigned else 1.0,
+        "recall": correct / n_true if n_true else 1.0,
+        "correct": correct,
+        "assigned": assigned,
+        "true_detections": n_true,
+        "false_assigned": false_assigned,
+        "tracks": len(tracks),
+        "instances": int(np.unique(inst[inst >= 0]).size),
+        "matched_instances": len(best),
+        "mapping": mapping,
+    }
