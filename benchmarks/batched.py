@@ -88,7 +88,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="warm solves timed per structure")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                                   "results", "batched.json"))
+    ap.add_argument("--quick", action="store_true", help="B = 16, one warm solve (smoke run)")
     args = ap.parse_args()
+    if args.quick:
+        args.batch, args.repeat = 16, 1
     optimize = {"auto": None, "yes": True, "no": False}[args.optimize]
     params = {} if args.lambda_initial is None else {"lambda_initial": args.lambda_initial}
 

@@ -676,6 +676,9 @@ def _resolve_params(params, method, overrides):
         params = Params(**shared)
     if overrides:
         params = dataclasses.replace(params, **overrides)
+    if not gn and (params.lambda_schedule != "nielsen" or not params.diagonal_damping):
+        raise ValueError("the batched solver supports lambda_schedule='nielsen' with "
+                         "diagonal_damping=True only")
     return params, gn
 
 

@@ -2,8 +2,12 @@
 
 H is given as the data of its lower triangle in a fixed CSC pattern (``Problem.sparse_pattern``).
 
-- ``cholmod``: CHOLMOD (scikit-sparse) supernodal Cholesky; the symbolic analysis (fill-reducing
-  ordering) is done once per structure, each solve refactors numerically in place.
+- ``cholmod``: CHOLMOD (scikit-sparse) Cholesky; the symbolic analysis (fill-reducing
+  ordering) is done once per structure, each solve refactors numerically in place. ``mode``
+  "supernodal" (BLAS on dense supernodes), "simplicial" (column by column) or "auto"
+  (CHOLMOD's choice by flops per non-zero); ``ordering`` one of CHOLMOD's: "default" (AMD,
+  METIS also tried when AMD's fill is high), "amd", "metis", "nesdis", "colamd", "natural"
+  (the layout's order: variable types by first appearance), "best".
 - ``scipy``:   SuperLU on the full symmetric matrix (fallback when scikit-sparse is missing).
 - ``dense``:   LAPACK Cholesky of the dense matrix (small problems).
 
@@ -25,7 +29,11 @@ try:  # pragma: no cover - availability depends on the environment
 except Exception:  # noqa: BLE001
     _cholmod = None
 
-__all__ = ["HAVE_CHOLMOD", "make_linear_solver", "DENSE_THRESHOLD"]
+__all__ = ["HAVE_CHOLMOD", "make_linear_solver", "DENSE_THRESHOLD", "CHOLMOD_MODES",
+           "CHOLMOD_ORDERINGS"]
+
+CHOLMOD_MODES = ("supernodal", "simplicial", "auto")
+CHOLMOD_ORDERINGS = ("default", "amd", "metis", "nesdis", "colamd", "natural", "best")
 
 HAVE_CHOLMOD = _cholmod is not None
 #: ``linear_solver="auto"`` uses the dense solver below this many tangent dimensions.
@@ -99,10 +107,11 @@ class ScipySolver(_Solver):
 class CholmodSolver(_Solver):
     name = "cholmod"
 
-    def __init__(self, pattern, n):
+    def __init__(self, pattern, n, mode: str = "supernodal", ordering: str = "default"):
         super().__init__()
         if _cholmod is None:
             raise ImportError("linear_solver='cholmod' needs scikit-sparse (sksparse.cholmod)")
+        check_cholmod_options(mode, ordering)
         self.n = n
         self.A = scipy.sparse.csc_matrix(
             (np.ones(pattern["nnz"]), pattern["indices"], pattern["indptr"]), shape=(n, n)
@@ -110,7 +119,7 @@ class CholmodSolver(_Solver):
         self.A.has_sorted_indices = True
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            self.factor = _cholmod.analyze(self.A, mode="supernodal")
+            self.factor = _cholmod.analyze(self.A, mode=mode, ordering_method=ordering)
 
     def _factorize(self, data):
         self.A.data = np.ascontiguousarray(data, dtype=np.float64)
@@ -129,6 +138,15 @@ class CholmodSolver(_Solver):
             return None
 
 
+def check_cholmod_options(mode: str, ordering: str) -> None:
+    if mode not in CHOLMOD_MODES:
+        raise ValueError(f"cholmod_mode must be one of {', '.join(CHOLMOD_MODES)}, got {mode!r}")
+    if ordering not in CHOLMOD_ORDERINGS:
+        raise ValueError(
+            f"cholmod_ordering must be one of {', '.join(CHOLMOD_ORDERINGS)}, got {ordering!r}"
+        )
+
+
 def resolve_linear_solver(kind: str, n: int, dense_threshold: int = DENSE_THRESHOLD) -> str:
     if kind == "auto":
         if n < dense_threshold:
@@ -143,7 +161,9 @@ def resolve_linear_solver(kind: str, n: int, dense_threshold: int = DENSE_THRESH
     return kind
 
 
-def make_linear_solver(kind: str, pattern, n: int):
-    return {"dense": DenseSolver, "scipy": ScipySolver, "cholmod": CholmodSolver}[kind](
-        pattern, n
-    )
+def make_linear_solver(kind: str, pattern, n: int, cholmod_mode: str = "supernodal",
+                       cholmod_ordering: str = "default"):
+    """The solver ``kind`` for the CSC ``pattern``; the CHOLMOD options apply to "cholmod"."""
+    if kind == "cholmod":
+        return CholmodSolver(pattern, n, cholmod_mode, cholmod_ordering)
+    return {"dense": DenseSolver, "scipy": ScipySolver}[kind](pattern, n)

@@ -9,10 +9,13 @@ H = JᵀJ, g = Jᵀr, and solves the damped normal equations
 and the clip keeps it positive on coordinates that no residual sees, e.g. the scale of a
 Full quadric). The candidate is x' = regularize(x ⊞ δ).
 
-LM (Nielsen's rule). The gain ratio ρ = (F(x) − F(x')) / L, with the model decrease
-L = −gᵀδ − ½δᵀHδ = ½ δᵀ(λDδ − g) > 0. The step is accepted iff F(x') < F(x) (ρ > 0), F(x') is
-finite, and no factor that is valid at x is invalid at x'. On acceptance
-λ ← max(λ_min, λ·max(1/3, 1 − (2ρ − 1)³)), ν ← 2; on rejection λ ← λν, ν ← 2ν.
+LM (Nielsen's rule, ``lambda_schedule="nielsen"``, the default). The gain ratio
+ρ = (F(x) − F(x')) / L, with the model decrease L = −gᵀδ − ½δᵀHδ = ½ δᵀ(λDδ − g) > 0. The step
+is accepted iff F(x') < F(x) (ρ > 0), F(x') is finite, and no factor that is valid at x is
+invalid at x'. On acceptance λ ← max(λ_min, λ·max(1/3, 1 − (2ρ − 1)³)), ν ← 2; on rejection
+λ ← λν, ν ← 2ν. ``lambda_schedule="fixed"`` is gtsam's default rule instead:
+λ ← max(λ_min, λ/f) on acceptance, λ ← λf on rejection (f = ``lambda_factor``, 10).
+``diagonal_damping=False`` damps with D = I (gtsam's default) instead of Marquardt's diag H.
 
 GN: λ is a fixed tiny ridge (``ridge``, relative to D) so that Cholesky survives singular
 directions. Every step that lowers the cost is taken; the first that does not (cost increase,
@@ -45,7 +48,12 @@ from typing import Any, Callable, Hashable, Iterable
 
 import numpy as np
 
-from ._linear import DENSE_THRESHOLD, make_linear_solver, resolve_linear_solver
+from ._linear import (
+    DENSE_THRESHOLD,
+    check_cholmod_options,
+    make_linear_solver,
+    resolve_linear_solver,
+)
 from ._problem import Problem
 from ._values import Values
 
@@ -75,6 +83,9 @@ class OptimizerParams:
     min_diagonal, max_diagonal: clip of diag H in the damping matrix D.
     linear_solver:      "auto" (dense below ``dense_threshold`` tangent dims, else CHOLMOD if
                         scikit-sparse is importable, else scipy), "cholmod", "scipy", "dense".
+    cholmod_mode, cholmod_ordering: CHOLMOD's factorisation ("supernodal", "simplicial",
+                        "auto") and fill-reducing ordering ("default", "amd", "metis", …);
+                        see ``_linear``.
     verbose:            print one line per iteration.
     callback:           ``callback(record)`` after each iteration; returning True stops.
     """
@@ -88,6 +99,8 @@ class OptimizerParams:
     max_diagonal: float = 1e32
     linear_solver: str = "auto"
     dense_threshold: int = DENSE_THRESHOLD
+    cholmod_mode: str = "supernodal"
+    cholmod_ordering: str = "default"
     verbose: bool = False
     callback: Callable[["IterationRecord"], Any] | None = None
 
@@ -95,11 +108,16 @@ class OptimizerParams:
 @dataclass
 class LevenbergMarquardtParams(OptimizerParams):
     """LM damping: λ starts at ``lambda_initial``, stays ≥ ``lambda_min``, and the run stops
-    (reason "lambda_max") when rejections push it above ``lambda_max``."""
+    (reason "lambda_max") when rejections push it above ``lambda_max``. ``lambda_schedule``:
+    "nielsen" (gain-ratio rule) or "fixed" (÷/× ``lambda_factor``, gtsam's default);
+    ``diagonal_damping``: D = clip(diag H) (Marquardt) or D = I (False, gtsam's default)."""
 
     lambda_initial: float = 1e-4
     lambda_min: float = 1e-10
     lambda_max: float = 1e10
+    lambda_schedule: str = "nielsen"
+    lambda_factor: float = 10.0
+    diagonal_damping: bool = True
 
 
 @dataclass
@@ -169,13 +187,22 @@ class _Optimizer:
     def optimize(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = ()
                  ) -> OptimizationResult:
         """Minimise F over the free variables of ``values``; returns a new Values."""
+        p = self.params
+        if getattr(p, "lambda_schedule", "nielsen") not in ("nielsen", "fixed"):
+            raise ValueError(
+                f"lambda_schedule must be 'nielsen' or 'fixed', got {p.lambda_schedule!r}"
+            )
+        if not getattr(p, "lambda_factor", 10.0) > 1:
+            raise ValueError(f"lambda_factor must be > 1, got {p.lambda_factor!r}")
+        check_cholmod_options(p.cholmod_mode, p.cholmod_ordering)
         t0 = time.perf_counter()
         if not isinstance(values, Values):
             values = Values(values)
         problem = Problem(graph, values, fixed)
         kind = resolve_linear_solver(self.params.linear_solver, problem.n,
                                      self.params.dense_threshold)
-        solver = make_linear_solver(kind, problem.sparse_pattern(), problem.n)
+        solver = make_linear_solver(kind, problem.sparse_pattern(), problem.n,
+                                    self.params.cholmod_mode, self.params.cholmod_ordering)
         timings = {"setup": time.perf_counter() - t0}
         res = _run(problem, solver, self.params, self._gn, timings)
         res.values = problem.to_values(res.values, values)
@@ -214,6 +241,8 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
     initial_cost = cost
     lam = p.ridge if gn else p.lambda_initial
     nu = 2.0
+    fixed_schedule = not gn and p.lambda_schedule == "fixed"
+    identity_damping = not gn and not p.diagonal_damping
     history: list[IterationRecord] = []
     reason = None
     nlin = 1
@@ -228,7 +257,8 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
             break
         it += 1
         t_it = tick()
-        D = np.clip(h[diag], p.min_diagonal, p.max_diagonal)
+        D = np.ones(len(diag)) if identity_damping else np.clip(h[diag], p.min_diagonal,
+                                                                  p.max_diagonal)
         hd = h.copy()
         hd[diag] += lam * D
         t = tick()
@@ -259,7 +289,9 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
             decrease, old = cost - trial_cost, cost
             x, cost = x_new, trial_cost
             rec.cost = cost
-            if not gn:
+            if fixed_schedule:
+                lam = max(p.lambda_min, lam / p.lambda_factor)
+            elif not gn:
                 shrink = max(1.0 / 3.0, 1.0 - (2.0 * rec.gain_ratio - 1.0) ** 3)
                 lam = max(p.lambda_min, lam * shrink)
                 nu = 2.0
@@ -284,6 +316,10 @@ def _run(problem: Problem, solver, p, gn: bool, timings: dict) -> OptimizationRe
                 reason = "relative"
             elif gn:
                 reason = "linear_solver" if delta is None else "cost_increase"
+            elif fixed_schedule:
+                lam *= p.lambda_factor
+                if lam > p.lambda_max:
+                    reason = "lambda_max"
             else:
                 lam *= nu
                 nu *= 2.0
