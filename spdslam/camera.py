@@ -14,6 +14,12 @@ The untruncated box of C* (the tangent lines u = const, v = const) is
 
 (1-based indices; the paper's formula omits the division by C*₃₃, which is only right for
 C*₃₃ = 1 and wrong for a homogeneous C*).
+
+Box-like objects are boxed by the silhouette of their circumscribed cuboid, the corners
+t + Σᵢ ±sᵢRᵢ for P = R diag(s²) Rᵀ: its box is the min/max of the 8 projected corners
+(``project_cuboid_box``), meaningful when all 8 lie in front of the camera
+(``cuboid_in_front``). A box edge within a margin of the image border is the image's
+edge, not the object's: ``truncation_mask`` marks the edges that carry a bound.
 """
 
 from __future__ import annotations
@@ -25,7 +31,8 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from .ellipsoid import as_ellipsoid, dual_quadric
+from .ellipsoid import EllipsoidRTS, as_ellipsoid, dual_quadric
+from .matfun import eigh
 from .se3 import as_pose
 
 __all__ = [
@@ -42,6 +49,13 @@ __all__ = [
     "in_front",
     "camera_inside",
     "look_at",
+    "cuboid_half_axes",
+    "cuboid_corners",
+    "project_points",
+    "project_cuboid_box",
+    "cuboid_depth_range",
+    "cuboid_in_front",
+    "truncation_mask",
 ]
 
 
@@ -193,3 +207,78 @@ def in_front(ellipsoid, T_wc, min_depth: float = 0.0) -> jax.Array:
 def camera_inside(ellipsoid, T_wc) -> jax.Array:
     """True when the camera centre lies inside the ellipsoid."""
     return as_ellipsoid(ellipsoid).contains(as_pose(T_wc).translation())
+
+
+# --- circumscribed cuboid --------------------------------------------------------------------
+_SIGNS = np.array([[a, b, c] for a in (-1.0, 1.0) for b in (-1.0, 1.0) for c in (-1.0, 1.0)])
+
+
+def cuboid_half_axes(landmark):
+    """(H, t): the columns of H are the cuboid's half-edge vectors sᵢRᵢ, t its centre.
+
+    RTS landmarks use their rotation and |radii| directly (smooth in their parameters); SPD
+    and Full go through P = V diag(λ) Vᵀ with the tie-safe ``matfun.eigh``, sᵢ = √λᵢ. The
+    cuboid is invariant to the order and signs of the axes, but at repeated radii its
+    orientation is not determined by P: there the box is that of one valid choice of axes
+    and its derivative is finite (the coupling inside the tie is dropped), not a limit.
+    """
+    if isinstance(landmark, EllipsoidRTS):
+        return landmark.rotation.as_matrix() * jnp.abs(landmark.radii), landmark.center
+    e = as_ellipsoid(landmark)
+    w, V = eigh(e.P)
+    return V * jnp.sqrt(jnp.maximum(w, 1e-300)), e.center
+
+
+def cuboid_corners(landmark) -> jax.Array:
+    """The 8 corners (8×3) t + H σ, σ ∈ {±1}³, of the circumscribed cuboid."""
+    H, t = cuboid_half_axes(landmark)
+    return t + jnp.asarray(_SIGNS) @ H.T
+
+
+def project_points(X, T_wc, camera: Camera) -> jax.Array:
+    """Pixels (n×2) of world points X (n×3): [u, v] = (M[X; 1])₁,₂ / (M[X; 1])₃."""
+    M = projection_matrix(T_wc, camera)
+    p = X @ M[:, :3].T + M[:, 3]
+    z = p[:, 2:]
+    return p[:, :2] / jnp.where(jnp.abs(z) > 1e-12, z, 1e-12)  # z ≈ 0: finite, not a pixel
+
+
+def project_cuboid_box(landmark, T_wc, camera: Camera) -> jax.Array:
+    """Untruncated box [u_min, v_min, u_max, v_max] of the landmark's circumscribed cuboid:
+    the extremes of its 8 projected corners. Only meaningful when ``cuboid_in_front``."""
+    uv = project_points(cuboid_corners(landmark), T_wc, camera)
+    return jnp.concatenate([jnp.min(uv, axis=0), jnp.max(uv, axis=0)])
+
+
+def cuboid_depth_range(landmark, T_wc) -> jax.Array:
+    """(z_min, z_max) of the cuboid along the optical axis a: a·(t − c) ∓ Σᵢ |a·Hᵢ|."""
+    H, t = cuboid_half_axes(landmark)
+    T = as_pose(T_wc)
+    axis = T.rotation().as_matrix()[:, 2]
+    zc = axis @ (t - T.translation())
+    half = jnp.sum(jnp.abs(axis @ H))
+    return jnp.stack([zc - half, zc + half])
+
+
+def cuboid_in_front(landmark, T_wc, min_depth: float = 0.0) -> jax.Array:
+    """True when all 8 corners of the circumscribed cuboid have depth z_c > min_depth."""
+    return cuboid_depth_range(landmark, T_wc)[0] > min_depth
+
+
+def truncation_mask(box, camera: Camera, margin) -> jax.Array:
+    """(…, 4) 0/1 mask of the box edges that bound the object: 1 where the edge lies more
+    than ``margin`` px inside the image [0, width] × [0, height], 0 where it may be the
+    image border (a truncated detection). ``margin=None`` keeps every edge."""
+    b = jnp.asarray(box, dtype=float)
+    if margin is None:
+        return jnp.ones_like(b)
+    keep = jnp.stack(
+        [
+            b[..., 0] > margin,
+            b[..., 1] > margin,
+            b[..., 2] < camera.width - margin,
+            b[..., 3] < camera.height - margin,
+        ],
+        axis=-1,
+    )
+    return keep.astype(b.dtype)

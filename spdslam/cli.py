@@ -313,13 +313,43 @@ def _check_out(out: Path, overwrite: bool) -> None:
         fail(f"--out: {out} exists and is not empty (use --overwrite)")
 
 
-def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, **overrides):
+def _parse_robust(items, robust_k):
+    """``--robust`` values: KERNEL (box and measured-ellipsoid factors, threshold
+    ``--robust-k``) or TYPE=KERNEL[:K] (one factor type) -> Method overrides."""
+    from .mapping import ROBUST_FACTOR_TYPES, ROBUST_KERNELS
+
+    out, by_type = {}, []
+    for item in items or []:
+        ftype, sep, rest = item.partition("=")
+        if not sep:
+            ftype, rest = None, item
+        name, colon, k = rest.partition(":")
+        try:
+            k = float(k) if colon else (robust_k if robust_k is not None else 1.0)
+        except ValueError:
+            fail(f"--robust: {k!r} is not a number (in {item!r})")
+        if (ftype is not None and ftype not in ROBUST_FACTOR_TYPES) or name not in ROBUST_KERNELS \
+                or not (math.isfinite(k) and k > 0):
+            fail(f"--robust: expected KERNEL or TYPE=KERNEL[:K] with KERNEL one of {', '.join(ROBUST_KERNELS)}, "
+                 f"TYPE one of {', '.join(ROBUST_FACTOR_TYPES)} and K > 0, got {item!r}")
+        if ftype is None:
+            out["robust"], out["robust_k"] = name, k
+        else:
+            by_type.append((ftype, name, k))
+    if by_type:
+        out["robust_by_type"] = tuple(by_type)
+    return out
+
+
+def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
+                   **overrides):
     from .mapping import run_sequence
     from .report import write_run
 
     _check_out(out, overwrite)
     try:
-        result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations, **overrides)
+        result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
+                              associate=associate, **overrides)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     try:
@@ -332,6 +362,11 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
     )
     for k, why in result.failed.items():
         err_console.print(f"object {k} not mapped: {why}")
+    a = result.association
+    if a.get("mode") == "auto":
+        scores = (f": precision {a['precision']:.3f}, recall {a['recall']:.3f} against the instance ids"
+                  if "precision" in a else "")
+        console.print(f"automatic data association, {len(result.objects) + len(result.failed)} tracks{scores}")
     _print_metrics(metrics)
     console.print(f"wrote {out}")
     return result, metrics
@@ -344,8 +379,11 @@ def run(
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
     parameterization: str | None = typer.Option(None, help="Override: spd, rts or full."),
     box_model: str | None = typer.Option(None, help="Override: inverse, semi or semi-then-inverse."),
-    robust: str | None = typer.Option(None, help="Robust kernel on box factors: none, huber, cauchy."),
-    robust_k: float | None = typer.Option(None, help="Robust kernel threshold (whitened units)."),
+    associate: str | None = typer.Option(None, help="Data association: instances (the instance column) or auto; default: instances when every detection has an id, else auto."),
+    object_shape: str | None = typer.Option(None, help="Silhouette model: priors (per class, priors.yaml 'shape'), ellipsoid or cuboid."),
+    truncation_margin: float | None = typer.Option(None, help="Box edges within this many px of the image border carry no bound (negative: keep all; default 5)."),
+    robust: list[str] | None = typer.Option(None, help="Robust kernel, repeatable: KERNEL (none, huber, cauchy) on box and measured-ellipsoid factors, or TYPE=KERNEL[:K] for one factor type (box, ellipsoid, odometry, orientation, support_plane, shape, size)."),
+    robust_k: float | None = typer.Option(None, help="Threshold of a plain --robust KERNEL (whitened units, default 1)."),
     sigma: list[str] | None = typer.Option(None, help=_SIGMA_HELP),
     max_iterations: int = typer.Option(100, min=1, help="LM iteration budget per stage."),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
@@ -361,10 +399,19 @@ def run(
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
     sigmas = _parse_sigmas(sigma)
+    robust_overrides = _parse_robust(robust, robust_k)
+    if robust_k is not None and "robust" not in robust_overrides:
+        robust_overrides["robust_k"] = robust_k
+    if associate not in (None, "instances", "auto"):
+        fail(f"--associate: expected instances or auto, got {associate!r}")
+    if object_shape not in (None, "priors", "ellipsoid", "cuboid"):
+        fail(f"--object-shape: expected priors, ellipsoid or cuboid, got {object_shape!r}")
+    if truncation_margin is not None and not math.isfinite(truncation_margin):
+        fail(f"--truncation-margin: expected a finite number of pixels, got {truncation_margin!r}")
     seq = _load_sequence(sequence)
-    _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
-                   parameterization=parameterization, box_model=box_model, robust=robust,
-                   robust_k=robust_k)
+    _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
+                   parameterization=parameterization, box_model=box_model,
+                   object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
 
 
 @app.command()
@@ -478,15 +525,15 @@ def demo(
     outliers: float = typer.Option(0.0, help="False detections (instance -1), as a fraction of the true ones, in [0, 1)."),
     missed: float = typer.Option(0.0, help="Fraction of the true detections dropped, in [0, 1)."),
     cuboids: bool = typer.Option(False, "--cuboids", help="Box-shaped objects (boxes of their 8 projected corners)."),
-    no_ids: bool = typer.Option(False, "--no-ids", help="Write the detections without the instance column."),
+    no_ids: bool = typer.Option(False, "--no-ids", help="Write the detections without the instance column (then mapped with automatic association)."),
+    associate: str | None = typer.Option(None, help="Data association: instances or auto (default: auto with --no-ids, else instances)."),
 ) -> None:
     """The embedded default: generate a synthetic room sequence (OUT/sequence, canonical
     format) and map it with a method (OUT/run), end to end, without any download.
 
-    With --no-ids only OUT/sequence is written: mapping detections without instance ids
-    needs automatic data association, which this command does not offer yet."""
+    With --no-ids the written detections have no instance column and the run uses automatic
+    association (the generator's ids only score it: precision and recall)."""
     import dataclasses
-    import shutil
 
     from .demo import make_room_sequence
     from .mapping import METHODS
@@ -494,6 +541,12 @@ def demo(
 
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    if associate not in (None, "instances", "auto"):
+        fail(f"--associate: expected instances or auto, got {associate!r}")
+    if associate is None:
+        associate = "auto" if no_ids else "instances"
+    if no_ids and associate != "auto":
+        fail("--associate: the detections have no instance ids (--no-ids): expected auto")
     if out.exists() and not out.is_dir():
         fail(f"--out: {out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).exists():
@@ -506,6 +559,7 @@ def demo(
     except ValueError as e:
         fail(f"demo: {e}")
     n_false = sum(d.instance < 0 for d in seq.detections)
+    scored_seq = seq
     if no_ids:
         seq = dataclasses.replace(
             seq, detections=[dataclasses.replace(d, instance=None) for d in seq.detections]
@@ -517,15 +571,8 @@ def demo(
         f"demo: {len(seq)} frames, {len(seq.objects_gt)} objects, {len(seq.detections)} boxes "
         f"({n_false} false) -> {out / 'sequence'}"
     )
-    if no_ids:
-        # Manual association needs the ids; automatic association is not in the CLI yet.
-        # A run left by an earlier demo would not belong to this sequence: remove it.
-        shutil.rmtree(out / "run", ignore_errors=True)
-        fail(
-            f"demo: {out / 'run'} not written: the detections have no instance ids (--no-ids) "
-            "and mapping them needs automatic data association, which spdslam demo does not offer yet"
-        )
-    _run_and_write(seq, method, out / "run", True, False, {}, 100)
+    # automatic association ignores the ids; the generator's (scored_seq) only score it
+    _run_and_write(scored_seq, method, out / "run", True, False, {}, 100, associate)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -10,19 +10,34 @@ solved by the right singular vector of the smallest singular value; Q* is then p
 the nearest ellipsoid (``EllipsoidFull.regularized``). For conditioning the planes are
 expressed in a frame centred on the mean camera centre and scaled by the mean camera
 distance from it: x = s x' + c, so π' = Tᵀπ and Q* = T Q*' Tᵀ with T = [[sI, c], [0, 1]].
+
+Truncated detections: with a ``truncation_margin`` (px), box edges within it of the image
+border (``camera.truncation_mask``) are the image's edge, not the object's, and are left
+out of both fits.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .camera import Camera, box_planes
+from .camera import Camera, box_planes, project_box, project_cuboid_box, truncation_mask
 from .ellipsoid import Ellipsoid, EllipsoidFull
 from .se3 import as_pose, stack
 
-__all__ = ["InitializationError", "multi_initialize", "svd_initialize", "triangulate_rays"]
+__all__ = [
+    "InitializationError",
+    "OBJECT_SHAPES",
+    "multi_initialize",
+    "svd_initialize",
+    "triangulate_rays",
+]
+
+#: Silhouette models: the object's box is that of its ellipsoid, or of its circumscribed cuboid.
+OBJECT_SHAPES = ("ellipsoid", "cuboid")
 
 _TRIU = np.triu_indices(4)
 _OFF = (_TRIU[0] != _TRIU[1]).astype(float)
@@ -43,15 +58,29 @@ def _views(boxes, poses, min_views: int):
     return boxes, poses
 
 
-def svd_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoid:
+def _keep(boxes, camera, truncation_margin):
+    """(k, 4) bool: the box edges that bound the object."""
+    return np.asarray(truncation_mask(boxes, camera, truncation_margin)) > 0
+
+
+def svd_initialize(
+    boxes, poses, camera: Camera, min_views: int = 3, truncation_margin: float | None = None
+) -> Ellipsoid:
     """Quadric-SVD initial ellipsoid from ``boxes`` (k, 4) seen from camera-to-world ``poses``.
 
-    Raises ``InitializationError`` with the reason when it cannot: fewer than ``min_views``
-    boxes, a null space that is not one-dimensional, or a solution that is not an ellipsoid
-    in front of the cameras.
+    With ``truncation_margin`` (px) the planes of edges within it of the image border are
+    dropped. Raises ``InitializationError`` with the reason when it cannot: fewer than
+    ``min_views`` boxes or 9 untruncated edges, a null space that is not one-dimensional, or
+    a solution that is not an ellipsoid in front of the cameras.
     """
     boxes, poses = _views(boxes, poses, max(min_views, 3))
+    keep = _keep(boxes, camera, truncation_margin).ravel()
+    if keep.sum() < 9:
+        raise InitializationError(
+            f"only {int(keep.sum())} untruncated box edges, Quadric-SVD needs at least 9"
+        )
     planes = np.concatenate([np.asarray(box_planes(b, T, camera)) for b, T in zip(boxes, poses)])
+    planes = planes[keep]
     centres = np.array([np.asarray(T.translation()) for T in poses])
     c = centres.mean(axis=0)
     s = max(float(np.mean(np.linalg.norm(centres - c, axis=1))), 1e-6)
@@ -141,15 +170,16 @@ def _multi_model(theta, frame, has_plane):
     return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
 
 
-@jax.jit
-def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w):
-    """Batched (over starts) LM on the box residuals of the constrained model."""
-    from .camera import project_box
+@partial(jax.jit, static_argnames=("shape",))
+def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape):
+    """Batched (over starts) LM on the box residuals of the constrained model; ``mask``
+    (k, 4) weights each box edge (0: padding or truncated)."""
+    box_of = project_cuboid_box if shape == "cuboid" else project_box
 
     def residual(theta):
         e = _multi_model(theta, frame, has_plane)
-        r_box = jax.vmap(lambda T, b: project_box(e, T, camera) - b)(poses, boxes)
-        r_box = (r_box / _PX_SIGMA) * mask[:, None]
+        r_box = jax.vmap(lambda T, b: box_of(e, T, camera) - b)(poses, boxes)
+        r_box = (r_box / _PX_SIGMA) * mask
         r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
         return jnp.concatenate([r_box.ravel(), r_prior])
 
@@ -186,6 +216,8 @@ def multi_initialize(
     prior_radii=None,
     prior_sigma: float = 0.2,
     min_views: int = 2,
+    shape: str = "ellipsoid",
+    truncation_margin: float | None = None,
 ) -> Ellipsoid:
     """Multi-constraint ("Quadric-Multi") initial ellipsoid: one axis along ``up``, resting on
     ``support_plane`` (a·x + b·y + c·z + d = 0) when one is given, with the class size prior
@@ -195,20 +227,32 @@ def multi_initialize(
     three radii (the centre sits one vertical radius above the plane). They are fitted to the
     boxes (inverse box model, 2 px) by LM from several yaws; the centre and radii start from
     the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views.
+    ``shape="cuboid"`` fits the box of the circumscribed cuboid (box-like objects) instead of
+    the ellipsoid's; the result is the cuboid's inscribed ellipsoid (radii = half-extents).
+    With ``truncation_margin`` (px) box edges within it of the image border are ignored.
     """
     boxes, poses = _views(boxes, poses, max(min_views, 2))
     if up is None:
         raise ValueError("multi-constraint initialisation needs the up direction")
+    if shape not in OBJECT_SHAPES:
+        raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {shape!r}")
+    keep = _keep(boxes, camera, truncation_margin)
+    if not keep.any():
+        raise InitializationError("every box edge is truncated by the image border")
     frame = _plane_frame(up, support_plane)
     e1, e2, n, w0 = frame
-    origins, dirs, Rs = _box_rays(boxes, poses, camera)
+    # the start comes from whole boxes when there are enough (a truncated box's centre and
+    # size are biased), else from every box
+    whole = keep.all(axis=1)
+    start = whole if whole.sum() >= 2 else np.ones(len(boxes), bool)
+    origins, dirs, Rs = _box_rays(boxes[start], [T for T, u in zip(poses, start) if u], camera)
     c0 = triangulate_rays(origins, dirs)
     depth = np.einsum("ki,ki->k", c0 - origins, Rs[:, :, 2])
     if np.median(depth) <= 0:
         raise InitializationError("the triangulated centre is behind the cameras")
     depth = np.maximum(depth, 1e-3)
-    half_w = np.median((boxes[:, 2] - boxes[:, 0]) * depth / (2 * camera.fx))
-    half_h = np.median((boxes[:, 3] - boxes[:, 1]) * depth / (2 * camera.fy))
+    half_w = np.median((boxes[start, 2] - boxes[start, 0]) * depth / (2 * camera.fx))
+    half_h = np.median((boxes[start, 3] - boxes[start, 1]) * depth / (2 * camera.fy))
     r_h = max(half_w, 1e-3)
     r_v = max(half_h, 1e-3)
     w = c0 @ n
@@ -224,7 +268,7 @@ def multi_initialize(
     pad = bucket_n - len(boxes)
     poses_b = stack(poses + [poses[0]] * pad)
     boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
-    mask = np.r_[np.ones(len(boxes)), np.zeros(pad)]
+    mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
     if prior_radii is None:
         prior_log, prior_w = np.zeros(3), 0.0
     else:
@@ -233,6 +277,7 @@ def multi_initialize(
     thetas, costs = _multi_fit(
         jnp.asarray(starts), frame_j, jnp.asarray(support_plane is not None), poses_b,
         jnp.asarray(boxes_b), jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w,
+        shape=shape,
     )
     costs = np.asarray(costs)
     if not np.any(np.isfinite(costs)):

@@ -64,10 +64,11 @@ class ObjectMetrics:
         }
 
 
-def match_objects(objects, gt_objects) -> dict:
-    """{estimated id: ground-truth id}; by id when the ids agree, else Hungarian on IoU."""
+def match_objects(objects, gt_objects, by_id: bool = True) -> dict:
+    """{estimated id: ground-truth id}: by id when ``by_id`` and every id is a ground-truth
+    id (manual association), else a Hungarian assignment on IoU (same labels only)."""
     gt_ids = {int(g.id) for g in gt_objects}
-    if objects and all(int(o.id) in gt_ids for o in objects):
+    if by_id and objects and all(int(o.id) in gt_ids for o in objects):
         return {int(o.id): int(o.id) for o in objects}
     from scipy.optimize import linear_sum_assignment
 
@@ -81,9 +82,10 @@ def match_objects(objects, gt_objects) -> dict:
     return {int(objects[i].id): int(gt_objects[j].id) for i, j in zip(rows, cols) if iou[i, j] > 0}
 
 
-def evaluate_objects(objects, gt_objects) -> tuple[list, dict]:
-    """(per-object metrics, summary) of a list of objects with ``id, label, ellipsoid``."""
-    match = match_objects(objects, gt_objects)
+def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dict]:
+    """(per-object metrics, summary) of a list of objects with ``id, label, ellipsoid``;
+    ``by_id=False`` when the ids are not instance ids (automatic association)."""
+    match = match_objects(objects, gt_objects, by_id)
     gts = {int(g.id): g for g in gt_objects}
     rows = []
     for o in objects:
@@ -113,12 +115,17 @@ def evaluate_objects(objects, gt_objects) -> tuple[list, dict]:
 def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq) -> dict:
     """Metrics of a run against the sequence's ground truth (what exists of it)."""
     out = {"sequence": seq.name, "method": map_dict["method"]}
+    association = map_dict.get("association") or {"mode": "instances"}
+    by_id = association.get("mode") != "auto"  # automatic track ids are not instance ids
+    if "precision" in association:
+        out["association"] = {k: association[k] for k in ("precision", "recall", "tracks", "instances")
+                              if k in association}
     if seq.objects_gt:
-        rows, summary = evaluate_objects(objects, seq.objects_gt)
+        rows, summary = evaluate_objects(objects, seq.objects_gt, by_id)
         out["objects"] = [r.as_dict() for r in rows]
         out["summary"] = summary
         if initial_objects is not None:
-            rows0, summary0 = evaluate_objects(initial_objects, seq.objects_gt)
+            rows0, summary0 = evaluate_objects(initial_objects, seq.objects_gt, by_id)
             out["front_end"] = {"objects": [r.as_dict() for r in rows0], "summary": summary0}
     if seq.groundtruth_tum is not None:
         traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
@@ -168,6 +175,11 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
         lines.append("")
     else:
         lines += ["No object ground truth (objects_gt.txt): no object metrics.", ""]
+    if "association" in metrics:
+        a = metrics["association"]
+        lines += ["## Data association", "",
+                  f"Automatic: {a['tracks']} tracks for {a['instances']} instances, precision "
+                  f"{a['precision']:.3f}, recall {a['recall']:.3f} (against the instance ids).", ""]
     if "ate" in metrics:
         a = metrics["ate"]
         ate = (f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised "

@@ -5,6 +5,8 @@ The canonical folder (see ``docs/formats.md``)::
     camera.yaml       required  fx, fy, cx, cy, width, height
     trajectory.txt    required  TUM ``timestamp tx ty tz qx qy qz qw`` (camera-to-world)
     detections.txt    required  ``timestamp x1 y1 x2 y2 label score [instance]``
+    ellipsoids.txt    optional  ``timestamp label qx qy qz qw cx cy cz a b c [instance]``
+                                (measured ellipsoids, camera frame: RGB-D / LiDAR)
     objects_gt.txt    optional  ``id label cx cy cz qx qy qz qw hx hy hz`` (world frame)
     groundtruth.txt   optional  TUM format
     priors.yaml       optional  support_planes, up, classes
@@ -35,6 +37,7 @@ from .evaluation import Cuboid
 __all__ = [
     "SequenceFormatError",
     "Detection",
+    "EllipsoidDetection",
     "GroundTruthObject",
     "ClassPrior",
     "Priors",
@@ -125,6 +128,62 @@ class Detection:
             and _close(self.timestamp, other.timestamp)
             and _close(self.score, other.score)
             and _close(self.box, other.box)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class EllipsoidDetection:
+    """A whole ellipsoid measured at trajectory index ``frame`` (an RGB-D or LiDAR front
+    end), in that frame's CAMERA coordinates: ``center`` (3,), ``rotation`` (3×3, columns =
+    the axes, det +1) and ``radii`` (3,) the semi-axes along them, so that
+    P = R diag(radii²) Rᵀ. A reflection (det −1) describes the same ellipsoid: its third
+    axis is negated."""
+
+    frame: int
+    timestamp: float
+    label: str
+    rotation: np.ndarray
+    center: np.ndarray
+    radii: np.ndarray
+    instance: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "frame", int(self.frame))
+        object.__setattr__(self, "timestamp", float(self.timestamp))
+        object.__setattr__(self, "label", str(self.label))
+        R = np.array(self.rotation, dtype=float)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise ValueError(f"rotation must be an orthonormal 3x3 matrix, got {R.tolist()}")
+        if np.linalg.det(R) < 0:
+            R[:, 2] = -R[:, 2]
+        object.__setattr__(self, "rotation", _frozen_array(R, (3, 3)))
+        c = _frozen_array(self.center, (3,))
+        r = _frozen_array(self.radii, (3,))
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"center must be finite, got {c.tolist()}")
+        if not (np.all(np.isfinite(r)) and np.all(r > 0)):
+            raise ValueError(f"radii must be positive, got {r.tolist()}")
+        object.__setattr__(self, "center", c)
+        object.__setattr__(self, "radii", r)
+        if self.instance is not None:
+            object.__setattr__(self, "instance", int(self.instance))
+
+    @property
+    def P(self) -> np.ndarray:
+        """The shape matrix R diag(radii²) Rᵀ (camera frame)."""
+        return (self.rotation * self.radii**2) @ self.rotation.T
+
+    def __eq__(self, other):
+        if not isinstance(other, EllipsoidDetection):
+            return NotImplemented
+        return (
+            self.frame == other.frame
+            and self.label == other.label
+            and self.instance == other.instance
+            and _close(self.timestamp, other.timestamp)
+            and _close(self.rotation, other.rotation)
+            and _close(self.center, other.center)
+            and _close(self.radii, other.radii)
         )
 
 
@@ -220,7 +279,8 @@ class Priors:
 @dataclass(frozen=True, eq=False)
 class Sequence:
     """A sequence: camera, trajectory (TUM rows, camera-to-world), detections and the
-    optional ground truth, priors and images."""
+    optional ground truth, priors, images and measured ellipsoids
+    (:class:`EllipsoidDetection`, ``ellipsoids.txt``)."""
 
     name: str
     camera: Camera
@@ -231,6 +291,7 @@ class Sequence:
     groundtruth_tum: np.ndarray | None = None
     priors: Priors | None = None
     images: dict | None = None
+    ellipsoids: list | None = None
 
     def __post_init__(self):
         t = _frozen_array(self.timestamps)
@@ -241,6 +302,8 @@ class Sequence:
         object.__setattr__(self, "detections", list(self.detections))
         if self.objects_gt is not None:
             object.__setattr__(self, "objects_gt", list(self.objects_gt))
+        if self.ellipsoids is not None:
+            object.__setattr__(self, "ellipsoids", list(self.ellipsoids))
         if self.groundtruth_tum is not None:
             g = _frozen_array(self.groundtruth_tum)
             if g.ndim != 2 or g.shape[1] != 8:
@@ -257,6 +320,10 @@ class Sequence:
     def detections_at(self, frame: int) -> list:
         """The detections of trajectory index ``frame``."""
         return [d for d in self.detections if d.frame == frame]
+
+    def ellipsoids_at(self, frame: int) -> list:
+        """The measured ellipsoids of trajectory index ``frame`` (none without the file)."""
+        return [e for e in self.ellipsoids or () if e.frame == frame]
 
     def __eq__(self, other):
         if not isinstance(other, Sequence):
@@ -276,6 +343,7 @@ class Sequence:
             and opt(self.objects_gt, other.objects_gt, lambda a, b: a == b)
             and opt(self.groundtruth_tum, other.groundtruth_tum, _close)
             and opt(self.priors, other.priors, lambda a, b: a == b)
+            and opt(self.ellipsoids, other.ellipsoids, lambda a, b: a == b)
             and opt(
                 self.images,
                 other.images,
@@ -596,6 +664,30 @@ def read_detections(path, timestamps, name: str | None = None) -> list:
     return out
 
 
+def read_ellipsoids(path, timestamps, name: str | None = None) -> list:
+    """``ellipsoids.txt`` rows ``timestamp label qx qy qz qw cx cy cz a b c [instance]``:
+    measured ellipsoids in the camera frame (quaternion: the rotation whose columns are the
+    axes; a b c the semi-axes along them, > 0)."""
+    path = Path(path)
+    name = name or str(path)
+    timestamps = np.asarray(timestamps, dtype=float)
+    layout = "timestamp label qx qy qz qw cx cy cz a b c [instance]"
+    fields = layout.split()
+    out = []
+    for line, tok in _rows(path, name):
+        _check_columns(name, line, tok, (12, 13), layout)
+        t = _number(name, line, tok[0], "timestamp")
+        v = [_number(name, line, x, f) for x, f in zip(tok[2:12], fields[2:12])]
+        q = _unit_quaternion(name, line, v[:4])
+        radii = np.array(v[7:10])
+        if not np.all(radii > 0):
+            raise SequenceFormatError(name, line, "positive semi-axes a b c", " ".join(tok[9:12]))
+        inst = _integer(name, line, tok[12], "instance") if len(tok) == 13 else None
+        frame = _match(name, line, t, timestamps)
+        out.append(EllipsoidDetection(frame, t, tok[1], quat_to_matrix(q), v[4:7], radii, inst))
+    return out
+
+
 def read_objects_gt(path, name: str | None = None) -> list:
     """``objects_gt.txt`` rows ``id label cx cy cz qx qy qz qw hx hy hz``."""
     path = Path(path)
@@ -659,7 +751,8 @@ def read_sequence(folder) -> Sequence:
     gt = _read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt")) if (folder / "groundtruth.txt").is_file() else None
     priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
     images = read_images(folder / "rgb.txt", folder) if (folder / "rgb.txt").is_file() else None
-    return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images)
+    ell = read_ellipsoids(folder / "ellipsoids.txt", traj[:, 0]) if (folder / "ellipsoids.txt").is_file() else None
+    return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images, ell)
 
 
 # --- the TUM fr3_cabinet importer -----------------------------------------------------------
@@ -822,6 +915,15 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
             cols.append(str(int(d.instance)))
         lines.append(" ".join(cols) + "\n")
     (out / "detections.txt").write_text("".join(lines), encoding="utf-8")
+    if seq.ellipsoids is not None:
+        lines = ["# timestamp label qx qy qz qw cx cy cz a b c [instance] (camera frame, semi-axes)\n"]
+        for e in seq.ellipsoids:
+            vals = [*matrix_to_quat(e.rotation), *e.center, *e.radii]
+            cols = [_f(e.timestamp), _token(e.label, "a label"), *(_f(x) for x in vals)]
+            if e.instance is not None:
+                cols.append(str(int(e.instance)))
+            lines.append(" ".join(cols) + "\n")
+        (out / "ellipsoids.txt").write_text("".join(lines), encoding="utf-8")
     if seq.objects_gt is not None:
         lines = ["# id label cx cy cz qx qy qz qw hx hy hz (world frame, half-extents)\n"]
         for o in seq.objects_gt:

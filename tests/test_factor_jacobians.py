@@ -227,3 +227,76 @@ def test_support_plane_jacobians(param):
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     planes = np.concatenate([n, rng.uniform(-2, 2, size=(N, 1))], axis=1)
     check(lm.support_plane_residual, (lmk,), (jnp.asarray(planes),), kind)
+
+
+# --- cuboid silhouette and truncated (masked) box residuals ------------------------------
+
+
+def _cuboid_boxes(lmk, T, seed):
+    from spdslam.camera import project_cuboid_box
+
+    rng = np.random.default_rng(seed)
+    b = np.asarray(jax.vmap(lambda x, TT: project_cuboid_box(x, TT, CAM))(lmk, jnp.asarray(T)))
+    b = b + rng.normal(scale=5.0, size=b.shape)
+    return np.concatenate([np.minimum(b[:, :2], b[:, 2:]), np.maximum(b[:, :2], b[:, 2:])], axis=1)
+
+
+def _take(tree, idx):
+    return jax.tree_util.tree_map(lambda a: a[idx], tree)
+
+
+@pytest.mark.parametrize("param", PARAMS)
+@pytest.mark.parametrize("model", ["inverse", "semi_inverse"])
+def test_cuboid_box_factor_jacobians(param, model):
+    """The cuboid of an SPD/Full landmark follows the eigenvectors of P, which are not
+    determined at repeated radii: there the residual is not continuous and only its
+    finiteness is checked (test_cuboid_model.py). RTS is smooth in its own parameters:
+    every configuration is checked."""
+    R, t, s, kind, T = configurations(14)
+    use = np.ones(N, bool) if param == "rts" else kind == 0
+    R, t, s, kind, T = R[use], t[use], s[use], kind[use], T[use]
+    n = len(kind)
+    lmk = landmarks(param, R, t, s)
+    boxes = _cuboid_boxes(lmk, T, 15)
+    poses = jax.vmap(jaxlie.SE3.from_matrix)(jnp.asarray(T))
+    res = lm.inverse_cuboid_box_residual if model == "inverse" else lm.semi_inverse_cuboid_box_residual
+    assert np.all(jax.vmap(lambda TT, x: lm.cuboid_box_visible(TT, x, None, CAM))(poses, lmk))
+    check(res, (poses, lmk), (jnp.asarray(boxes), _cams(n)), kind)
+
+
+@pytest.mark.parametrize("param", PARAMS)
+@pytest.mark.parametrize(
+    "name",
+    ["inverse_box", "semi_inverse_box", "inverse_cuboid_box", "semi_inverse_cuboid_box"],
+)
+def test_masked_box_factor_jacobians(param, name):
+    """Truncation masks (random 0/1 per edge): masked rows are exactly zero, the rest as
+    without a mask, and the Jacobians match central differences."""
+    R, t, s, kind, T = configurations(16, 60)
+    if "cuboid" in name and param != "rts":
+        use = kind == 0
+        R, t, s, kind, T = R[use], t[use], s[use], kind[use], T[use]
+    n = len(kind)
+    lmk = landmarks(param, R, t, s)
+    boxes = _cuboid_boxes(lmk, T, 17) if "cuboid" in name else _boxes(lmk, T, 17)
+    keep = np.random.default_rng(18).integers(0, 2, size=(n, 4)).astype(float)
+    poses = jax.vmap(jaxlie.SE3.from_matrix)(jnp.asarray(T))
+    res = getattr(lm, name + "_residual")
+    check(res, (poses, lmk), (jnp.asarray(boxes), _cams(n), jnp.asarray(keep)), kind)
+    masked = jax.vmap(res)(poses, lmk, jnp.asarray(boxes), _cams(n), jnp.asarray(keep))
+    full = jax.vmap(res)(poses, lmk, jnp.asarray(boxes), _cams(n))
+    np.testing.assert_array_equal(np.asarray(masked)[keep == 0], 0.0)
+    np.testing.assert_array_equal(np.asarray(masked)[keep == 1], np.asarray(full)[keep == 1])
+
+
+@pytest.mark.parametrize("param", PARAMS)
+def test_axis_orientation_jacobians(param):
+    """Per-axis (cuboid) orientation: like the cuboid, defined by the axes, so SPD/Full are
+    checked where the radii are distinct and RTS everywhere."""
+    R, t, s, kind, _ = configurations(19)
+    use = np.ones(N, bool) if param == "rts" else kind == 0
+    R, t, s, kind = R[use], t[use], s[use], kind[use]
+    lmk = landmarks(param, R, t, s)
+    m = np.random.default_rng(20).normal(size=(len(kind), 3))
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    check(lm.axis_orientation_residual, (lmk,), (jnp.asarray(m),), kind)

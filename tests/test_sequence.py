@@ -13,6 +13,7 @@ from spdslam.evaluation import Cuboid
 from spdslam.sequence import (
     ClassPrior,
     Detection,
+    EllipsoidDetection,
     GroundTruthObject,
     Priors,
     Sequence,
@@ -41,6 +42,12 @@ DETS = (
     "2.00 0 0 640 480 table 0.5 1  # trailing comment\n"
 )
 OBJS = "0 chair 1 2 0.5 0 0 0 1 0.4 0.3 0.5\n1 table -1 0 0.4 0 0 0.3826834 0.9238795 1 0.5 0.4\n"
+ELLS = (
+    "# timestamp label qx qy qz qw cx cy cz a b c [instance]\n"
+    "1.00 chair 0 0 0 1 0.1 -0.2 2.5 0.3 0.25 0.5 3\n"
+    "1.49 chair 0 0 0.3826834 0.9238795 0 0 3 0.4 0.3 0.2\n"
+    "2.00 table 0 0 0 2 1 1 4 1 0.5 0.4 -1  # normalised on reading\n"
+)
 PRIORS = (
     "support_planes:\n  - [0, 0, 1, 0]\n  - [0.0, 1.0, 0.0, -2.5]\n"
     "up: [0, 0, 1]\n"
@@ -82,6 +89,7 @@ def test_minimal_sequence(tmp_path):
     np.testing.assert_array_equal(d.box, [11, 21, 111, 221])
     assert s.detections[0].instance == 3
     assert s.objects_gt is None and s.groundtruth_tum is None and s.priors is None and s.images is None
+    assert s.ellipsoids is None and s.ellipsoids_at(0) == []
     assert s.detections_at(2)[0].label == "table"
 
 
@@ -107,6 +115,26 @@ def test_optional_files(tmp_path):
     np.testing.assert_allclose(s.priors.up, [0, 0, 1])
     assert s.priors.classes["table"] == ClassPrior([1, 0.5, 0.4], 0.2)
     assert s.images[1.5] == (folder / "rgb/2.png").absolute()
+
+
+def test_ellipsoids_file(tmp_path):
+    s = read_sequence(make(tmp_path / "seq", **{"ellipsoids.txt": ELLS}))
+    assert [(e.frame, e.label, e.instance) for e in s.ellipsoids] == [(0, "chair", 3), (1, "chair", None), (2, "table", -1)]
+    e = s.ellipsoids[1]
+    assert e.timestamp == 1.49 and s.ellipsoids_at(1) == [e]
+    np.testing.assert_allclose(e.center, [0, 0, 3])
+    np.testing.assert_allclose(e.radii, [0.4, 0.3, 0.2])
+    c, si = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    np.testing.assert_allclose(e.rotation, [[c, -si, 0], [si, c, 0], [0, 0, 1]], atol=1e-7)
+    np.testing.assert_allclose(e.P, e.rotation @ np.diag([0.16, 0.09, 0.04]) @ e.rotation.T)
+    np.testing.assert_allclose(s.ellipsoids[2].rotation, np.eye(3))
+    # the data class checks its own values too; a reflection is the same ellipsoid
+    with pytest.raises(ValueError, match="radii must be positive"):
+        EllipsoidDetection(0, 1.0, "x", np.eye(3), np.zeros(3), [1, 0, 1])
+    with pytest.raises(ValueError, match="orthonormal"):
+        EllipsoidDetection(0, 1.0, "x", 2 * np.eye(3), np.zeros(3), [1, 1, 1])
+    flipped = EllipsoidDetection(0, 1.0, "x", np.diag([1.0, 1, -1]), np.zeros(3), [1, 2, 3])
+    np.testing.assert_array_equal(flipped.rotation, np.eye(3))
 
 
 def test_quaternion_helpers(rng):
@@ -136,6 +164,15 @@ BAD = [
     ("objects_gt.txt", OBJS + "2 x 0 0 0 0 0 0 1 1 1\n", 3, "12 columns"),
     ("objects_gt.txt", OBJS + "2 x 0 0 0 0 0 0 1 1 -1 1\n", 3, "positive half-extents"),
     ("groundtruth.txt", "1.0 0 0 0 0 0 0 1\n1.1 0 0 0 0 0 0 one\n", 2, "a number for qw"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 1 1 1\n", 5, "12 or 13 columns"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 1 1 1 1 1 1\n", 5, "12 or 13 columns"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 1 1 -1 1\n", 5, "positive semi-axes a b c, got 1 -1 1"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 1 1 0 1\n", 5, "positive semi-axes"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 0 0 0 1 1 1 1\n", 5, "normalises to unit length"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 nan 1 1 1\n", 5, "a finite number for cz"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 x 1 1 1 1\n", 5, "a number for cy, got 'x'"),
+    ("ellipsoids.txt", ELLS + "1.25 chair 0 0 0 1 0 0 1 1 1 1\n", 5, "within 0.02 s"),
+    ("ellipsoids.txt", ELLS + "2.0 chair 0 0 0 1 0 0 1 1 1 1 0.5\n", 5, "an integer for instance"),
     ("rgb.txt", "1.0\n", 1, "2 columns"),
     ("camera.yaml", CAMERA.replace("fy: 505.5", "fy: -1"), 2, "a positive fy"),
     ("camera.yaml", CAMERA.replace("fy: 505.5", "fy: abc"), 2, "a number for fy"),
@@ -192,6 +229,12 @@ def synthetic() -> Sequence:
         GroundTruthObject(0, "chair", Cuboid.from_yaw([1, 2, 0.3], 0.7, [0.2, 0.3, 0.4])),
         GroundTruthObject(5, "suitcase", Cuboid(np.zeros(3), quat_to_matrix(q[1]), [1, 2, 3])),
     ]
+    R1 = quat_to_matrix(q[3])
+    ells = [
+        EllipsoidDetection(0, 0.0, "chair", np.eye(3), [0.1, -0.2, 2.5], [0.3, 0.25, 0.5], 0),
+        EllipsoidDetection(1, 0.101, "table", R1, [1 / 3, 1e-9, 7e3], [2e-3, 1.5, 1 / 7], None),
+        EllipsoidDetection(3, 1341841278.83, "suitcase", -R1[:, ::-1], [0, 0, 1], [1, 1, 1], -2),
+    ]
     priors = Priors(
         [np.array([0, 0, 1.0, 0]), np.array([0, 1.0, 0, -1e-7])],
         np.array([0, 0, 1.0]),
@@ -199,7 +242,7 @@ def synthetic() -> Sequence:
         np.array([0.003, 1e-3]),
     )
     gt = np.column_stack([t + 0.001, poses])
-    return Sequence("syn", cam, t, poses, dets, objs, gt, priors, {0.0: "/data/img 0.png".replace(" ", "_")})
+    return Sequence("syn", cam, t, poses, dets, objs, gt, priors, {0.0: "/data/img 0.png".replace(" ", "_")}, ells)
 
 
 def test_round_trip(tmp_path):
@@ -208,6 +251,16 @@ def test_round_trip(tmp_path):
     back = read_sequence(out)
     assert back == seq
     assert back.images[0.0] == Path("/data/img_0.png")
+    assert back.ellipsoids == seq.ellipsoids and len(back.ellipsoids) == 3
+    # equality sees every field of a measured ellipsoid, and its presence
+    e = seq.ellipsoids[1]
+    for change in ({"radii": e.radii * (1 + 1e-9)}, {"instance": 0}, {"label": "chair"},
+                   {"center": e.center + [0, 1e-9, 0]}, {"rotation": -e.rotation[:, [1, 0, 2]]}):
+        other = EllipsoidDetection(**{**{k: getattr(e, k) for k in e.__dataclass_fields__}, **change})
+        assert other != e
+        assert Sequence(*[getattr(seq, k) for k in seq.__dataclass_fields__][:-1],
+                        [seq.ellipsoids[0], other, seq.ellipsoids[2]]) != seq
+    assert Sequence(*[getattr(seq, k) for k in seq.__dataclass_fields__][:-1]) != seq
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
     # a minimal one: no optional parts
     bare = Sequence("bare", seq.camera, seq.timestamps, seq.poses_tum, [])

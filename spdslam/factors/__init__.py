@@ -4,26 +4,51 @@ Landmark factors take any ellipsoid parameterisation (SPD, RTS or Full); pose fa
 ``jaxlie.SE3`` camera-to-world poses.
 """
 
-from ._base import Cauchy, Factor, Huber, RobustKernel, sqrt_information, tangent_jacobians
+from ._base import (
+    Cauchy,
+    Factor,
+    Huber,
+    RobustKernel,
+    sqrt_information,
+    tangent_jacobians,
+)
+from ._ellipsoid_measurement import (
+    ELLIPSOID_MEASUREMENT_SIGMAS,
+    EllipsoidMeasurementFactor,
+    ellipsoid_measurement_residual,
+)
 from ._landmark import (
     DEFAULT_SIGMAS,
+    DEFAULT_TRUNCATION_MARGIN,
+    AxisOrientationFactor,
     ClassicOrientationFactor,
     InverseBoxFactor,
+    InverseCuboidBoxFactor,
     OrientationFactor,
     SemiInverseBoxFactor,
+    SemiInverseCuboidBoxFactor,
     ShapeFactor,
     SizeFactor,
     SupportPlaneFactor,
+    axis_orientation_residual,
     box_visible,
     classic_orientation_residual,
+    cuboid_box_visible,
     inverse_box_residual,
+    inverse_cuboid_box_residual,
     orientation_residual,
     semi_inverse_box_residual,
+    semi_inverse_cuboid_box_residual,
     shape_residual,
     size_residual,
     support_plane_residual,
 )
-from ._pose import BetweenFactor, PriorFactor, pose_between_residual, pose_prior_residual
+from ._pose import (
+    BetweenFactor,
+    PriorFactor,
+    pose_between_residual,
+    pose_prior_residual,
+)
 
 __all__ = [
     "Factor",
@@ -33,6 +58,14 @@ __all__ = [
     "sqrt_information",
     "tangent_jacobians",
     "DEFAULT_SIGMAS",
+    "DEFAULT_TRUNCATION_MARGIN",
+    "InverseCuboidBoxFactor",
+    "AxisOrientationFactor",
+    "axis_orientation_residual",
+    "SemiInverseCuboidBoxFactor",
+    "cuboid_box_visible",
+    "inverse_cuboid_box_residual",
+    "semi_inverse_cuboid_box_residual",
     "InverseBoxFactor",
     "SemiInverseBoxFactor",
     "OrientationFactor",
@@ -52,4 +85,7 @@ __all__ = [
     "BetweenFactor",
     "pose_prior_residual",
     "pose_between_residual",
+    "ELLIPSOID_MEASUREMENT_SIGMAS",
+    "EllipsoidMeasurementFactor",
+    "ellipsoid_measurement_residual",
 ]

@@ -8,6 +8,15 @@ Notation: landmark (P, t) with Q* = [[P − ttᵀ, −t], [−tᵀ, −1]]; came
 
 the squared support distance minus the squared centre distance: zero iff π is tangent.
 
+Box-like objects are boxed by the silhouette of the circumscribed cuboid (axes R, half-extents
+s): the cuboid box factors use its 8 projected corners, or its support function
+h(n) = n·t + Σᵢ sᵢ|n·Rᵢ| for the edge planes.
+
+Truncation: every box factor takes a (4,) 0/1 mask ``keep`` of the edges that bound the
+object (``camera.truncation_mask``: edges farther than ``truncation_margin`` px from the
+image border); the residual of a dropped edge is 0. The builders pass ``keep`` as
+measurement data only when a margin is given, so factors built alike batch together.
+
 Each ``*_residual`` is a plain function of variable values then measurement data; each
 ``*Factor`` builds a :class:`Factor` with its noise model (defaults below, in the units of
 the residual) and an optional robust kernel.
@@ -18,7 +27,16 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..camera import Camera, box_planes, in_front, project_box
+from ..camera import (
+    Camera,
+    box_planes,
+    cuboid_half_axes,
+    cuboid_in_front,
+    in_front,
+    project_box,
+    project_cuboid_box,
+    truncation_mask,
+)
 from ..ellipsoid import EllipsoidRTS, as_ellipsoid, dual_quadric
 from ..matfun import eigh, logm
 from ._base import Factor, RobustKernel, sqrt_information
@@ -27,6 +45,14 @@ __all__ = [
     "inverse_box_residual",
     "semi_inverse_box_residual",
     "box_visible",
+    "inverse_cuboid_box_residual",
+    "semi_inverse_cuboid_box_residual",
+    "cuboid_box_visible",
+    "InverseCuboidBoxFactor",
+    "axis_orientation_residual",
+    "AxisOrientationFactor",
+    "SemiInverseCuboidBoxFactor",
+    "DEFAULT_TRUNCATION_MARGIN",
     "orientation_residual",
     "classic_orientation_residual",
     "shape_residual",
@@ -46,12 +72,19 @@ __all__ = [
 DEFAULT_SIGMAS = {
     "inverse_box": 2.0,  # px per box edge
     "semi_inverse_box": 0.01,  # m² per edge plane (≈ 2 px for a 0.3 m object at 3 m, f = 500)
+    "inverse_cuboid_box": 2.0,  # px per box edge
+    "semi_inverse_cuboid_box": 0.01,  # m per edge plane (≈ 2 px at 2.5 m, f = 500)
     "orientation": 0.05,  # per component of (Log P m) × m
-    "classic_orientation": 0.05,  # per component of ±n × m (≈ rad)
+    "classic_orientation": 0.05,
+    "axis_orientation": 0.05,  # per component of (nᵢ × m)(nᵢ·m) (≈ rad)  # per component of ±n × m (≈ rad)
     "shape": 0.1,  # per axis ratio
     "size": 0.1,  # log of the geometric-mean radius ratio
     "support_plane": 0.01,  # m²
 }
+
+
+#: A detected box edge within this many pixels of the image border is taken as truncated.
+DEFAULT_TRUNCATION_MARGIN = 5.0
 
 
 def _unit(v):
@@ -60,68 +93,134 @@ def _unit(v):
 
 
 # --- box measurements --------------------------------------------------------------------
-def inverse_box_residual(T_wc, landmark, box, camera: Camera):
-    """Inverse model: the closed-form box of C* = M Q* Mᵀ minus the detected box (px, 4)."""
-    return project_box(landmark, T_wc, camera) - box
+def _masked(r, keep):
+    """r ∘ keep (keep None: every edge)."""
+    return r if keep is None else r * keep
 
 
-def semi_inverse_box_residual(T_wc, landmark, box, camera: Camera):
-    """Semi-inverse model: πᵢᵀ Q* πᵢ for the 4 edge planes πᵢ = Mᵀ lᵢ, each with unit normal.
+def inverse_box_residual(T_wc, landmark, box, camera: Camera, keep=None):
+    """Inverse model: (the closed-form box of C* = M Q* Mᵀ minus the detected box) ∘ keep
+    (px, 4)."""
+    return _masked(project_box(landmark, T_wc, camera) - box, keep)
+
+
+def semi_inverse_box_residual(T_wc, landmark, box, camera: Camera, keep=None):
+    """Semi-inverse model: πᵢᵀ Q* πᵢ · keepᵢ for the 4 edge planes πᵢ = Mᵀ lᵢ, each with
+    unit normal.
 
     One residual per edge (m²): the paper's single sum Σᵢ πᵢᵀQ*πᵢ lets edges that are too
     tight cancel edges that are too loose.
     """
     planes = box_planes(box, T_wc, camera)
     Q = dual_quadric(landmark)
-    return jnp.einsum("ki,ij,kj->k", planes, Q, planes)
+    return _masked(jnp.einsum("ki,ij,kj->k", planes, Q, planes), keep)
 
 
-def box_visible(T_wc, landmark, box, camera: Camera, min_depth: float = 1e-3):
+def box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth: float = 1e-3):
     """Validity of a box factor: the whole ellipsoid is in front of the camera
     (which also rules out the camera being inside it)."""
     return in_front(landmark, T_wc, min_depth)
 
 
-def _box_factor(residual, kind, pose_key, landmark_key, box, camera, sigma, robust):
+def inverse_cuboid_box_residual(T_wc, landmark, box, camera: Camera, keep=None):
+    """Inverse cuboid model: (the box of the 8 projected corners t + Σᵢ ±sᵢRᵢ of the
+    circumscribed cuboid minus the detected box) ∘ keep (px, 4)."""
+    return _masked(project_cuboid_box(landmark, T_wc, camera) - box, keep)
+
+
+def semi_inverse_cuboid_box_residual(T_wc, landmark, box, camera: Camera, keep=None):
+    """Semi-inverse cuboid model, per edge plane π = [n; d] (unit n), in m:
+
+        rᵢ = (Σⱼ sⱼ|n·Rⱼ| − |n·t + d|) · keepᵢ,
+
+    the cuboid's half-width along n (its support function minus n·t) minus the centre's
+    distance to the plane: zero iff the plane touches the cuboid with the cuboid on one
+    side, > 0 where it cuts it (box too tight), < 0 where it misses it (box too loose).
+    """
+    planes = box_planes(box, T_wc, camera)
+    H, t = cuboid_half_axes(landmark)
+    half_width = jnp.sum(jnp.abs(planes[:, :3] @ H), axis=1)
+    return _masked(half_width - jnp.abs(planes[:, :3] @ t + planes[:, 3]), keep)
+
+
+def cuboid_box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth: float = 1e-3):
+    """Validity of a cuboid box factor: all 8 corners of the circumscribed cuboid are in
+    front of the camera (depth > ``min_depth``)."""
+    return cuboid_in_front(landmark, T_wc, min_depth)
+
+
+def _box_factor(residual, kind, pose_key, landmark_key, box, camera, sigma, robust,
+                truncation_margin, valid=box_visible):
     box = np.asarray(box, dtype=float)
     if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
         raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
     if not isinstance(camera, Camera):
         raise TypeError("camera must be a spdslam.Camera")
+    args = (box, camera)
+    if truncation_margin is not None:
+        if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
+            raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
+        args = (box, camera, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
     sigma = DEFAULT_SIGMAS[kind] if sigma is None else sigma
     return Factor(
         residual,
         (pose_key, landmark_key),
-        (box, camera),
+        args,
         sqrt_information(4, sigma=sigma),
         robust,
-        box_visible,
+        valid,
         kind,
     )
 
 
 def InverseBoxFactor(
-    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None
+    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None,
+    truncation_margin: float | None = None,
 ) -> Factor:
-    """Detected box vs the closed-form box of the projected ellipsoid (residual in px)."""
+    """Detected box vs the closed-form box of the projected ellipsoid (residual in px).
+
+    ``truncation_margin`` (px, e.g. ``DEFAULT_TRUNCATION_MARGIN``): edges within it of the
+    image border carry no bound; None (default) keeps every edge and the args (box, camera).
+    """
     return _box_factor(
-        inverse_box_residual, "inverse_box", pose_key, landmark_key, box, camera, sigma, robust
+        inverse_box_residual, "inverse_box", pose_key, landmark_key, box, camera, sigma, robust,
+        truncation_margin,
     )
 
 
 def SemiInverseBoxFactor(
-    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None
+    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None,
+    truncation_margin: float | None = None,
 ) -> Factor:
-    """Tangency of the 4 back-projected box-edge planes (residual πᵀQ*π in m² per edge)."""
+    """Tangency of the 4 back-projected box-edge planes (residual πᵀQ*π in m² per edge);
+    ``truncation_margin`` as for :func:`InverseBoxFactor`."""
     return _box_factor(
-        semi_inverse_box_residual,
-        "semi_inverse_box",
-        pose_key,
-        landmark_key,
-        box,
-        camera,
-        sigma,
-        robust,
+        semi_inverse_box_residual, "semi_inverse_box", pose_key, landmark_key, box, camera,
+        sigma, robust, truncation_margin,
+    )
+
+
+def InverseCuboidBoxFactor(
+    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None,
+    truncation_margin: float | None = None,
+) -> Factor:
+    """Detected box vs the box of the projected circumscribed cuboid (residual in px);
+    ``truncation_margin`` as for :func:`InverseBoxFactor`."""
+    return _box_factor(
+        inverse_cuboid_box_residual, "inverse_cuboid_box", pose_key, landmark_key, box, camera,
+        sigma, robust, truncation_margin, cuboid_box_visible,
+    )
+
+
+def SemiInverseCuboidBoxFactor(
+    pose_key, landmark_key, box, camera: Camera, sigma=None, robust: RobustKernel | None = None,
+    truncation_margin: float | None = None,
+) -> Factor:
+    """Contact of the 4 back-projected box-edge planes with the circumscribed cuboid
+    (residual in m per edge); ``truncation_margin`` as for :func:`InverseBoxFactor`."""
+    return _box_factor(
+        semi_inverse_cuboid_box_residual, "semi_inverse_cuboid_box", pose_key, landmark_key,
+        box, camera, sigma, robust, truncation_margin, cuboid_box_visible,
     )
 
 
@@ -164,6 +263,26 @@ def classic_orientation_residual(landmark, direction, axis):
     return jnp.where(n @ m < 0, -1.0, 1.0) * jnp.cross(n, m)
 
 
+def axis_orientation_residual(landmark, direction):
+    """Per-axis orientation constraint for cuboid-shaped objects, the paper's term for each
+    axis nᵢ of the object stacked (not summed):
+
+        r = [(n₁ × m)(n₁·m); (n₂ × m)(n₂·m); (n₃ × m)(n₃·m)]   ∈ R⁹,
+
+    zero iff every axis is parallel or perpendicular to m, whatever their order and signs;
+    each block has norm ½|sin 2θᵢ| ≈ θᵢ. Unlike (Log P m) × m its strength does not fade as
+    two radii approach each other: a cuboid with two equal half-extents still has an
+    orientation about the third axis, an ellipsoid does not. The axes are those of the
+    circumscribed cuboid (``camera.cuboid_half_axes``: eigenvectors of P, or the rotation of
+    an RTS landmark), so like the cuboid itself it is undefined at exactly repeated radii
+    (finite there, not continuous).
+    """
+    m = _unit(direction)
+    H, _ = cuboid_half_axes(landmark)
+    N = H / jnp.linalg.norm(H, axis=0, keepdims=True)  # unit axes as columns
+    return (jnp.cross(N.T, m) * (N.T @ m)[:, None]).reshape(9)
+
+
 def OrientationFactor(
     landmark_key, direction, sigma=None, robust: RobustKernel | None = None
 ) -> Factor:
@@ -180,6 +299,25 @@ def OrientationFactor(
         robust,
         None,
         "orientation",
+    )
+
+
+def AxisOrientationFactor(
+    landmark_key, direction, sigma=None, robust: RobustKernel | None = None
+) -> Factor:
+    """Per-axis orientation constraint (cuboid-shaped objects) against a world direction m."""
+    m = np.asarray(direction, dtype=float)
+    if m.shape != (3,) or not np.all(np.isfinite(m)) or np.linalg.norm(m) == 0:
+        raise ValueError(f"direction must be a non-zero 3-vector, got {m.tolist()}")
+    sigma = DEFAULT_SIGMAS["axis_orientation"] if sigma is None else sigma
+    return Factor(
+        axis_orientation_residual,
+        (landmark_key,),
+        (m / np.linalg.norm(m),),
+        sqrt_information(9, sigma=sigma),
+        robust,
+        None,
+        "axis_orientation",
     )
 
 
