@@ -220,8 +220,15 @@ def test_evaluate_accepts_the_map_json_path(run_out, seq_dir, tmp_path):
         (["--sigma", "inverse_box"], ["--sigma", "NAME=VALUE"]),
         (["--sigma", "inverse_box=-1"], ["--sigma", "finite positive"]),
         (["--sigma", "orientation=0"], ["--sigma", "finite positive"]),
+        (["--robust", "bogus"], ["--robust", "'bogus'", "huber"]),
+        (["--robust", "boxes=huber"], ["--robust", "'boxes=huber'", "odometry"]),
+        (["--robust", "box=huber:-1"], ["--robust", "K > 0"]),
+        (["--robust", "box=huber:x"], ["--robust", "'x' is not a number"]),
+        (["--associate", "bogus"], ["--associate", "instances or auto", "'bogus'"]),
+        (["--object-shape", "box"], ["--object-shape", "cuboid", "'box'"]),
     ],
-    ids=["method", "sigma-name", "sigma-value", "sigma-no-equals", "sigma-negative", "sigma-zero"],
+    ids=["method", "sigma-name", "sigma-value", "sigma-no-equals", "sigma-negative", "sigma-zero",
+         "robust-kernel", "robust-type", "robust-k", "robust-k-nan", "associate", "object-shape"],
 )
 def test_run_bad_options(seq_dir, tmp_path, args, fragments):
     out = tmp_path / "out"
