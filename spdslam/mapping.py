@@ -387,8 +387,9 @@ def _with_robust_by_type(graph, method: Method):
 
 
 def build_graph(seq: Sequence, tracks, landmarks: dict, method: Method, box_model: str,
-                sigmas: dict | None = None):
-    """The factor graph of a sequence for the given landmarks {id: landmark value}."""
+                sigmas: dict | None = None, measured: dict | None = None):
+    """The factor graph of a sequence for the given landmarks {id: landmark value};
+    ``measured`` the measured ellipsoids per object id (default: by instance id)."""
     s = mapping_sigmas(seq, sigmas)
     batched = from_tum(np.asarray(seq.poses_tum))
     q = batched.wxyz_xyz
@@ -440,7 +441,7 @@ def build_graph(seq: Sequence, tracks, landmarks: dict, method: Method, box_mode
             graph.add(ShapeFactor(key, cp.radii, sigma=s["shape"]))
         if cp is not None and method.size:
             graph.add(SizeFactor(key, cp.radii, sigma=s["size"]))
-    for k, ms in measured_objects(seq).items():
+    for k, ms in (measured_objects(seq) if measured is None else measured).items():
         for m in ms if k in landmarks else ():
             graph.add(EllipsoidMeasurementFactor(
                 pose_key(m.frame), object_key(k), (m.rotation, m.radii), m.center,
@@ -547,13 +548,18 @@ def run_sequence(
     poses = trajectory_poses(seq)
     init, failed, notes = initialize_objects(seq, tracks, method, min_views, poses)
     measured = measured_objects(seq)
+    if association["mode"] == "auto" and seq.ellipsoids:
+        # automatic track ids are not instance ids: measurements cannot be attached by id
+        notes.append(f"{len(seq.ellipsoids)} measured ellipsoids left out: they are associated "
+                     "by instance id only, and the boxes were associated automatically")
+        measured = {}
     for k, ms in measured.items():
         if k not in init:
             init[k] = initialize_from_measurements(seq, ms)
             why = f" (boxes: {failed.pop(k)})" if k in failed else ""
             notes.append(f"object {k}: initialised from its {len(ms)} measured ellipsoids{why}")
     unassigned = len(seq.ellipsoids or ()) - sum(map(len, measured.values()))
-    if unassigned:
+    if unassigned and association["mode"] != "auto":
         notes.append(f"{unassigned} measured ellipsoids without an instance id >= 0 left out")
     tracks, more_failed = _drop_invisible(seq, tracks, init, notes, min_views, keep=measured)
     failed.update(more_failed)
@@ -575,7 +581,7 @@ def run_sequence(
     stages = ["semi", "inverse"] if method.box_model == "semi-then-inverse" else [method.box_model]
     total_it, first_cost, res = 0, None, None
     for stage in stages:
-        graph = build_graph(seq, tracks, landmarks, method, stage, sigmas)
+        graph = build_graph(seq, tracks, landmarks, method, stage, sigmas, measured)
         res = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose).optimize(graph, values)
         values = res.values
         total_it += res.iterations

@@ -343,3 +343,17 @@ def test_mixed_sequence_round_trip(room, tmp_path):
     back = read_sequence(write_sequence(mixed, tmp_path / mixed.name))
     assert back == mixed and len(back.ellipsoids) == len(ells) > 0
     assert (tmp_path / mixed.name / "ellipsoids.txt").is_file()
+
+
+def test_measurements_are_left_out_under_automatic_association(room):
+    """Measured ellipsoids are attached by instance id; automatic track ids are not instance
+    ids, so with automatic association they must not be attached (and say so)."""
+    from spdslam.mapping import build_graph
+
+    seq, ells = room
+    mixed = _with(seq, seq.detections, ells)
+    r = run_sequence(mixed, "multi-spd", associate="auto", max_iterations=1)
+    assert any("measured ellipsoids left out" in n for n in r.notes)
+    assert not any("initialised from" in n for n in r.notes)
+    g = build_graph(mixed, [], {}, r.method, "inverse", measured={})
+    assert not any(f.kind == "ellipsoid_measurement" for f in g)
