@@ -115,7 +115,9 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
 def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq) -> dict:
     """Metrics of a run against the sequence's ground truth (what exists of it)."""
     out = {"sequence": seq.name, "method": map_dict["method"]}
-    association = map_dict.get("association") or {"mode": "instances"}
+    association = map_dict.get("association")
+    if not isinstance(association, dict):  # maps written before automatic association
+        association = {"mode": "instances"}
     by_id = association.get("mode") != "auto"  # automatic track ids are not instance ids
     if "precision" in association:
         out["association"] = {k: association[k] for k in ("precision", "recall", "tracks", "instances")
