@@ -20,7 +20,7 @@ from spdslam.mapping import (
     run_sequence,
     tracks_from_instances,
 )
-from spdslam.report import evaluate_objects, evaluate_run, match_objects, report_markdown
+from spdslam.report import evaluate_run, match_objects, report_markdown
 
 try:
     runner = CliRunner(mix_stderr=False)
