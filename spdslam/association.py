@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .camera import truncation_mask
 from .sequence import Sequence, quat_to_matrix
 
 __all__ = [
@@ -241,11 +242,10 @@ class _Scene:
         self.C = poses[:, :3]
         self.up, self.planes = _up_and_planes(seq.priors)
         # per detection: ray, truncation, prior range, fit terms
-        m = s.truncation_margin
         b = self.box
-        tr = np.stack([b[:, 0] <= m, b[:, 1] <= m, b[:, 2] >= self.W - m, b[:, 3] >= self.H - m], 1)
-        self.w_ok = ~(tr[:, 0] | tr[:, 2])  # width untruncated
-        self.h_ok = ~(tr[:, 1] | tr[:, 3])
+        keep = np.asarray(truncation_mask(b, seq.camera, s.truncation_margin)) > 0
+        self.w_ok = keep[:, 0] & keep[:, 2]  # width untruncated
+        self.h_ok = keep[:, 1] & keep[:, 3]
         u = 0.5 * (b[:, 0] + b[:, 2])
         v = 0.5 * (b[:, 1] + b[:, 3])
         ray_c = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones(n)], 1)
@@ -367,6 +367,8 @@ def _project_boxes(X, P, R_wc, c, intrinsics):
     Pc = np.einsum("mji,mjk,mkl->mil", R_wc, P, R_wc)
     D = Pc - x[:, :, None] * x[:, None, :]
     ok = x[:, 2] - np.sqrt(np.maximum(Pc[:, 2, 2], 0.0)) > _MIN_DEPTH
+    # camera.conic_box in numpy: this runs once per frame, where a JAX dispatch costs more
+    # than the arithmetic
     d33 = np.where(ok, D[:, 2, 2], -1.0)
     du = np.sqrt(np.maximum(D[:, 0, 2] ** 2 - D[:, 0, 0] * d33, 0.0))
     dv = np.sqrt(np.maximum(D[:, 1, 2] ** 2 - D[:, 1, 1] * d33, 0.0))
