@@ -26,12 +26,58 @@ def test_cholmod_modes_and_orderings_match_dense(mode, ordering):
     np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(dense.values), atol=1e-9)
 
 
+def _libgomp_loaded() -> bool:
+    try:
+        with open("/proc/self/maps") as f:
+            return "libgomp" in f.read()
+    except OSError:
+        return False
+
+
+@needs_cholmod
+def test_cholmod_threads_are_scoped_and_restored():
+    from spdslam.solver import _linear
+
+    if _libgomp_loaded():  # CHOLMOD linked against GNU OpenMP: the control must be found
+        assert _linear.HAVE_OPENMP_CONTROL
+    if not (_linear.HAVE_OPENMP_CONTROL and _linear.HAVE_BLAS_CONTROL):
+        pytest.skip("CHOLMOD is not linked against GNU OpenMP and OpenBLAS")
+    gomp, blas = _linear._gomp, _linear._openblas
+    levels, threads = gomp.omp_get_max_active_levels(), blas.openblas_get_num_threads()
+    assert levels > 0
+    with _linear.cholmod_threads(openmp=False, blas=1):
+        assert gomp.omp_get_max_active_levels() == 0
+        assert blas.openblas_get_num_threads() == 1
+    assert (gomp.omp_get_max_active_levels(), blas.openblas_get_num_threads()) == (levels, threads)
+    with _linear.cholmod_threads(openmp=True, blas=None):
+        assert (gomp.omp_get_max_active_levels(), blas.openblas_get_num_threads()) == (
+            levels, threads)
+    with pytest.raises(RuntimeError), _linear.cholmod_threads():
+        raise RuntimeError("inside")
+    assert (gomp.omp_get_max_active_levels(), blas.openblas_get_num_threads()) == (levels, threads)
+
+
+@needs_cholmod
+def test_cholmod_thread_options_give_the_same_solution():
+    graph, values, _ = pose_graph(40, init_noise=0.3)
+    runs = [LevenbergMarquardt(linear_solver="cholmod", cholmod_openmp=omp,
+                               cholmod_blas_threads=blas, **TIGHT).optimize(graph, values)
+            for omp, blas in ((False, 1), (True, None))]
+    assert runs[0].iterations == runs[1].iterations
+    assert runs[0].final_cost == runs[1].final_cost
+    np.testing.assert_array_equal(pose_matrices(runs[0].values), pose_matrices(runs[1].values))
+
+
 def test_bad_options_raise():
     graph, values, _ = pose_graph(3)
     with pytest.raises(ValueError, match="cholmod_ordering must be one of"):
         LevenbergMarquardt(cholmod_ordering="rcm").optimize(graph, values)
     with pytest.raises(ValueError, match="cholmod_mode must be one of"):
         LevenbergMarquardt(cholmod_mode="fast").optimize(graph, values)
+    if HAVE_CHOLMOD:
+        with pytest.raises(ValueError, match="cholmod_blas_threads must be >= 1"):
+            LevenbergMarquardt(linear_solver="cholmod", cholmod_blas_threads=0
+                               ).optimize(graph, values)
     with pytest.raises(ValueError, match="lambda_schedule must be"):
         LevenbergMarquardt(lambda_schedule="gtsam").optimize(graph, values)
     with pytest.raises(ValueError, match="lambda_factor must be > 1"):

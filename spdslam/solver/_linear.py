@@ -7,7 +7,9 @@ H is given as the data of its lower triangle in a fixed CSC pattern (``Problem.s
   "supernodal" (BLAS on dense supernodes), "simplicial" (column by column) or "auto"
   (CHOLMOD's choice by flops per non-zero); ``ordering`` one of CHOLMOD's: "default" (AMD,
   METIS also tried when AMD's fill is high), "amd", "metis", "nesdis", "colamd", "natural"
-  (the layout's order: variable types by first appearance), "best".
+  (the layout's order: variable types by first appearance), "best". ``openmp`` and
+  ``blas_threads``: threads of CHOLMOD's OpenMP regions and of its BLAS (``cholmod_threads``;
+  default one each).
 - ``scipy``:   SuperLU on the full symmetric matrix (fallback when scikit-sparse is missing).
 - ``dense``:   LAPACK Cholesky of the dense matrix (small problems).
 
@@ -16,6 +18,9 @@ H is given as the data of its lower triangle in a fixed CSC pattern (``Problem.s
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import os
 import time
 import warnings
 
@@ -30,12 +35,74 @@ except Exception:  # noqa: BLE001
     _cholmod = None
 
 __all__ = ["HAVE_CHOLMOD", "make_linear_solver", "DENSE_THRESHOLD", "CHOLMOD_MODES",
-           "CHOLMOD_ORDERINGS"]
+           "CHOLMOD_ORDERINGS", "cholmod_threads", "HAVE_OPENMP_CONTROL", "HAVE_BLAS_CONTROL"]
 
 CHOLMOD_MODES = ("supernodal", "simplicial", "auto")
 CHOLMOD_ORDERINGS = ("default", "amd", "metis", "nesdis", "colamd", "natural", "best")
 
 HAVE_CHOLMOD = _cholmod is not None
+
+
+def _loaded_library(names, symbols):
+    """The first of the shared libraries ``names`` that this process has already loaded and
+    that exports ``symbols`` (each ``(name, restype, argtypes)``), else None; loads nothing."""
+    if _cholmod is None or not hasattr(os, "RTLD_NOLOAD"):
+        return None
+    for name in names:
+        try:
+            lib = ctypes.CDLL(name, mode=os.RTLD_NOLOAD)
+            for sym, restype, argtypes in symbols:
+                f = getattr(lib, sym)
+                f.restype, f.argtypes = restype, argtypes
+        except (OSError, AttributeError):
+            continue
+        return lib
+    return None
+
+
+# GNU OpenMP and OpenBLAS as linked by CHOLMOD (Debian: libcholmod3 -> libgomp, libblas.so.3
+# -> OpenBLAS); numpy's own OpenBLAS exports prefixed names and is not touched.
+_gomp = _loaded_library(["libgomp.so.1"], [("omp_get_max_active_levels", ctypes.c_int, []),
+                                           ("omp_set_max_active_levels", None, [ctypes.c_int])])
+_openblas = _loaded_library(["libblas.so.3", "libopenblas.so.0"],
+                            [("openblas_get_num_threads", ctypes.c_int, []),
+                             ("openblas_set_num_threads", None, [ctypes.c_int])])
+#: whether ``cholmod_threads`` can act on OpenMP / on the BLAS
+HAVE_OPENMP_CONTROL = _gomp is not None
+HAVE_BLAS_CONTROL = _openblas is not None
+
+
+@contextlib.contextmanager
+def cholmod_threads(openmp: bool = False, blas: int | None = 1):
+    """Thread use of CHOLMOD calls made inside this block; restored on exit.
+
+    - ``openmp=False``: OpenMP's max-active-levels is set to 0, so parallel regions run on
+      one thread. CHOLMOD 3 (SuiteSparse 5, Debian 12) opens a region with a compiled-in team
+      (``num_threads(4)``, which OMP_NUM_THREADS cannot lower) around the small scatter loop
+      of every supernode's update, and the fork/join costs more than the loop.
+    - ``blas``: OpenBLAS threads for the dense supernode kernels (None: unchanged). Its
+      workers wait by spinning, and so do JAX's between the jitted calls of an LM iteration,
+      so on few cores the two pools take turns on the same cores.
+
+    Each part is a no-op when CHOLMOD is not linked against GNU OpenMP / OpenBLAS.
+    ``benchmarks/sphere2500.py --cholmod-openmp --blas-threads N`` measures the choices.
+    """
+    levels = threads = None
+    if not openmp and _gomp is not None:
+        levels = _gomp.omp_get_max_active_levels()
+        _gomp.omp_set_max_active_levels(0)
+    if blas is not None and _openblas is not None:
+        threads = _openblas.openblas_get_num_threads()
+        _openblas.openblas_set_num_threads(int(blas))
+    try:
+        yield
+    finally:
+        if threads is not None:
+            _openblas.openblas_set_num_threads(threads)
+        if levels is not None:
+            _gomp.omp_set_max_active_levels(levels)
+
+
 #: ``linear_solver="auto"`` uses the dense solver below this many tangent dimensions.
 DENSE_THRESHOLD = 500
 
@@ -107,8 +174,12 @@ class ScipySolver(_Solver):
 class CholmodSolver(_Solver):
     name = "cholmod"
 
-    def __init__(self, pattern, n, mode: str = "supernodal", ordering: str = "default"):
+    def __init__(self, pattern, n, mode: str = "supernodal", ordering: str = "default",
+                 openmp: bool = False, blas_threads: int | None = 1):
         super().__init__()
+        if blas_threads is not None and int(blas_threads) < 1:
+            raise ValueError(f"cholmod_blas_threads must be >= 1 or None, got {blas_threads!r}")
+        self._threads = lambda: cholmod_threads(openmp, blas_threads)
         if _cholmod is None:
             raise ImportError("linear_solver='cholmod' needs scikit-sparse (sksparse.cholmod)")
         check_cholmod_options(mode, ordering)
@@ -124,7 +195,7 @@ class CholmodSolver(_Solver):
     def _factorize(self, data):
         self.A.data = np.ascontiguousarray(data, dtype=np.float64)
         try:
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), self._threads():
                 warnings.simplefilter("error", _cholmod.CholmodWarning)
                 self.factor.cholesky_inplace(self.A)
         except (_cholmod.CholmodError, _cholmod.CholmodWarning):
@@ -133,7 +204,8 @@ class CholmodSolver(_Solver):
 
     def _backsolve(self, factor, rhs):
         try:
-            return factor(rhs)
+            with self._threads():
+                return factor(rhs)
         except (_cholmod.CholmodError, _cholmod.CholmodWarning):
             return None
 
@@ -162,8 +234,10 @@ def resolve_linear_solver(kind: str, n: int, dense_threshold: int = DENSE_THRESH
 
 
 def make_linear_solver(kind: str, pattern, n: int, cholmod_mode: str = "supernodal",
-                       cholmod_ordering: str = "default"):
+                       cholmod_ordering: str = "default", cholmod_openmp: bool = False,
+                       cholmod_blas_threads: int | None = 1):
     """The solver ``kind`` for the CSC ``pattern``; the CHOLMOD options apply to "cholmod"."""
     if kind == "cholmod":
-        return CholmodSolver(pattern, n, cholmod_mode, cholmod_ordering)
+        return CholmodSolver(pattern, n, cholmod_mode, cholmod_ordering, cholmod_openmp,
+                             cholmod_blas_threads)
     return {"dense": DenseSolver, "scipy": ScipySolver}[kind](pattern, n)

@@ -86,6 +86,9 @@ class OptimizerParams:
     cholmod_mode, cholmod_ordering: CHOLMOD's factorisation ("supernodal", "simplicial",
                         "auto") and fill-reducing ordering ("default", "amd", "metis", …);
                         see ``_linear``.
+    cholmod_openmp, cholmod_blas_threads: threads of CHOLMOD's OpenMP regions (False: one)
+                        and of its OpenBLAS (None: unchanged) during factorisations and
+                        solves; see ``_linear.cholmod_threads``.
     verbose:            print one line per iteration.
     callback:           ``callback(record)`` after each iteration; returning True stops.
     """
@@ -101,6 +104,8 @@ class OptimizerParams:
     dense_threshold: int = DENSE_THRESHOLD
     cholmod_mode: str = "supernodal"
     cholmod_ordering: str = "default"
+    cholmod_openmp: bool = False
+    cholmod_blas_threads: int | None = 1
     verbose: bool = False
     callback: Callable[["IterationRecord"], Any] | None = None
 
@@ -202,7 +207,9 @@ class _Optimizer:
         kind = resolve_linear_solver(self.params.linear_solver, problem.n,
                                      self.params.dense_threshold)
         solver = make_linear_solver(kind, problem.sparse_pattern(), problem.n,
-                                    self.params.cholmod_mode, self.params.cholmod_ordering)
+                                    self.params.cholmod_mode, self.params.cholmod_ordering,
+                                    self.params.cholmod_openmp,
+                                    self.params.cholmod_blas_threads)
         timings = {"setup": time.perf_counter() - t0}
         res = _run(problem, solver, self.params, self._gn, timings)
         res.values = problem.to_values(res.values, values)
