@@ -265,14 +265,16 @@ def cuboid_in_front(landmark, T_wc, min_depth: float = 0.0) -> jax.Array:
     return cuboid_depth_range(landmark, T_wc)[0] > min_depth
 
 
-def truncation_mask(box, camera: Camera, margin) -> jax.Array:
+def truncation_mask(box, camera: Camera, margin):
     """(…, 4) 0/1 mask of the box edges that bound the object: 1 where the edge lies more
     than ``margin`` px inside the image [0, width] × [0, height], 0 where it may be the
-    image border (a truncated detection). ``margin=None`` keeps every edge."""
-    b = jnp.asarray(box, dtype=float)
+    image border (a truncated detection). ``margin=None`` keeps every edge. A JAX array in
+    (traced or not) gives a JAX array, anything else a NumPy array (no device dispatch)."""
+    xp = jnp if isinstance(box, jax.Array) else np
+    b = xp.asarray(box, dtype=float)
     if margin is None:
-        return jnp.ones_like(b)
-    keep = jnp.stack(
+        return xp.ones_like(b)
+    keep = xp.stack(
         [
             b[..., 0] > margin,
             b[..., 1] > margin,

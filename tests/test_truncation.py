@@ -60,6 +60,14 @@ def test_truncation_mask():
     )
     np.testing.assert_array_equal(truncation_mask(boxes, CAM, None), np.ones((3, 4)))
     assert DEFAULT_TRUNCATION_MARGIN == 5.0
+    # NumPy in, NumPy out (graph building calls it per factor); JAX in (or traced), JAX out
+    import jax
+    import jax.numpy as jnp
+
+    assert type(truncation_mask(boxes, CAM, 5.0)) is np.ndarray
+    jmask = jax.jit(lambda b: truncation_mask(b, CAM, 5.0))(jnp.asarray(boxes))
+    assert isinstance(jmask, jax.Array)
+    np.testing.assert_array_equal(jmask, truncation_mask(boxes, CAM, 5.0))
 
 
 @pytest.mark.parametrize("factor", list(FACTORS), ids=lambda f: f.__name__)
