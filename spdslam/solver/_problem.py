@@ -497,7 +497,10 @@ class Problem:
                 code = np.minimum(gi, gj).astype(np.int64) * n + np.maximum(gi, gj)
                 codes.append(np.where(ok, code, -1))
             diag_code = np.arange(n, dtype=np.int64) * (n + 1)
-            uniq = np.unique(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
+            # sorted unique codes (an explicit sort: several times faster than np.unique's
+            # hashing on millions of codes)
+            uniq = np.sort(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
+            uniq = uniq[np.r_[True, uniq[1:] != uniq[:-1]]]
             nnz = len(uniq)
             hslots = []
             for k, c in enumerate(codes):
