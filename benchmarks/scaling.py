@@ -16,10 +16,14 @@ memory) which reports
   CSC pattern of H and the slot maps), ``analyze_s`` (CHOLMOD's symbolic analysis), which
   ``LevenbergMarquardt.optimize`` does once per call (its "setup");
 - ``compile_s``: a one-iteration warm-up run minus its setup (JAX tracing + XLA compile);
-- per LM iteration (one damped solve and trial step, ``--iterations`` of them with the
-  tolerances off) the breakdown: linearise (the jitted residuals/Jacobians/JᵀJ call),
-  assemble (sums into H and g), damp, factorise (CHOLMOD numeric), backsolve, retract
-  (retract + cost at the trial point), and their total;
+- the cost of one accepted LM iteration (``iteration_ms``), from ``--iterations`` timed
+  trials with the tolerances off, as the sum of its parts: per linearisation (the initial
+  one included) linearise (the jitted residuals/Jacobians/JᵀJ call) and assemble (sums into
+  H and g); per trial damp, factorise (CHOLMOD numeric), backsolve, retract (retract + cost
+  at the trial point). (A rejected trial costs no linearisation, so the plain mean over
+  trials, ``mean_trial_ms``, depends on how many were accepted.) The growth with frames is
+  summarised by the exponent of a least-squares fit iteration_ms ∝ framesᵖ per object
+  count (p = 1: linear);
 - ``maxrss_mb`` after building the graph and at the end;
 - with ``--orderings``: CHOLMOD's symbolic analysis and numeric factorisation of the damped
   H for each fill-reducing ordering (nnz(L), seconds), the natural ordering of the layout
@@ -214,7 +218,11 @@ def worker(frames: int, objects: int, iterations: int, seed: int, order_names) -
     t_total = time.perf_counter() - t0
     tm = res.timings
     it = max(res.iterations, 1)
-    per = {PART_NAMES[k]: 1e3 * tm.get(k, 0.0) / it for k in PARTS}
+    nlin = max(res.linearizations, 1)
+    # linearise and assemble per linearisation (the initial one included), the rest per
+    # trial: their sum is one accepted LM iteration, whatever the share of rejected trials
+    per = {PART_NAMES[k]: 1e3 * tm.get(k, 0.0) / (nlin if k in ("jacobians", "assemble") else it)
+           for k in PARTS}
     t_iter = t_total - tm["setup"]
     out = dict(
         frames=frames, objects=objects, seed=seed,
@@ -228,7 +236,7 @@ def worker(frames: int, objects: int, iterations: int, seed: int, order_names) -
         iterations=res.iterations, linearizations=res.linearizations,
         accepted=int(sum(r.accepted for r in res.history)),
         initial_cost=res.initial_cost, final_cost=res.final_cost,
-        iteration_ms=1e3 * t_iter / it, breakdown_ms=per,
+        iteration_ms=sum(per.values()), mean_trial_ms=1e3 * t_iter / it, breakdown_ms=per,
         maxrss_build_mb=rss_build,
     )
     if order_names:
@@ -310,6 +318,20 @@ def plot(rows, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def frames_exponents(rows) -> dict:
+    """{objects: p} with iteration_ms ∝ framesᵖ fitted in log-log (sizes without errors)."""
+    import numpy as np
+
+    out = {}
+    for O in sorted({r["objects"] for r in rows}):
+        rs = [r for r in rows if r["objects"] == O and "error" not in r]
+        if len({r["frames"] for r in rs}) >= 2:
+            x = np.log([r["frames"] for r in rs])
+            y = np.log([r["iteration_ms"] for r in rs])
+            out[str(O)] = float(np.polyfit(x, y, 1)[0])
+    return out
 
 
 def environment() -> dict:
@@ -398,7 +420,8 @@ def main() -> int:
     head = (f"{'frames':>6} {'obj':>4} {'factors':>8} {'n':>7} {'build':>6} {'setup':>6} "
             f"{'compile':>7} {'iter':>7} " + " ".join(f"{PART_NAMES[k]:>9}" for k in PARTS)
             + f" {'RSS MB':>7}")
-    print("times in s, iteration and its parts in ms; RSS = peak resident memory of the size's process")
+    print("times in s, iteration (one accepted: linearise + assemble per linearisation, the "
+          "rest per trial) and its parts in ms; RSS = peak resident memory of the size's process")
     print(head)
     for F in args.frames:
         for O in args.objects:
@@ -436,6 +459,10 @@ def main() -> int:
                       f" (vs nnz(L) {o['default']['supernodal']['nnz_L'] if 'supernodal' in o.get('default', {}) else '-'}"
                       f" with CHOLMOD's default ordering)")
     result["sizes"] = rows
+    result["frames_exponent"] = frames_exponents(rows)
+    for O, p in result["frames_exponent"].items():
+        print(f"{O} objects: iteration time ∝ frames^{p:.2f} (least squares over "
+              f"{len([r for r in rows if r['objects'] == int(O) and 'error' not in r])} sizes)")
     out_path.write_text(json.dumps(result, indent=2))
     good = [r for r in rows if "error" not in r]
     if good:
