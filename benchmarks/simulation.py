@@ -19,6 +19,7 @@ LM loops alone), problem-iterations and ``us_per_problem_iteration`` = solve_loo
     python3 benchmarks/simulation.py --quick        # 2 trials per cell
     python3 benchmarks/simulation.py                # 24 trials per cell (864 solves)
     python3 benchmarks/simulation.py --trials 1000
+    python3 benchmarks/simulation.py --optimize yes # XLA-optimised loops (more compile time)
 
 Writes ``benchmarks/results/simulation.json``.
 """
@@ -37,7 +38,10 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 
-def one_pass(trials: int, cache: str | None) -> dict:
+OPTIMIZE = {"auto": None, "yes": True, "no": False}
+
+
+def one_pass(trials: int, cache: str | None, optimize: str = "auto") -> dict:
     t0 = time.perf_counter()
     import jax
 
@@ -46,11 +50,11 @@ def one_pass(trials: int, cache: str | None) -> dict:
 
     used = enable_compilation_cache(Path(cache)) if cache else None
     t_import = time.perf_counter() - t0
-    res = run_study(StudyConfig(trials=trials))
+    res = run_study(StudyConfig(trials=trials, optimize=OPTIMIZE[optimize]))
     tm = res.timings
     n = int(tm["problem_iterations"])
     return dict(
-        trials=trials, solves=len(res.rows), cache=str(used) if used else None,
+        trials=trials, optimize=optimize, solves=len(res.rows), cache=str(used) if used else None,
         backend=jax.default_backend(), import_s=t_import, wall_s=tm["wall"],
         compile_s=tm["compile"], solve_loops_s=tm["solve_loops"], scenes_s=tm["scenes"],
         evaluate_s=tm["evaluate"], problem_iterations=n,
@@ -66,12 +70,15 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="2 trials per cell")
     ap.add_argument("--cache-dir", default=None,
                     help="compilation cache directory (default: a new temporary one, removed after)")
+    ap.add_argument("--optimize", choices=list(OPTIMIZE), default="auto",
+                    help="XLA optimisation of the batched programs (auto: the solver's rule "
+                         "by work, which leaves this grid unoptimised)")
     ap.add_argument("--out", default=str(HERE / "results" / "simulation.json"))
-    ap.add_argument("--pass", dest="one", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--pass", dest="one", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one:
-        trials, cache = int(args.one[0]), args.one[1]
-        print(json.dumps(one_pass(trials, None if cache == "-" else cache)))
+        trials, cache, optimize = int(args.one[0]), args.one[1], args.one[2]
+        print(json.dumps(one_pass(trials, None if cache == "-" else cache, optimize)))
         return 0
     trials = 2 if args.quick else args.trials
 
@@ -82,7 +89,8 @@ def main() -> int:
             print(f"warning: {cache} is not empty, the 'cold' pass may hit the cache")
         for name in ("cold", "warm"):
             t0 = time.perf_counter()
-            p = subprocess.run([sys.executable, __file__, "--pass", str(trials), cache],
+            p = subprocess.run([sys.executable, __file__, "--pass", str(trials), cache,
+                                args.optimize],
                                capture_output=True, text=True)
             process_s = time.perf_counter() - t0
             lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
@@ -100,7 +108,8 @@ def main() -> int:
                   f"{r['us_per_problem_iteration_with_compile']:.1f} us with compile", flush=True)
     from scaling import environment
 
-    out = dict(environment=environment(), trials_per_cell=trials, passes=passes)
+    out = dict(environment=environment(), trials_per_cell=trials, optimize=args.optimize,
+               passes=passes)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=2))
     print(f"wrote {args.out}")

@@ -90,6 +90,11 @@ class StudyConfig:
     #: estimate does not depend on it, only the cost's units do.
     inverse_sigma: float = 1.0
     semi_sigma: float = 0.01
+    #: Compile the batched solver with XLA's optimisations: None chooses by the work
+    #: (``BatchedProblem``'s rule: off for this grid's size, where compile time dominates);
+    #: True gives ~3x faster LM loops for ~1 s more compile per structure
+    #: (``benchmarks/simulation.py --optimize yes``).
+    optimize: bool | None = None
 
     def __post_init__(self):
         for p in self.params:
@@ -197,6 +202,7 @@ def _solve_structure(model, param, scenes, cfg):
     problem = BatchedProblem(
         graph, values, fixed=[("x", i) for i in range(cfg.n_views)],
         max_iterations=cfg.max_iters, lambda_initial=cfg.lambda_initial,
+        optimize=cfg.optimize,
     )  # fmt: skip
     args = _batched_args(scenes, cfg)
     pose_values = {

@@ -61,10 +61,22 @@ def test_tiny_study_via_cli(tmp_path, monkeypatch):
 
 def test_bad_options_exit_2(tmp_path):
     runner = CliRunner()
-    for args in (["--params", "X"], ["--noise", "Q"], ["--angles", "abc"], ["--angles", "0"]):
+    for args in (["--params", "X"], ["--noise", "Q"], ["--angles", "abc"], ["--angles", "0"],
+                 ["--optimize", "maybe"]):
         res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "x"), *args])
         assert res.exit_code == 2, (args, res.output)
     assert not (tmp_path / "x").exists()
+
+
+def test_optimized_compilation_gives_the_same_study():
+    """``optimize`` changes how XLA compiles the solver, not what it computes."""
+    base = dict(trials=3, angles=(120.0,), noise=("L",), models=("inv",), params=("O", "S"),
+                max_iters=40)
+    rows = [run_study(StudyConfig(**base, optimize=o)).rows for o in (False, True)]
+    assert len(rows[0]) == len(rows[1]) == 6
+    for a, b in zip(*rows):
+        assert a["final_cost"] == pytest.approx(b["final_cost"], rel=1e-6, abs=1e-9)
+        assert a["iou"] == pytest.approx(b["iou"], abs=1e-6)
 
 
 def test_success_rule_and_iterations_to_tol():
