@@ -175,7 +175,8 @@ def orderings(problem, names) -> dict:
     return out
 
 
-def worker(frames: int, objects: int, iterations: int, seed: int, order_names) -> dict:
+def worker(frames: int, objects: int, iterations: int, seed: int, order_names,
+           blas_threads: int = 1) -> dict:
     import jax
 
     from spdslam.mapping import METHODS, build_graph
@@ -208,7 +209,7 @@ def worker(frames: int, objects: int, iterations: int, seed: int, order_names) -
     t_analyze = time.perf_counter() - t0
 
     lm_args = dict(relative_tolerance=0.0, absolute_tolerance=0.0, gradient_tolerance=0.0,
-                   step_tolerance=0.0)
+                   step_tolerance=0.0, cholmod_blas_threads=blas_threads or None)
     t0 = time.perf_counter()
     warm = LevenbergMarquardt(max_iterations=1, **lm_args).optimize(graph, values)
     t_warm = time.perf_counter() - t0
@@ -225,7 +226,7 @@ def worker(frames: int, objects: int, iterations: int, seed: int, order_names) -
            for k in PARTS}
     t_iter = t_total - tm["setup"]
     out = dict(
-        frames=frames, objects=objects, seed=seed,
+        frames=frames, objects=objects, seed=seed, blas_threads=blas_threads,
         factors=len(graph), factor_kinds=kinds, n=int(problem.n), nnz_H_lower=int(pattern["nnz"]),
         landmarks=len(lms), linear_solver=res.linear_solver,
         generate_s=t_gen, build_s=t_build, build_us_per_factor=1e6 * t_build / len(graph),
@@ -367,6 +368,9 @@ def main() -> int:
     ap.add_argument("--objects", type=ints, default=[10, 100, 500])
     ap.add_argument("--iterations", type=int, default=5, help="timed LM iterations per size")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="OpenBLAS threads in CHOLMOD's factorisation (the solver's default 1; "
+                         "0: leave the library's own setting)")
     ap.add_argument("--orderings", nargs="?", const=",".join(ORDERINGS), default="",
                     help="also compare CHOLMOD orderings (default list: %(const)s)")
     ap.add_argument("--recompile", action="store_true",
@@ -382,7 +386,8 @@ def main() -> int:
 
     if args.worker:
         import spdslam  # noqa: F401 - enables float64
-        print(json.dumps(worker(*args.worker, args.iterations, args.seed, order_names)))
+        print(json.dumps(worker(*args.worker, args.iterations, args.seed, order_names,
+                                args.blas_threads)))
         return 0
     if args.recompile_worker:
         import spdslam  # noqa: F401 - enables float64
@@ -426,6 +431,7 @@ def main() -> int:
     for F in args.frames:
         for O in args.objects:
             argv = ["--worker", str(F), str(O), "--iterations", str(args.iterations),
+                    "--blas-threads", str(args.blas_threads),
                     "--seed", str(args.seed)]
             if order_names:
                 argv += ["--orderings", ",".join(order_names)]
