@@ -74,7 +74,9 @@ HAVE_BLAS_CONTROL = _openblas is not None
 
 @contextlib.contextmanager
 def cholmod_threads(openmp: bool = False, blas: int | None = 1):
-    """Thread use of CHOLMOD calls made inside this block; restored on exit.
+    """Thread use of CHOLMOD calls made inside this block; restored on exit. Both settings
+    are the libraries' process-wide ones (GNU OpenMP's max-active-levels is a global in
+    GCC 12), so other OpenMP or OpenBLAS work running in other threads meanwhile sees them.
 
     - ``openmp=False``: OpenMP's max-active-levels is set to 0, so parallel regions run on
       one thread. CHOLMOD 3 (SuiteSparse 5, Debian 12) opens a region with a compiled-in team
