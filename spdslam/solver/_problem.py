@@ -500,7 +500,7 @@ class Problem:
             # sorted unique codes (an explicit sort: several times faster than np.unique's
             # hashing on millions of codes)
             uniq = np.sort(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
-            uniq = uniq[np.r_[True, uniq[1:] != uniq[:-1]]]
+            uniq = uniq[np.r_[True, uniq[1:] != uniq[:-1]]] if uniq.size else uniq
             nnz = len(uniq)
             hslots = []
             for k, c in enumerate(codes):
