@@ -100,10 +100,13 @@ def scene(frames: int, objects: int, seed: int):
 
 
 def orderings(problem, names) -> dict:
-    """Analyse + factorise the damped H at the initial values with each CHOLMOD ordering."""
+    """Analyse + factorise the damped H at the initial values with each CHOLMOD ordering
+    (with the solver's default thread settings, ``cholmod_threads()``)."""
     import numpy as np
     import scipy.sparse
     from sksparse import cholmod
+
+    from spdslam.solver._linear import cholmod_threads
 
     sp = problem.sparse_pattern()
     n = problem.n
@@ -142,7 +145,8 @@ def orderings(problem, names) -> dict:
             times = []
             for _ in range(3):
                 t0 = time.perf_counter()
-                f.cholesky_inplace(A)
+                with cholmod_threads():
+                    f.cholesky_inplace(A)
                 times.append(time.perf_counter() - t0)
             L = f.L()
             rec[mode] = dict(analyze_s=t_an, factorize_s=min(times), nnz_L=int(L.nnz))

@@ -66,6 +66,17 @@ def cholmod_blas() -> str:
     return out
 
 
+def gtsam_version(gtsam) -> str:
+    v = getattr(gtsam, "__version__", None)
+    if v is None:
+        try:
+            from importlib.metadata import version
+            v = version("gtsam")
+        except Exception:  # noqa: BLE001 - metadata missing (a source build)
+            v = "unknown"
+    return v
+
+
 def count_gtsam_trials(gtsam, graph, init, params) -> int:
     """gtsam's λ trials (eliminations) in its LM run: the lines "trying lambda" it prints at
     verbosityLM TRYLAMBDA (C++ stdout, captured at the file-descriptor level)."""
@@ -254,7 +265,7 @@ def main() -> int:
         relative_cost_difference=rel,
         environment=dict(python=sys.version.split()[0], platform=platform.platform(),
                          cpus=os.cpu_count(), blas=blas, spdslam=spdslam.__version__,
-                         gtsam=getattr(gtsam, "__version__", "unknown")),
+                         gtsam=gtsam_version(gtsam)),
     )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=2))
