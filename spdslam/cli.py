@@ -213,7 +213,7 @@ def simulate(
     max_iters: int = typer.Option(100, "--max-iters", min=1, help="LM iteration budget."),
     optimize: str = typer.Option(
         "auto", help="XLA optimisation of the batched solver: auto (by work: off for small "
-        "grids), yes (about 3x faster loops, about 1 s more compile per method; worth it "
+        "grids), yes (2-3x faster loops, about 0.8 s more compile per method; worth it "
         "with the compilation cache warm), no."),
 ) -> None:
     """Reproduce the paper's simulation study (Table II, Fig. 12) with batched solves.

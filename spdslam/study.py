@@ -92,7 +92,7 @@ class StudyConfig:
     semi_sigma: float = 0.01
     #: Compile the batched solver with XLA's optimisations: None chooses by the work
     #: (``BatchedProblem``'s rule: off for this grid's size, where compile time dominates);
-    #: True gives ~3x faster LM loops for ~1 s more compile per structure
+    #: True gives 2-3x faster LM loops for ~0.8 s more compile per structure
     #: (``benchmarks/simulation.py --optimize yes``).
     optimize: bool | None = None
 
