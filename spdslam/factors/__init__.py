@@ -1,91 +1,49 @@
-"""Factors: residual functions with noise models and robust kernels.
+"""Factors: residual functions with noise models and robust kernels, one class per factor
+type, registered when defined (``factor_types()``).
 
 Landmark factors take any ellipsoid parameterisation (SPD, RTS or Full); pose factors take
-``jaxlie.SE3`` camera-to-world poses.
+``jaxlie.SE3`` camera-to-world poses. Imports only ``spdslam.geometry``.
 """
 
-from ._base import (
-    Cauchy,
-    Factor,
-    Huber,
-    RobustKernel,
-    sqrt_information,
-    tangent_jacobians,
-)
-from ._ellipsoid_measurement import (
-    ELLIPSOID_MEASUREMENT_SIGMAS,
-    EllipsoidMeasurementFactor,
-    ellipsoid_measurement_residual,
-)
-from ._landmark import (
-    DEFAULT_SIGMAS,
-    DEFAULT_TRUNCATION_MARGIN,
-    AxisOrientationFactor,
-    ClassicOrientationFactor,
-    InverseBoxFactor,
-    InverseCuboidBoxFactor,
-    OrientationFactor,
-    SemiInverseBoxFactor,
-    SemiInverseCuboidBoxFactor,
-    ShapeFactor,
-    SizeFactor,
-    SupportPlaneFactor,
-    axis_orientation_residual,
-    box_visible,
-    classic_orientation_residual,
-    cuboid_box_visible,
-    inverse_box_residual,
-    inverse_cuboid_box_residual,
-    orientation_residual,
-    semi_inverse_box_residual,
-    semi_inverse_cuboid_box_residual,
-    shape_residual,
-    size_residual,
-    support_plane_residual,
-)
-from ._pose import (
-    BetweenFactor,
-    PriorFactor,
-    pose_between_residual,
-    pose_prior_residual,
-)
-
-__all__ = [
-    "Factor",
-    "RobustKernel",
-    "Huber",
-    "Cauchy",
-    "sqrt_information",
-    "tangent_jacobians",
-    "DEFAULT_SIGMAS",
-    "DEFAULT_TRUNCATION_MARGIN",
-    "InverseCuboidBoxFactor",
-    "AxisOrientationFactor",
-    "axis_orientation_residual",
-    "SemiInverseCuboidBoxFactor",
-    "cuboid_box_visible",
-    "inverse_cuboid_box_residual",
-    "semi_inverse_cuboid_box_residual",
-    "InverseBoxFactor",
-    "SemiInverseBoxFactor",
-    "OrientationFactor",
-    "ClassicOrientationFactor",
-    "ShapeFactor",
-    "SizeFactor",
-    "SupportPlaneFactor",
-    "box_visible",
-    "inverse_box_residual",
-    "semi_inverse_box_residual",
-    "orientation_residual",
-    "classic_orientation_residual",
-    "shape_residual",
-    "size_residual",
-    "support_plane_residual",
-    "PriorFactor",
-    "BetweenFactor",
-    "pose_prior_residual",
-    "pose_between_residual",
-    "ELLIPSOID_MEASUREMENT_SIGMAS",
-    "EllipsoidMeasurementFactor",
-    "ellipsoid_measurement_residual",
-]
+from ._base import Cauchy as Cauchy
+from ._base import CustomFactor as CustomFactor
+from ._base import Factor as Factor
+from ._base import GaussianNoise as GaussianNoise
+from ._base import Huber as Huber
+from ._base import RobustKernel as RobustKernel
+from ._base import Sigma as Sigma
+from ._base import default_sigmas as default_sigmas
+from ._base import factor_types as factor_types
+from ._base import robust_groups as robust_groups
+from ._base import robust_weighting as robust_weighting
+from ._base import sqrt_information as sqrt_information
+from ._base import tangent_jacobians as tangent_jacobians
+from ._box import DEFAULT_TRUNCATION_MARGIN as DEFAULT_TRUNCATION_MARGIN
+from ._box import InverseBoxFactor as InverseBoxFactor
+from ._box import InverseCuboidBoxFactor as InverseCuboidBoxFactor
+from ._box import SemiInverseBoxFactor as SemiInverseBoxFactor
+from ._box import SemiInverseCuboidBoxFactor as SemiInverseCuboidBoxFactor
+from ._box import box_visible as box_visible
+from ._box import cuboid_box_visible as cuboid_box_visible
+from ._box import inverse_box_residual as inverse_box_residual
+from ._box import inverse_cuboid_box_residual as inverse_cuboid_box_residual
+from ._box import semi_inverse_box_residual as semi_inverse_box_residual
+from ._box import semi_inverse_cuboid_box_residual as semi_inverse_cuboid_box_residual
+from ._ellipsoid_measurement import EllipsoidMeasurementFactor as EllipsoidMeasurementFactor
+from ._ellipsoid_measurement import ellipsoid_measurement_residual as ellipsoid_measurement_residual
+from ._object import AxisOrientationFactor as AxisOrientationFactor
+from ._object import ClassicOrientationFactor as ClassicOrientationFactor
+from ._object import OrientationFactor as OrientationFactor
+from ._object import ShapeFactor as ShapeFactor
+from ._object import SizeFactor as SizeFactor
+from ._object import SupportPlaneFactor as SupportPlaneFactor
+from ._object import axis_orientation_residual as axis_orientation_residual
+from ._object import classic_orientation_residual as classic_orientation_residual
+from ._object import orientation_residual as orientation_residual
+from ._object import shape_residual as shape_residual
+from ._object import size_residual as size_residual
+from ._object import support_plane_residual as support_plane_residual
+from ._pose import BetweenFactor as BetweenFactor
+from ._pose import PriorFactor as PriorFactor
+from ._pose import pose_between_residual as pose_between_residual
+from ._pose import pose_prior_residual as pose_prior_residual

@@ -1,36 +1,57 @@
-"""The factor container, noise models and robust kernels.
+"""Factors: a residual function, its noise model and robust kernel, and the registry of
+factor types.
 
 A factor is a plain residual function of variable values and measurement data,
 
-    r = residual(*variables, *args)  ∈ R^m,
+    r = residual(*variables, *data)  ∈ R^m,
 
 plus a noise model and an optional robust kernel. Its contribution to the cost is
 ½ ρ(‖W r‖²), with W the square-root information matrix (WᵀW = Σ⁻¹) and ρ the kernel
 (ρ(s) = s without one). Grouping factors of the same type and vectorising them is the
 solver's job: factors whose residual function, variable types and data shapes agree are
 stacked and linearised with one vmapped call.
+
+A *factor type* is a subclass of :class:`Factor` that declares, in one place, its ``kind``
+(a unique name), its ``residual`` function, the residual dimension ``dim``, the default
+noise ``sigmas``, the robust-kernel ``group`` it belongs to, an optional ``valid`` rule
+(degenerate geometry) and the names of the ``variables`` it connects; its constructor
+turns measurements into validated data. Defining the subclass registers it
+(``factor_types()``): the solver groups by it, and the mapping pipeline, its sigma table,
+its robust-kernel groups, the CLI and the Jacobian test table all iterate over the
+registry. ``CustomFactor`` wraps an ad-hoc residual function without declaring a type.
+See docs/extending.md.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Callable, Hashable
+import copy
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import manifold
+from ..geometry import manifold
 
 __all__ = [
     "Factor",
-    "tangent_jacobians",
-    "robust_weighting",
+    "CustomFactor",
+    "Sigma",
+    "GaussianNoise",
     "RobustKernel",
     "Huber",
     "Cauchy",
+    "robust_weighting",
     "sqrt_information",
+    "tangent_jacobians",
+    "factor_types",
+    "robust_groups",
+    "default_sigmas",
 ]
+
+
+# --- robust kernels --------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -81,6 +102,9 @@ def robust_weighting(robust: RobustKernel | None, r, J=None):
     return 0.5 * robust.rho(s), sw * r, (None if J is None else sw * J)
 
 
+# --- noise models ----------------------------------------------------------------------------
+
+
 def sqrt_information(
     dim: int,
     sigma: Any = None,
@@ -96,9 +120,14 @@ def sqrt_information(
     if sum(given) > 1:
         raise ValueError("give at most one of sigma, information, covariance")
     if sigma is not None:
-        s = np.broadcast_to(np.asarray(sigma, dtype=float), (dim,))
+        try:
+            s = np.broadcast_to(np.asarray(sigma, dtype=float), (dim,))
+        except ValueError:
+            raise ValueError(
+                f"sigma must be a scalar or {dim} values, got shape {np.shape(sigma)}"
+            ) from None
         if not np.all(np.isfinite(s)) or np.any(s <= 0):
-            raise ValueError(f"sigma must be finite and positive, got {sigma!r}")
+            raise ValueError(f"sigma must be finite and positive, got {np.asarray(sigma).tolist()}")
         return np.diag(1.0 / s)
     if covariance is not None:
         cov = np.asarray(covariance, dtype=float)
@@ -118,38 +147,178 @@ def sqrt_information(
     return np.eye(dim)
 
 
-@dataclass(frozen=True, eq=False)
-class Factor:
-    """One residual term of a factor graph.
+class GaussianNoise:
+    """A Gaussian noise model, held as its square-root information W (WᵀW = Σ⁻¹).
 
-    residual:  ``residual(*variables, *args) -> (m,)``, a JAX-traceable function of the
-               values of ``keys`` (in order) and of the measurement data ``args``.
-    keys:      the variable keys this factor connects.
-    args:      measurement data: a tuple of arrays (or pytrees of arrays).
-    sqrt_info: W, the (m, m) square-root information matrix; None means identity.
-    robust:    optional robust kernel on ‖W r‖².
-    valid:     optional ``valid(*variables, *args) -> bool``: False marks degenerate
-               geometry (object behind the camera, camera inside the object). The solver
-               rejects any step that makes a valid factor invalid.
+    ``GaussianNoise.sigmas(σ, dim)``, ``.information(Σ⁻¹)``, ``.covariance(Σ)``; a factor
+    takes it as ``noise=`` (or the same as ``sigma=``, ``information=``, ``covariance=``).
     """
 
-    residual: Callable[..., Any]
-    keys: tuple[Hashable, ...]
-    args: tuple = ()
-    sqrt_info: Any = None
-    robust: RobustKernel | None = None
-    valid: Callable[..., Any] | None = None
-    name: str = field(default="")
+    __slots__ = ("sqrt_info",)
 
-    def __post_init__(self):
-        object.__setattr__(self, "keys", tuple(self.keys))
-        object.__setattr__(self, "args", tuple(self.args))
-        if self.sqrt_info is not None:
-            object.__setattr__(self, "sqrt_info", np.asarray(self.sqrt_info, dtype=float))
+    def __init__(self, sqrt_info):
+        W = np.asarray(sqrt_info, dtype=float)
+        if W.ndim != 2 or W.shape[0] != W.shape[1] or not np.all(np.isfinite(W)):
+            raise ValueError(f"a square-root information matrix must be finite and square, got shape {W.shape}")
+        self.sqrt_info = W
+
+    @classmethod
+    def sigmas(cls, sigma, dim: int | None = None) -> "GaussianNoise":
+        s = np.atleast_1d(np.asarray(sigma, dtype=float))
+        return cls(sqrt_information(s.size if dim is None else dim, sigma=sigma))
+
+    @classmethod
+    def information(cls, information) -> "GaussianNoise":
+        info = np.asarray(information, dtype=float)
+        return cls(sqrt_information(info.shape[0], information=info))
+
+    @classmethod
+    def covariance(cls, covariance) -> "GaussianNoise":
+        cov = np.asarray(covariance, dtype=float)
+        return cls(sqrt_information(cov.shape[0], covariance=cov))
 
     @property
-    def kind(self) -> str:
-        return self.name or getattr(self.residual, "__name__", "factor")
+    def dim(self) -> int:
+        return int(self.sqrt_info.shape[0])
+
+    def __repr__(self) -> str:
+        return f"GaussianNoise(dim={self.dim})"
+
+
+@dataclass(frozen=True)
+class Sigma:
+    """A factor type's default standard deviation for ``size`` components of its residual
+    (None: all of them), in ``unit``; ``name`` (default: the factor's kind) is what the
+    mapping's sigma table and ``spdslam run --sigma NAME=VALUE`` call it."""
+
+    value: float
+    unit: str
+    name: str | None = None
+    size: int | None = None
+
+
+# --- factors and the registry ----------------------------------------------------------------
+
+_REGISTRY: dict[str, type["Factor"]] = {}
+
+_NOISE_ARGS = ("sigma", "information", "covariance", "noise", "sqrt_info")
+
+
+class Factor:
+    """One residual term ½ρ(‖W r‖²) of a factor graph (see the module docstring).
+
+    Instances hold ``keys`` (the variables, in the order of the residual's arguments),
+    ``args`` (the measurement data: a tuple of arrays or pytrees of arrays), ``sqrt_info``
+    (W, (m, m); None means identity) and ``robust`` (a kernel or None); they are immutable
+    (``replace``, ``with_robust`` make changed copies).
+
+    Noise, for every factor type: at most one of ``sigma`` (scalar or per component),
+    ``information``, ``covariance`` (m×m), ``noise`` (a :class:`GaussianNoise`); none
+    gives the type's default ``sigmas`` (W = I for types without one).
+    """
+
+    kind: ClassVar[str] = ""
+    residual: ClassVar[Callable[..., Any]]
+    dim: ClassVar[int | None] = None
+    sigmas: ClassVar[tuple[Sigma, ...]] = ()
+    group: ClassVar[str | None] = None
+    valid: ClassVar[Callable[..., Any] | None] = None
+    variables: ClassVar[tuple[str, ...]] = ()
+
+    __slots__ = ("keys", "args", "sqrt_info", "robust")
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        kind = cls.__dict__.get("kind")
+        if not isinstance(kind, str) or not kind:
+            return  # an intermediate base, or CustomFactor
+        for name in ("residual", "dim", "group"):
+            if getattr(cls, name, None) is None:
+                raise TypeError(f"factor type {cls.__name__} ({kind!r}) declares no {name}")
+        sizes = [s.size for s in cls.sigmas]
+        if cls.sigmas and (sum(cls.dim if n is None else n for n in sizes) != cls.dim
+                           or (None in sizes and len(sizes) > 1)):
+            raise TypeError(f"factor type {cls.__name__}: its sigmas do not cover its {cls.dim} residuals")
+        old = _REGISTRY.get(kind)
+        if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+            raise TypeError(f"factor kind {kind!r} is already registered by {old.__module__}.{old.__qualname__}")
+        _REGISTRY[kind] = cls
+
+    def __init__(self, keys, args: tuple = (), *, sigma: Any = None, information: Any = None,
+                 covariance: Any = None, noise: GaussianNoise | None = None,
+                 robust: RobustKernel | None = None, sqrt_info: Any = None):
+        if getattr(self, "residual", None) is None:
+            raise TypeError(f"{type(self).__name__} is not a factor type (it declares no "
+                            "residual): use a registered type or CustomFactor")
+        keys = tuple(keys)
+        if self.variables and len(keys) != len(self.variables):
+            raise ValueError(
+                f"{type(self).__name__} connects {len(self.variables)} variables "
+                f"({', '.join(self.variables)}), got {len(keys)} keys"
+            )
+        W = self._whitening(sigma, information, covariance, noise, sqrt_info)
+        object.__setattr__(self, "keys", keys)
+        object.__setattr__(self, "args", tuple(args))
+        object.__setattr__(self, "sqrt_info", W)
+        object.__setattr__(self, "robust", robust)
+
+    @classmethod
+    def default_sigma(cls) -> np.ndarray | None:
+        """The default σ per residual component (dim,), None for W = I."""
+        if not cls.sigmas:
+            return None
+        return np.concatenate([np.full(cls.dim if s.size is None else s.size, float(s.value))
+                               for s in cls.sigmas])
+
+    def _whitening(self, sigma, information, covariance, noise, sqrt_info):
+        given = [n for n, v in zip(_NOISE_ARGS, (sigma, information, covariance, noise, sqrt_info))
+                 if v is not None]
+        if len(given) > 1:
+            raise ValueError(f"give at most one of sigma, information, covariance, noise; got {', '.join(given)}")
+        if noise is not None:
+            if not isinstance(noise, GaussianNoise):
+                raise TypeError(f"noise must be a GaussianNoise, got {type(noise).__name__}")
+            sqrt_info = noise.sqrt_info
+        if sqrt_info is not None:
+            W = np.asarray(sqrt_info, dtype=float)
+            if self.dim is not None and W.shape != (self.dim, self.dim):
+                raise ValueError(f"{self.kind}: the noise model is {W.shape}, the residual has dimension {self.dim}")
+            return W
+        if sigma is None and information is None and covariance is None:
+            sigma = self.default_sigma()
+            if sigma is None:
+                return None if self.dim is None else np.eye(self.dim)
+        if self.dim is None:
+            raise ValueError(f"{self.kind}: give sqrt_info or noise (the residual dimension is not declared)")
+        return sqrt_information(self.dim, sigma, information, covariance)
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is immutable: use replace() or with_robust()")
+
+    def __getstate__(self) -> dict:
+        return {name: getattr(self, name) for cls in type(self).__mro__
+                for name in cls.__dict__.get("__slots__", ())}
+
+    def __setstate__(self, state: dict) -> None:
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+
+    def replace(self, **changes) -> "Factor":
+        """A copy with ``keys``, ``args``, ``sqrt_info`` or ``robust`` replaced."""
+        out = copy.copy(self)
+        for name, value in changes.items():
+            if name not in Factor.__slots__:
+                raise TypeError(f"cannot replace {name!r} of a factor")
+            if name in ("keys", "args"):
+                value = tuple(value)
+            if name == "sqrt_info" and value is not None:
+                value = np.asarray(value, dtype=float)
+            object.__setattr__(out, name, value)
+        return out
+
+    def with_robust(self, robust: RobustKernel | None) -> "Factor":
+        """A copy with another robust kernel."""
+        return self.replace(robust=robust)
 
     def evaluate(self, *values):
         """Whitened residual W r at the given variable values (no robust kernel)."""
@@ -164,6 +333,58 @@ class Factor:
         if self.robust is not None:
             s = self.robust.rho(s)
         return 0.5 * float(s)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.kind}, keys={self.keys!r})"
+
+
+class CustomFactor(Factor):
+    """A factor of an ad-hoc residual function, without a registered type.
+
+    ``CustomFactor(residual, keys, args=(), sqrt_info=None, robust=None, valid=None,
+    name="")``: ``residual(*variables, *args)`` a JAX-traceable function of the values of
+    ``keys`` (in order); ``valid`` an optional ``valid(*variables, *args) -> bool`` (False
+    marks degenerate geometry; the solver rejects any step that makes a valid factor
+    invalid); ``name`` the kind shown in messages (default: the function's name). Noise as
+    for every factor (``sigma`` etc. need the dimension: give ``sqrt_info`` or ``noise``).
+    """
+
+    __slots__ = ("residual", "valid", "name")
+
+    def __init__(self, residual: Callable[..., Any], keys, args: tuple = (), sqrt_info: Any = None,
+                 robust: RobustKernel | None = None, valid: Callable[..., Any] | None = None,
+                 name: str = "", *, noise: GaussianNoise | None = None):
+        object.__setattr__(self, "residual", residual)
+        object.__setattr__(self, "valid", valid)
+        object.__setattr__(self, "name", name)
+        super().__init__(keys, args, noise=noise, robust=robust, sqrt_info=sqrt_info)
+
+    @property
+    def kind(self) -> str:
+        return self.name or getattr(self.residual, "__name__", "factor")
+
+
+def factor_types() -> dict[str, type[Factor]]:
+    """The registered factor types, {kind: class}, in the order they were defined."""
+    return dict(_REGISTRY)
+
+
+def robust_groups() -> dict[str, tuple[str, ...]]:
+    """{group: kinds}: the factor kinds a robust kernel chosen for a group applies to."""
+    out: dict[str, list[str]] = {}
+    for kind, cls in _REGISTRY.items():
+        out.setdefault(cls.group, []).append(kind)
+    return {g: tuple(k) for g, k in out.items()}
+
+
+def default_sigmas() -> dict[str, Sigma]:
+    """{name: Sigma} of every registered type's default noise (names as ``Sigma.name``,
+    the kind by default)."""
+    out = {}
+    for kind, cls in _REGISTRY.items():
+        for s in cls.sigmas:
+            out[s.name or kind] = s
+    return out
 
 
 def tangent_jacobians(residual: Callable, values: tuple, args: tuple = ()):
@@ -183,3 +404,4 @@ def tangent_jacobians(residual: Callable, values: tuple, args: tuple = ()):
     r = perturbed(*zeros)
     J = jax.jacfwd(perturbed, argnums=tuple(range(len(values))))(*zeros)
     return r, list(J)
+

@@ -29,23 +29,15 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from ..ellipsoid import as_ellipsoid
-from ..matfun import invsqrtm, logm
-from ..spd import sym_to_vec
-from ._base import Factor, RobustKernel, sqrt_information
+from ..geometry import as_ellipsoid
+from ..geometry.matfun import invsqrtm, logm
+from ..geometry.spd import sym_to_vec
+from ._base import Factor, Sigma
 
 __all__ = [
-    "ELLIPSOID_MEASUREMENT_SIGMAS",
     "EllipsoidMeasurementFactor",
     "ellipsoid_measurement_residual",
 ]
-
-#: Default standard deviations: per log-shape component (≈ 5 % of a radius) and per centre
-#: coordinate in metres (a depth camera's error at a few metres).
-ELLIPSOID_MEASUREMENT_SIGMAS = {
-    "ellipsoid_shape": 0.1,
-    "ellipsoid_center": 0.05,
-}
 
 
 def ellipsoid_measurement_residual(T_wc, landmark, P_meas, t_meas):
@@ -97,47 +89,25 @@ def _measured_shape(measurement) -> np.ndarray:
     return P
 
 
-def _sigmas(value, n: int, name: str) -> np.ndarray:
-    s = np.asarray(value, dtype=float)
-    try:
-        s = np.broadcast_to(s, (n,))
-    except ValueError:
-        raise ValueError(f"{name} must be a scalar or {n} values, got shape {s.shape}") from None
-    if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError(f"{name} must be finite and positive, got {s.tolist()}")
-    return s
-
-
-def EllipsoidMeasurementFactor(
-    pose_key,
-    landmark_key,
-    shape,
-    t_meas,
-    sigma_shape=None,
-    sigma_center=None,
-    robust: RobustKernel | None = None,
-) -> Factor:
+class EllipsoidMeasurementFactor(Factor):
     """A measured ellipsoid in the camera frame: ``shape`` is P̄ (3×3 SPD) or
     ``(rotation, radii)`` (columns of the rotation = the axes, radii the semi-axes along
-    them), ``t_meas`` its centre.
+    them), ``t_meas`` its centre. Default noise: 0.1 per log-shape coordinate and 0.05 m per
+    centre coordinate, independent (``sigma`` a scalar or 9 values to change it)."""
 
-    Noise: ``sigma_shape`` (scalar or 6 values, per log-shape coordinate; default 0.1) and
-    ``sigma_center`` (scalar or 3 values, metres; default 0.05), independent.
-    """
-    P = _measured_shape(shape)
-    t = np.asarray(t_meas, dtype=float)
-    if t.shape != (3,) or not np.all(np.isfinite(t)):
-        raise ValueError(f"the measured centre must be a finite 3-vector, got {t.tolist()}")
-    d = ELLIPSOID_MEASUREMENT_SIGMAS
-    s_shape = _sigmas(d["ellipsoid_shape"] if sigma_shape is None else sigma_shape, 6, "sigma_shape")
-    s_center = _sigmas(d["ellipsoid_center"] if sigma_center is None else sigma_center, 3, "sigma_center")
-    return Factor(
-        ellipsoid_measurement_residual,
-        (pose_key, landmark_key),
-        (P, t),
-        sqrt_information(9, sigma=np.r_[s_shape, s_center]),
-        robust,
-        None,
-        "ellipsoid_measurement",
+    kind = "ellipsoid_measurement"
+    residual = staticmethod(ellipsoid_measurement_residual)
+    variables = ("pose", "landmark")
+    dim = 9
+    group = "ellipsoid"
+    sigmas = (
+        Sigma(0.1, "per log-shape coordinate (≈ 5 % of a radius)", "ellipsoid_shape", 6),
+        Sigma(0.05, "m per centre coordinate", "ellipsoid_center", 3),
     )
 
+    def __init__(self, pose_key, landmark_key, shape, t_meas, **noise):
+        P = _measured_shape(shape)
+        t = np.asarray(t_meas, dtype=float)
+        if t.shape != (3,) or not np.all(np.isfinite(t)):
+            raise ValueError(f"the measured centre must be a finite 3-vector, got {t.tolist()}")
+        super().__init__((pose_key, landmark_key), (P, t), **noise)

@@ -10,7 +10,7 @@ Log is the full SE(3) logarithm (gtsam's Pose3::Logmap with the expmap chart), s
 same noise these residuals equal gtsam's PriorFactorPose3 / BetweenFactorPose3 errors up to
 the order of the components: gtsam orders a Pose3 tangent (ω, v), rotation first. Sigmas,
 information and covariance matrices given here are in jaxlie order (v, ω); permute gtsam's
-with ``[3, 4, 5, 0, 1, 2]``.
+with ``[3, 4, 5, 0, 1, 2]``. Neither type has a default noise: without one, W = I.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from typing import Any, Hashable
 import jaxlie
 import numpy as np
 
-from ..se3 import as_pose
-from ._base import Factor, RobustKernel, sqrt_information
+from ..geometry.se3 import as_pose
+from ._base import Factor
 
 __all__ = [
     "pose_prior_residual",
@@ -47,50 +47,28 @@ def as_se3(pose: Any) -> jaxlie.SE3:
     return jaxlie.SE3(np.asarray(as_pose(pose).wxyz_xyz, dtype=float))
 
 
-def PriorFactor(
-    key: Hashable,
-    prior: Any,
-    sigma: Any = None,
-    information: Any = None,
-    covariance: Any = None,
-    robust: RobustKernel | None = None,
-) -> Factor:
-    """Prior T ≈ T̄ on a pose: r = Log(T̄⁻¹ T), cost ½ρ(‖W r‖²).
+class PriorFactor(Factor):
+    """Prior T ≈ T̄ on a pose: r = Log(T̄⁻¹ T), cost ½ρ(‖W r‖²); noise in jaxlie order (v, ω)."""
 
-    ``sigma`` (scalar or 6 values), ``information`` or ``covariance`` (6×6) are in jaxlie
-    order (v, ω): translation first. gtsam orders them (ω, v).
-    """
-    W = sqrt_information(6, sigma=sigma, information=information, covariance=covariance)
-    return Factor(
-        pose_prior_residual,
-        (key,),
-        args=(as_se3(prior),),
-        sqrt_info=W,
-        robust=robust,
-        name="PriorFactor",
-    )
+    kind = "prior"
+    residual = staticmethod(pose_prior_residual)
+    variables = ("pose",)
+    dim = 6
+    group = "prior"
+
+    def __init__(self, key: Hashable, prior: Any, **noise):
+        super().__init__((key,), (as_se3(prior),), **noise)
 
 
-def BetweenFactor(
-    key1: Hashable,
-    key2: Hashable,
-    measured: Any,
-    sigma: Any = None,
-    information: Any = None,
-    covariance: Any = None,
-    robust: RobustKernel | None = None,
-) -> Factor:
-    """Relative pose T₁⁻¹T₂ ≈ T̄₁₂: r = Log(T̄₁₂⁻¹ T₁⁻¹ T₂), cost ½ρ(‖W r‖²).
+class BetweenFactor(Factor):
+    """Relative pose T₁⁻¹T₂ ≈ T̄₁₂ (odometry, loop closures): r = Log(T̄₁₂⁻¹ T₁⁻¹ T₂), cost
+    ½ρ(‖W r‖²); noise in jaxlie order (v, ω)."""
 
-    ``sigma`` (scalar or 6 values), ``information`` or ``covariance`` (6×6) are in jaxlie
-    order (v, ω): translation first. gtsam orders them (ω, v).
-    """
-    W = sqrt_information(6, sigma=sigma, information=information, covariance=covariance)
-    return Factor(
-        pose_between_residual,
-        (key1, key2),
-        args=(as_se3(measured),),
-        sqrt_info=W,
-        robust=robust,
-        name="BetweenFactor",
-    )
+    kind = "between"
+    residual = staticmethod(pose_between_residual)
+    variables = ("pose", "pose")
+    dim = 6
+    group = "odometry"
+
+    def __init__(self, key1: Hashable, key2: Hashable, measured: Any, **noise):
+        super().__init__((key1, key2), (as_se3(measured),), **noise)

@@ -1,5 +1,41 @@
-"""File formats: TORO / g2o 3-D pose graphs."""
+"""Files: the sequence model and its canonical folder (readers, writers), the fr3_cabinet
+importer, g2o/TORO pose graphs and ``map.json``.
 
-from .g2o import Edge, PoseGraph, parse_g2o, pose_graph_factors, read_g2o, rpy_to_quaternion
+Every malformed file gives a one-line ``file:line: expected …, got …`` error
+(``SequenceFormatError``, ``MapFormatError``). Imports ``geometry``, ``factors`` and
+``solver`` (g2o builds pose graphs).
+"""
 
-__all__ = ["Edge", "PoseGraph", "read_g2o", "parse_g2o", "pose_graph_factors", "rpy_to_quaternion"]
+from ._g2o import Edge as Edge
+from ._g2o import PoseGraph as PoseGraph
+from ._g2o import parse_g2o as parse_g2o
+from ._g2o import pose_graph_factors as pose_graph_factors
+from ._g2o import read_g2o as read_g2o
+from ._g2o import rpy_to_quaternion as rpy_to_quaternion
+from ._importers import COCO_LABELS as COCO_LABELS
+from ._importers import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
+from ._importers import import_fr3_cabinet as import_fr3_cabinet
+from ._importers import is_fr3_cabinet as is_fr3_cabinet
+from ._map import MapFormatError as MapFormatError
+from ._map import MapObject as MapObject
+from ._map import read_map as read_map
+from ._map import write_map as write_map
+from ._parse import MATCH_TOLERANCE as MATCH_TOLERANCE
+from ._parse import SequenceFormatError as SequenceFormatError
+from ._parse import read_images as read_images
+from ._parse import read_tum as read_tum
+from ._readers import read_camera as read_camera
+from ._readers import read_detections as read_detections
+from ._readers import read_ellipsoids as read_ellipsoids
+from ._readers import read_objects_gt as read_objects_gt
+from ._readers import read_priors as read_priors
+from ._readers import read_sequence as read_sequence
+from ._sequence import ClassPrior as ClassPrior
+from ._sequence import Detection as Detection
+from ._sequence import EllipsoidDetection as EllipsoidDetection
+from ._sequence import GroundTruthObject as GroundTruthObject
+from ._sequence import Priors as Priors
+from ._sequence import Sequence as Sequence
+from ._writers import tum_text as tum_text
+from ._writers import write_folder_atomically as write_folder_atomically
+from ._writers import write_sequence as write_sequence

@@ -1,42 +1,32 @@
 """Nonlinear least squares on factor graphs: Values, graphs, LM / GN, batched solves.
 
 Cost F(x) = Σᵢ ½ ρᵢ(‖Wᵢ rᵢ(x)‖²) (gtsam's ``graph.error`` convention), minimised over the
-free variables; steps are taken in tangent coordinates, x ⊞ δ (``spdslam.manifold``).
-Many problems of one structure: ``BatchedProblem`` (a template problem, data and values as
-arrays with a leading batch axis) or ``solve_batched`` (a list of graphs and Values).
+free variables; steps are taken in tangent coordinates, x ⊞ δ (``spdslam.geometry.manifold``).
+
+One rule (``_lm``: damping, gain ratio, λ schedules, stopping) and one per-factor
+linearisation (``_linearize``: whitening, robust weighting, validity), driven two ways:
+``LevenbergMarquardt(...).optimize(graph, values)`` / ``GaussNewton`` run the sparse host
+loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
+``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
+problems of one structure in one jitted loop (``_batched``). Imports only
+``spdslam.geometry`` and ``spdslam.factors``.
 """
 
-from ._batched import BatchedProblem, BatchedResult, solve_batched
-from ._graph import FactorGraph, NonlinearFactorGraph
-from ._linear import HAVE_CHOLMOD
-from ._optimizers import (
-    CONVERGED_REASONS,
-    GaussNewton,
-    GaussNewtonParams,
-    IterationRecord,
-    LevenbergMarquardt,
-    LevenbergMarquardtParams,
-    OptimizationResult,
-    OptimizerParams,
-)
-from ._problem import Problem
-from ._values import Values
-
-__all__ = [
-    "Values",
-    "NonlinearFactorGraph",
-    "FactorGraph",
-    "Problem",
-    "OptimizerParams",
-    "LevenbergMarquardtParams",
-    "GaussNewtonParams",
-    "LevenbergMarquardt",
-    "GaussNewton",
-    "IterationRecord",
-    "OptimizationResult",
-    "CONVERGED_REASONS",
-    "solve_batched",
-    "BatchedProblem",
-    "BatchedResult",
-    "HAVE_CHOLMOD",
-]
+from ._batched import BatchedProblem as BatchedProblem
+from ._batched import BatchedResult as BatchedResult
+from ._graph import NonlinearFactorGraph as NonlinearFactorGraph
+from ._keys import L as L
+from ._keys import Symbol as Symbol
+from ._keys import X as X
+from ._linear import HAVE_CHOLMOD as HAVE_CHOLMOD
+from ._lm import CONVERGED_REASONS as CONVERGED_REASONS
+from ._lm import GaussNewtonParams as GaussNewtonParams
+from ._lm import IterationRecord as IterationRecord
+from ._lm import LevenbergMarquardtParams as LevenbergMarquardtParams
+from ._lm import OptimizerParams as OptimizerParams
+from ._optimizers import GaussNewton as GaussNewton
+from ._optimizers import LevenbergMarquardt as LevenbergMarquardt
+from ._optimizers import OptimizationResult as OptimizationResult
+from ._optimizers import Optimizer as Optimizer
+from ._problem import Problem as Problem
+from ._values import Values as Values

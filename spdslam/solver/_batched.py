@@ -1,33 +1,35 @@
 """Many independent problems of identical structure, solved at once.
 
-``BatchedProblem(graph, values, fixed)`` lays out one *template* problem: the structure
-(variable types, which variables are free, factor kinds and the keys each factor touches).
-``.solve(factor_args, values)`` then runs B problems of that structure whose measurement
-data and initial values are given as arrays with a leading batch axis B: no per-problem
-Python work. ``solve_batched(graphs, values_list)`` is the older list-of-graphs interface;
-it checks that the graphs share one structure, stacks them and runs the same code.
+``BatchedProblem(graph, values, fixed, optimizer)`` (or ``optimizer.batched(...)``) lays out
+one *template* problem: the structure (variable types, which variables are free, factor
+kinds and the keys each factor touches). ``.solve(factor_args, values)`` then runs B
+problems of that structure whose measurement data and initial values are given as arrays
+with a leading batch axis B: no per-problem Python work. ``optimizer.optimize_batched(graphs,
+values_list)`` takes a list of graphs instead; it checks that they share one structure,
+stacks them and runs the same code.
 
 The LM (or GN) loop runs in JAX, one ``lax.while_loop`` compiled once per structure (and
-batching pattern, lane count, ``max_iterations``, B and ``optimize``). Each loop step works
-on L *lanes* (``batch_size``, default 16), each holding one problem: a lane solves its
-damped system (H + λD)δ = −g (dense Cholesky), retracts to the trial point and
+batching pattern, lane count, ``max_iterations``, B, step rule and ``optimize``). Each loop
+step works on L *lanes* (``batch_size``, default 16), each holding one problem: a lane
+solves its damped system (H + λD)δ = −g (dense Cholesky), retracts to the trial point and
 relinearises there; the one linearisation gives the trial cost, its validity and, if the
 step is accepted, the next H and g. A lane whose problem stops is refilled with the next
 problem of the queue (its first step is then the initial linearisation), so the work
-follows Σ(iterations + 1) / L rather than B · max(iterations). The rules (damping, gain
-ratio, Nielsen update, stopping) are those of ``LevenbergMarquardt`` / ``GaussNewton``
-(see ``_optimizers``), so the results match a loop of unbatched dense solves up to
-round-off. (On badly conditioned problems that stop on the relative tolerance after many
-small steps, round-off alone can change the iteration at which they stop: the order of
-floating-point operations differs between the unbatched solver, different lane counts and
-``optimize`` settings.)
+follows Σ(iterations + 1) / L rather than B · max(iterations). The decisions (damping, gain
+ratio, λ schedules, stopping) are ``_lm.decide``, the same function the host loop calls, so
+the results match a loop of unbatched dense solves up to round-off. (On badly conditioned
+problems that stop on the relative tolerance after many small steps, round-off alone can
+change the iteration at which they stop: the order of floating-point operations differs
+between the unbatched solver, different lane counts and ``optimize`` settings.) With a
+``callback`` or ``verbose``, each loop step hands the records of the lanes in flight to
+the host (``jax.experimental.io_callback``), which may stop their problems.
 
-Compilation. On CPU the program is compiled without XLA's newer fusion emitters (half the
-compile time, same speed) and, with ``optimize=False``, without LLVM optimisation: about a
-third of the compile time for 2-3× the run time per iteration. ``optimize=None`` (default)
-chooses by the size of the batch (``AUTO_OPTIMIZE_WORK``). ``BatchedProblem.cost`` runs the
-solver's program (stopping every problem at its initial linearisation) when one is built
-for the same input layout, so evaluating costs costs no compilation.
+Compilation. On CPU the program is compiled without XLA's newer fusion emitters and, with
+``optimize=False``, without LLVM optimisation: a shorter compile for slower loops (the
+figures are in docs/performance.md). ``optimize=None`` (default) chooses by the size of the
+batch (``AUTO_OPTIMIZE_WORK``). ``BatchedProblem.cost`` runs the solver's program (stopping
+every problem at its initial linearisation) when one is built for the same input layout,
+so evaluating costs costs no compilation.
 
 Layout (``_Layout``). Variables of one type are split into a *free* stack (the loop state)
 and a *fixed* stack (plain data: never retracted, never differentiated). Factors of one
@@ -47,7 +49,6 @@ per-factor JᵀJ blocks.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable, Iterable, Mapping, Sequence
@@ -55,50 +56,44 @@ from typing import Any, Callable, Hashable, Iterable, Mapping, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import io_callback
 
-from .. import manifold
-from ..factors._base import robust_weighting
-from ._optimizers import (
+from ..geometry import manifold
+from ._lm import (
+    CALLBACK,
     CONVERGED_REASONS,
-    GaussNewtonParams,
-    LevenbergMarquardtParams,
-    OptimizerParams,
+    HYPER,
+    MAX_ITERATIONS,
+    REASONS,
+    IterationRecord,
+    damping,
+    decide,
+    hyper,
+    initial_reason,
+    predicted_decrease,
 )
+from ._linearize import finish, retract_rows, violates, whitened
+from ._optimizers import LevenbergMarquardt, Optimizer
 from ._problem import Problem
 from ._values import Values
 
-__all__ = ["BatchedProblem", "BatchedResult", "solve_batched", "REASONS"]
+__all__ = ["BatchedProblem", "BatchedResult", "solve_graphs"]
 
-#: Reason codes of the batched loop (index → ``OptimizationResult.reason`` string).
-REASONS = (
-    "",
-    "absolute",
-    "relative",
-    "gradient",
-    "step",
-    "max_iterations",
-    "lambda_max",
-    "cost_increase",
-    "linear_solver",
-)
-_ABS, _REL, _GRAD, _STEP, _MAXIT, _LMAX, _CINC, _LINS = range(1, 9)
-_NONFINITE = 9  # internal: cost or gradient not finite at the initial values
+_NONFINITE = len(REASONS)  # internal: cost or gradient not finite at the initial values
 
 # lane status
 _ACTIVE, _LOADING, _IDLE = 0, 1, 2
 
 #: Default number of lanes (problems in flight at once), see ``BatchedProblem.solve``.
 DEFAULT_LANES = 16
-#: XLA options of the batched programs on CPU. The newer fusion emitters roughly double
-#: the compile time of these small-array programs for no gain at run time.
+#: XLA options of the batched programs on CPU: without the newer fusion emitters, which
+#: lengthen the compile of these small-array programs and do not speed them up.
 COMPILER_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 #: Added when a program is compiled for speed of compilation rather than of execution
-#: (``optimize=False``): no LLVM optimisation, about 1/3 of the compile time, 2-3× the
-#: run time of the compiled loop.
+#: (``optimize=False``): no LLVM optimisation.
 FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_backend_optimization_level": 0}
 #: ``optimize=None`` (auto) optimises the compiled code when B · max_iterations exceeds
-#: this (at ≈ 25 µs more per iteration unoptimised, the 0.5-1 s of compile time saved by
-#: not optimising is won back after some 30 000 iterations).
+#: this: the work at which the longer compile pays for itself (docs/performance.md).
 AUTO_OPTIMIZE_WORK = 100_000
 
 #: H and g come from the dense Jacobian (rows × n) when n ≤ this, else from scattered
@@ -118,11 +113,12 @@ class BatchedResult:
     ``values_batched[key]``: the final value of every variable the graph touches, as one
     pytree of the key's type with a leading axis B (numpy leaves): free variables as
     solved, fixed ones as given. ``values``: the same as a list of B ``Values`` (built on
-    first access; for ``solve_batched`` each is a copy of the problem's input Values).
+    first access; for ``optimize_batched`` each is a copy of the problem's input Values).
 
     History arrays have one column per iteration (``max_iterations`` columns), padded with
     NaN (False for ``accepted``) after a problem stopped: ``cost`` after the iteration,
-    ``trial_cost`` at its trial point, ``step_norm`` ‖δ‖₂, ``lambda_`` the damping used.
+    ``trial_cost`` at its trial point, ``step_norm`` ‖δ‖₂, ``lambda_`` the damping used,
+    ``gain`` the gain ratio; ``history(b)`` gives problem b's as ``IterationRecord``s.
     ``timings`` (s): setup (input layout), trace (tracing and lowering to XLA) and compile
     (XLA compilation; both zero when the program was already built), solve (running the
     loop), output; ``steps`` is the number of loop steps the lanes ran.
@@ -139,6 +135,7 @@ class BatchedResult:
     step_norm_history: np.ndarray
     lambda_history: np.ndarray
     accepted_history: np.ndarray
+    gain_history: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     steps: int = 0
     _make_values: Callable[[], list] | None = field(default=None, repr=False)
@@ -153,6 +150,17 @@ class BatchedResult:
 
     def __len__(self) -> int:
         return len(self.initial_cost)
+
+    def history(self, b: int) -> list[IterationRecord]:
+        """The iterations of problem ``b`` (``time`` is not recorded per problem: NaN)."""
+        return [
+            IterationRecord(k + 1, float(self.cost_history[b, k]),
+                            float(self.trial_cost_history[b, k]),
+                            float(self.step_norm_history[b, k]),
+                            float(self.lambda_history[b, k]), float(self.gain_history[b, k]),
+                            bool(self.accepted_history[b, k]), float("nan"), b)
+            for k in range(int(self.iterations[b]))
+        ]
 
     def __repr__(self) -> str:
         return (f"BatchedResult({len(self)} problems, {int(np.sum(self.converged))} "
@@ -318,8 +326,7 @@ class _Kernel:
                 vals = list(xs_i)
                 for p, v in zip(free_pos, fv):
                     vals[p] = v
-                r = jnp.ravel(jnp.atleast_1d(spec.residual(*vals, *args_i)))
-                return r if W_i is None else W_i @ r
+                return whitened(spec.residual, W_i, vals, args_i)
 
             if jac and D > 0:
                 dirs, o = [], 0
@@ -336,13 +343,7 @@ class _Kernel:
                 J = Jt.T
             else:
                 r, J = res(*[xs_i[p] for p in free_pos]), None
-            finite = jnp.all(jnp.isfinite(r))
-            if J is not None:
-                finite &= jnp.all(jnp.isfinite(J))
-            half_rho, r, J = robust_weighting(spec.robust, r, J)
-            valid = (jnp.asarray(spec.valid(*xs_i, *args_i), bool)
-                     if spec.valid is not None else None)
-            return r, J, half_rho, valid, finite
+            return finish(spec, r, J, xs_i, args_i)
 
         tan_ax = [xs_ax[p] for p in free_pos] if jac else []
         if any(a == 0 for a in xs_ax) or leaves or W is not None:
@@ -411,19 +412,14 @@ class _Kernel:
             if not nf:
                 out.append(None)
                 continue
-            op = manifold.ops(ts.cls)
             d = delta[o : o + nf * ts.dim].reshape(nf, ts.dim)
-            y = jax.vmap(op.retract)(x, d)
-            if op.regularize is not None:
-                y = jax.vmap(op.regularize)(y)
-            out.append(y)
+            out.append(retract_rows(ts.cls, x, d))
         return tuple(out)
 
 
-def _damped_solve(H, g, lam, hyper):
-    """δ from (H + λD)δ = −g by Cholesky; D = clip(diag H); (δ, solved, D)."""
-    dmin, dmax = hyper[4], hyper[5]
-    D = jnp.clip(jnp.diagonal(H), dmin, dmax)
+def _damped_solve(H, g, lam, rule, h):
+    """δ from (H + λD)δ = −g by Cholesky, D from ``_lm.damping``; (δ, solved, D)."""
+    D = damping(jnp.diagonal(H), rule, h, jnp)
     A = H + jnp.diag(lam * D)
     # lower Cholesky factor (from the lower triangle, like the unbatched dense solver) and
     # two triangular solves, through the lax primitives: less to trace than jnp.linalg
@@ -493,11 +489,11 @@ def _call(key, fn, args, timings: dict | None = None, optimize: bool = True):
     return ex(*args)
 
 
-def _solver_fn(kern: _Kernel, sig, axes, lanes: int, max_iter: int, gn: bool):
-    key = ("solve", sig, axes, lanes, max_iter, gn)
+def _solver_fn(kern: _Kernel, sig, axes, lanes: int, max_iter: int, rule, report: bool):
+    key = ("solve", sig, axes, lanes, max_iter, rule, report)
     fn = _CACHE.get(key)
     if fn is None:
-        fn = _CACHE[key] = _jit(_make_solver(kern, axes, lanes, max_iter, gn))
+        fn = _CACHE[key] = _jit(_make_solver(kern, axes, lanes, max_iter, rule, report))
     return key, fn
 
 
@@ -532,28 +528,61 @@ def _unpack(mat, like):
     return jax.tree.unflatten(td, out)
 
 
-#: Columns of the packed history (B, max_iterations, 5).
-_H_COST, _H_TRIAL, _H_STEP, _H_LAMBDA, _H_ACC = range(5)
+#: Columns of the packed history (B, max_iterations, 6).
+_H_COST, _H_TRIAL, _H_STEP, _H_LAMBDA, _H_ACC, _H_GAIN = range(6)
 #: Columns of the packed per-problem results (B, 4).
 _R_COST0, _R_COST, _R_ITS, _R_REASON = range(4)
+#: Columns of the per-lane records handed to the host callback.
+_REPORT = ("problem", "iteration", "cost", "trial_cost", "step_norm", "lambda", "gain", "accepted")
 
 
-def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, gn: bool):
+class _Reporter:
+    """The host side of ``callback``/``verbose`` in the batched loop. The compiled program
+    calls ``_report``, which forwards to the reporter of the solve in progress (so a cached
+    program serves every callback)."""
+
+    current: "_Reporter | None" = None
+
+    def __init__(self, params):
+        self.callback, self.verbose = params.callback, params.verbose
+        self.last = time.perf_counter()
+
+    def __call__(self, rows, active):
+        now = time.perf_counter()
+        dt, self.last = now - self.last, now
+        stop = np.zeros(len(active), bool)
+        for lane in np.flatnonzero(active):
+            p, it, cost, trial, step, lam, gain, acc = rows[lane]
+            rec = IterationRecord(int(it), float(cost), float(trial), float(step), float(lam),
+                                  float(gain), bool(acc), dt, int(p))
+            if self.verbose:
+                print(rec.line())
+            if self.callback is not None and self.callback(rec):
+                stop[lane] = True
+        return stop
+
+
+def _report(rows, active):
+    rep = _Reporter.current
+    return np.zeros(len(active), bool) if rep is None else rep(np.asarray(rows), np.asarray(active))
+
+
+def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: bool):
     """The lane loop. Inputs: x0 (per type, (B, nfree, ...)), fixed values and sub-group
-    data (batched or shared, ``axes``), hyper-parameters, and the output buffers (filled
-    on the host): results (B, 4) and history (B, max_iter, 5), NaN."""
+    data (batched or shared, ``axes``), the numbers of the rule (``_lm.HYPER``), and the
+    output buffers (filled on the host): results (B, 4) and history (B, max_iter, 6), NaN.
+    ``rule`` (``_lm.StepRule``) is static; ``report`` compiles the host callback in."""
     fix_ax, data_ax = axes
     n = kern.n
     lin_l = jax.vmap(kern.linearize, in_axes=(0, fix_ax, data_ax))
     retract_l = jax.vmap(kern.retract)
     valid_shapes = [None if s.spec.valid is None else (s.nf,) for s in kern.subs]
 
-    def run(x0, xfix, gdata, hyper, res0, hist0):
-        (rel_tol, abs_tol, grad_tol, step_tol, _, _, lam0, lam_min, lam_max) = (
-            hyper[i] for i in range(9))
+    def run(x0, xfix, gdata, hyper_arr, res0, hist0):
+        h = {k: hyper_arr[i] for i, k in enumerate(HYPER)}
         B = jax.tree.leaves(x0)[0].shape[0]
         L = min(lanes, B)
-        solve_l = jax.vmap(lambda H, g, lam: _damped_solve(H, g, lam, hyper))
+        solve_l = jax.vmap(lambda H, g, lam: _damped_solve(H, g, lam, rule, h))
 
         # initial state: lanes 0..L-1 load problems 0..L-1
         pid = jnp.arange(L, dtype=jnp.int32)
@@ -584,37 +613,16 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, gn: bool):
                                             _take(gdata, data_ax, pid))
 
             step_norm = jnp.sqrt(jnp.sum(delta * delta, axis=-1))
-            pred = 0.5 * jnp.sum(delta * (lam[:, None] * D * delta - g), axis=-1)
-            viol = jnp.zeros(L, bool)
-            for vc, vn in zip(valid, valid1):
-                if vc is not None:
-                    viol |= jnp.any(vc & ~vn, axis=-1)
-            ok = solved & jnp.isfinite(c1) & fin1 & ~viol
-            accepted = active & ok & (c1 < cost)
-            gain = jnp.where(ok & (pred > 0), (cost - c1) / jnp.where(pred > 0, pred, 1.0),
-                             -jnp.inf)
-            if gn:
-                lam_u, nu_u = lam, nu
-                fail = jnp.where(solved, _CINC, _LINS)
-            else:
-                shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-                lam_u = jnp.where(accepted, jnp.maximum(lam_min, lam * shrink), lam * nu)
-                nu_u = jnp.where(accepted, 2.0, 2.0 * nu)
-                fail = jnp.where(lam_u > lam_max, _LMAX, 0)
+            pred = predicted_decrease(delta, D, g, lam, jnp)
+            usable = solved & jnp.isfinite(c1) & fin1 & ~violates(valid, valid1, axis=-1)
             gmax1 = jnp.max(jnp.abs(g1), axis=-1, initial=0.0)
-            r_acc = jnp.where(
-                c1 <= abs_tol, _ABS,
-                jnp.where(cost - c1 <= rel_tol * cost, _REL,
-                          jnp.where(gmax1 <= grad_tol, _GRAD,
-                                    jnp.where(step_norm <= step_tol, _STEP, 0))))
-            small = ok & (jnp.abs(cost - c1) <= rel_tol * cost) & (pred <= rel_tol * cost)
-            r_rej = jnp.where(solved & (step_norm <= step_tol), _STEP,
-                              jnp.where(small, _REL, fail))
+            acc, gain, lam_u, nu_u, r_step = decide(rule, h, cost, c1, usable, solved, pred,
+                                                    step_norm, gmax1, lam, nu, jnp)
+            accepted = active & acc
             # loading lanes: their initial linearisation
             fin0 = fin1 & jnp.isfinite(c1)
-            r_0 = jnp.where(~fin0, _NONFINITE,
-                            jnp.where(c1 <= abs_tol, _ABS, jnp.where(gmax1 <= grad_tol, _GRAD, 0)))
-            reason = jnp.where(got, r_0, jnp.where(accepted, r_acc, jnp.where(active, r_rej, 0)))
+            r_0 = jnp.where(~fin0, _NONFINITE, initial_reason(c1, gmax1, fin0, h, jnp))
+            reason = jnp.where(got, r_0, jnp.where(active, r_step, 0))
 
             take_new = got | accepted
             new = dict(st)
@@ -623,23 +631,28 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, gn: bool):
             new["g"] = _where(take_new, g1, g)
             new["valid"] = _where(take_new, valid1, valid)
             cost_n = new["cost"] = jnp.where(take_new, c1, cost)
-            new["lam"] = jnp.where(got, lam0, jnp.where(active, lam_u, lam))
+            new["lam"] = jnp.where(got, h["lambda_initial"], jnp.where(active, lam_u, lam))
             new["nu"] = jnp.where(got, 2.0, jnp.where(active, nu_u, nu))
             it_n = new["it"] = jnp.where(got, 0, jnp.where(active, it + 1, it)).astype(jnp.int32)
+            trial = jnp.where(solved, c1, jnp.inf)
+            step = jnp.where(solved, step_norm, jnp.nan)
+            if report:
+                rows = jnp.stack([pid.astype(float), it_n.astype(float), cost_n, trial, step, lam,
+                                  gain, accepted.astype(float)], axis=1)
+                stop = io_callback(_report, jax.ShapeDtypeStruct((L,), jnp.bool_), rows, active)
+                reason = jnp.where(active & stop & (reason == 0), CALLBACK, reason)
             done = (got | active) & ((reason != 0) | (it_n >= max_iter))
 
             # history of the active lanes at (problem, iteration)
             if max_iter > 0:
-                rows = jnp.stack([cost_n, jnp.where(solved, c1, jnp.inf),
-                                  jnp.where(solved, step_norm, jnp.nan), lam,
-                                  accepted.astype(float)], axis=1)
+                rows = jnp.stack([cost_n, trial, step, lam, accepted.astype(float), gain], axis=1)
                 new["hist"] = st["hist"].at[jnp.where(active, pid, B),
                                             jnp.minimum(it, max_iter - 1)].set(rows, mode="drop")
             # results: initial cost when loaded, the rest when done
             res = st["res"].at[jnp.where(got, pid, B), _R_COST0].set(c1, mode="drop")
             pd = jnp.where(done, pid, B)
             fin = jnp.stack([cost_n, it_n.astype(float),
-                             jnp.where(reason == 0, _MAXIT, reason).astype(float)], axis=1)
+                             jnp.where(reason == 0, MAX_ITERATIONS, reason).astype(float)], axis=1)
             new["res"] = res.at[pd, _R_COST:].set(fin, mode="drop")
             new["xout"] = st["xout"].at[pd].set(_pack(new["x"]), mode="drop")
             # refill the lanes that finished with the next problems of the queue
@@ -664,32 +677,10 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, gn: bool):
 # ------------------------------------------------------------------------------------------
 
 
-def _resolve_params(params, method, overrides):
-    if method not in ("lm", "gn"):
-        raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
-    gn = method == "gn"
-    Params = GaussNewtonParams if gn else LevenbergMarquardtParams
-    if params is None:
-        params = Params()
-    elif not isinstance(params, Params):
-        shared = {f.name: getattr(params, f.name) for f in dataclasses.fields(OptimizerParams)}
-        params = Params(**shared)
-    if overrides:
-        params = dataclasses.replace(params, **overrides)
-    if not gn and (params.lambda_schedule != "nielsen" or not params.diagonal_damping):
-        raise ValueError("the batched solver supports lambda_schedule='nielsen' with "
-                         "diagonal_damping=True only")
-    return params, gn
-
-
-def _hyper(params, gn):
-    lam0 = params.ridge if gn else params.lambda_initial
-    lam_min = params.ridge if gn else params.lambda_min
-    lam_max = np.inf if gn else params.lambda_max
-    return np.asarray(
-        [params.relative_tolerance, params.absolute_tolerance, params.gradient_tolerance,
-         params.step_tolerance, params.min_diagonal, params.max_diagonal, lam0, lam_min,
-         lam_max], dtype=float)
+def _hyper(params) -> np.ndarray:
+    """The numbers of the rule as one array, in ``_lm.HYPER`` order."""
+    h = hyper(params)
+    return np.asarray([h[k] for k in HYPER], dtype=float)
 
 
 class _Batch:
@@ -705,25 +696,24 @@ class BatchedProblem:
     ``graph``, ``values``, ``fixed``: one problem of the structure; every problem solved
     with it has the same factors (kinds and keys), the same variables and the same fixed
     keys; measurement data and values may differ and are given as arrays to ``solve``
-    and ``cost``. ``params`` / ``method`` ("lm" or "gn") / keyword overrides of the
-    parameters: as ``solve_batched``. ``optimize``: compile for run time (True) or for
-    compile time (False); None chooses by B · max_iterations (see the module docstring).
-    The linear solver is always dense (Cholesky).
+    and ``cost``. ``optimizer``: a ``LevenbergMarquardt`` (default) or ``GaussNewton`` with
+    its parameters (``optimizer.batched(graph, values, fixed)`` is the same). ``optimize``:
+    compile for run time (True) or for compile time (False); None chooses by
+    B · max_iterations (see the module docstring). The linear solver is always dense
+    (Cholesky).
 
     Example (one landmark seen from V fixed cameras, B scenes)::
 
-        bp = BatchedProblem(graph0, values0, fixed=[("x", i) for i in range(V)])
+        bp = LevenbergMarquardt().batched(graph0, values0, fixed=[X(i) for i in range(V)])
         res = bp.solve({i: (boxes[:, i], camera) for i in range(V)},
-                       {"o": Ellipsoid(P, t), **{("x", i): SE3(wxyz_xyz[:, i]) ...}})
-        res.values_batched["o"]          # Ellipsoid with P (B, 3, 3), center (B, 3)
+                       {L(0): Ellipsoid(P, t), **{X(i): SE3(wxyz_xyz[:, i]) ...}})
+        res.values_batched[L(0)]         # Ellipsoid with P (B, 3, 3), center (B, 3)
         bp.cost(same_args, truth_values) # (B,)
     """
 
     def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
-                 params: OptimizerParams | None = None, method: str = "lm",
-                 optimize: bool | None = None, **overrides: Any):
-        self.params, self._gn = _resolve_params(params, method, overrides)
-        self.method = method
+                 optimizer: Optimizer | None = None, optimize: bool | None = None):
+        self._set_optimizer(optimizer)
         self.optimize = optimize
         if not isinstance(values, Values):
             values = Values(values)
@@ -731,6 +721,13 @@ class BatchedProblem:
         self.fixed = list(fixed)
         self.factors = list(graph)
         self._init_from_problem(Problem(self.factors, values, self.fixed))
+
+    def _set_optimizer(self, optimizer: Optimizer | None):
+        self.optimizer = LevenbergMarquardt() if optimizer is None else optimizer
+        if not isinstance(self.optimizer, Optimizer):
+            raise TypeError(f"optimizer must be a LevenbergMarquardt or GaussNewton, got "
+                            f"{type(self.optimizer).__name__}")
+        self.params, self.rule = self.optimizer.params, self.optimizer.rule
 
     def _init_from_problem(self, problem: Problem):
         self.layout = lay = _Layout(problem)
@@ -932,11 +929,11 @@ class BatchedProblem:
         built = _BUILT.get((self.layout.signature, axes, _shapes((b.x0, b.xfix, b.gdata))))
         if built is not None:
             key, fn, lanes, max_iter, optimize = built
-            hyper = _hyper(self.params, self._gn)
-            hyper[1] = np.inf  # absolute tolerance: every problem stops when loaded
+            hyper_arr = _hyper(self.params)
+            hyper_arr[HYPER.index("absolute_tolerance")] = np.inf  # every problem stops when loaded
             res0 = np.full((b.B, 4), np.nan)
-            hist0 = np.full((b.B, max_iter, 5), np.nan)
-            out = _call(key, fn, (b.x0, b.xfix, b.gdata, hyper, res0, hist0),
+            hist0 = np.full((b.B, max_iter, 6), np.nan)
+            out = _call(key, fn, (b.x0, b.xfix, b.gdata, hyper_arr, res0, hist0),
                         optimize=optimize)
             return np.asarray(out[1])[:, _R_COST0]
         key, fn = _cost_fn(self._kernel, self.layout.signature, axes)
@@ -972,22 +969,28 @@ class BatchedProblem:
         if lanes < 1:
             raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
         lanes = min(lanes, b.B)
+        report = p.callback is not None or bool(p.verbose)
         key, fn = _solver_fn(self._kernel, self.layout.signature, _hashable_axes(b.axes),
-                             lanes, max_iter, self._gn)
-        hyper = _hyper(p, self._gn)
+                             lanes, max_iter, self.rule, report)
+        hyper_arr = _hyper(p)
         optimize = self.optimize
         if optimize is None:
             optimize = b.B * max_iter > AUTO_OPTIMIZE_WORK
-        _BUILT.setdefault((self.layout.signature, _hashable_axes(b.axes),
-                           _shapes((b.x0, b.xfix, b.gdata))),
-                          (key, fn, lanes, max_iter, optimize))
+        if not report:
+            _BUILT.setdefault((self.layout.signature, _hashable_axes(b.axes),
+                               _shapes((b.x0, b.xfix, b.gdata))),
+                              (key, fn, lanes, max_iter, optimize))
         res0 = np.full((b.B, 4), np.nan)
-        hist0 = np.full((b.B, max_iter, 5), np.nan)
+        hist0 = np.full((b.B, max_iter, 6), np.nan)
         t1 = time.perf_counter()
         timings = {"setup": t1 - t0}
-        xout, res, hist, steps = _call(key, fn, (b.x0, b.xfix, b.gdata, hyper, res0, hist0),
-                                       timings, optimize)
-        xout, res, hist = jax.tree.map(np.asarray, (xout, res, hist))
+        _Reporter.current = _Reporter(p) if report else None
+        try:
+            xout, res, hist, steps = _call(
+                key, fn, (b.x0, b.xfix, b.gdata, hyper_arr, res0, hist0), timings, optimize)
+            xout, res, hist = jax.tree.map(np.asarray, (xout, res, hist))
+        finally:
+            _Reporter.current = None
         t2 = time.perf_counter()
         timings["solve"] = t2 - t1 - timings["trace"] - timings["compile"]
         reason_codes = res[:, _R_REASON].astype(int)
@@ -1014,6 +1017,7 @@ class BatchedProblem:
             step_norm_history=hist[:, :, _H_STEP].copy(),
             lambda_history=hist[:, :, _H_LAMBDA].copy(),
             accepted_history=hist[:, :, _H_ACC] == 1.0,
+            gain_history=hist[:, :, _H_GAIN].copy(),
             timings=dict(timings, output=time.perf_counter() - t2),
             steps=int(steps),
             _make_values=make_values,
@@ -1059,7 +1063,7 @@ class BatchedProblem:
             if fi in b.given_args:
                 td = self._targs[fi][0]
                 leaves = [a[i] if bt else a for a, bt in b.given_args[fi]]
-                f = dataclasses.replace(f, args=jax.tree.unflatten(td, leaves))
+                f = f.replace(args=jax.tree.unflatten(td, leaves))
             out.append(f)
         return out
 
@@ -1101,31 +1105,28 @@ def _same_structure(a: Problem, b: Problem, i: int) -> None:
             fail("shapes of the factor data")
 
 
-def solve_batched(
+def solve_graphs(
+    optimizer: Optimizer,
     graphs: Any,
     values_list: Sequence[Any],
-    params: OptimizerParams | None = None,
     fixed: Iterable[Hashable] = (),
-    method: str = "lm",
     batch_size: int | None = None,
     optimize: bool | None = None,
-    **overrides: Any,
 ) -> BatchedResult:
-    """Solve B independent problems of identical structure with one jitted LM loop.
+    """Solve B independent problems of identical structure with one jitted loop of
+    ``optimizer`` (``Optimizer.optimize_batched``).
 
     ``graphs``: one graph per problem (a sequence), or a single graph shared by all;
     ``values_list``: the B initial Values; ``fixed``: keys held fixed in every problem;
-    ``method``: "lm" (``LevenbergMarquardtParams``) or "gn" (``GaussNewtonParams``);
-    keyword overrides replace fields of ``params``; ``batch_size``: lanes (see
-    ``BatchedProblem.solve``). The linear solver is always dense. Problems may use
-    different keys as long as the structure is the same (variables are matched by their
-    position in the layout of problem 0). For many problems, ``BatchedProblem`` avoids
-    the per-problem layout work done here.
+    ``batch_size``: lanes (see ``BatchedProblem.solve``). The linear solver is always
+    dense. Problems may use different keys as long as the structure is the same (variables
+    are matched by their position in the layout of problem 0). For many problems,
+    ``BatchedProblem`` avoids the per-problem layout work done here.
     """
     t0 = time.perf_counter()
     values_list = [v if isinstance(v, Values) else Values(v) for v in values_list]
     if not values_list:
-        raise ValueError("solve_batched needs at least one problem")
+        raise ValueError("optimize_batched needs at least one problem")
     if isinstance(graphs, (list, tuple)):
         if len(graphs) != len(values_list):
             raise ValueError(f"{len(graphs)} graphs but {len(values_list)} Values")
@@ -1137,8 +1138,7 @@ def solve_batched(
     for i, p in enumerate(problems[1:], start=1):
         _same_structure(p0, p, i)
     bp = BatchedProblem.__new__(BatchedProblem)
-    bp.params, bp._gn = _resolve_params(params, method, overrides)
-    bp.method = method
+    bp._set_optimizer(optimizer)
     bp.optimize = optimize
     bp.template_values = values_list[0]
     bp.fixed = fixed

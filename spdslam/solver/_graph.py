@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any, Hashable, Iterable, Iterator
 
-from ..factors._base import Factor
+from ..factors import Factor
 
-__all__ = ["NonlinearFactorGraph", "FactorGraph"]
+__all__ = ["NonlinearFactorGraph"]
 
 
 class NonlinearFactorGraph:
@@ -60,6 +60,3 @@ class NonlinearFactorGraph:
             kinds[f.kind] = kinds.get(f.kind, 0) + 1
         desc = ", ".join(f"{n} {k}" for k, n in kinds.items())
         return f"NonlinearFactorGraph({len(self)} factors: {desc})"
-
-
-FactorGraph = NonlinearFactorGraph

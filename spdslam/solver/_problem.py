@@ -22,10 +22,12 @@ problem (all groups, plus the scatter of JᵀJ and Jᵀr̃ into their slots) is 
 
 Compilation. The jitted functions are cached on the static structure (residual functions,
 variable types, data tree structures, kernels) and JAX caches them per array shape. To keep
-the number of shapes small, every count (variables per type, factors per group, n, nnz) is
+the number of shapes small, the counts of variables per type and of factors per group are
 padded up to a ``bucket`` (2ᵏ·{1, 1.25, 1.5, 1.75}): pad variables repeat row 0 and are held
-fixed, pad factors repeat factor 0 with zero weight and scatter into a discarded slot. A graph
-that grows by a few factors therefore usually reuses the compiled code.
+fixed, pad factors repeat factor 0 with zero weight and scatter into a discarded slot (H and
+g are summed on the host, so n and nnz are not part of the compiled shapes). A graph that
+grows by a few factors therefore usually reuses the compiled code. The per-factor terms
+(whitening, robust weighting, validity) are ``_linearize``'s, shared with the batched solver.
 """
 
 from __future__ import annotations
@@ -38,14 +40,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import manifold
-from ..factors._base import RobustKernel, robust_weighting
+from ..factors import CustomFactor, RobustKernel
+from ..geometry import manifold
+from ._linearize import finish, retract_rows, violates, whitened
 
 __all__ = ["Problem", "bucket", "CHUNK"]
 
 #: Factors are linearised in chunks of about CHUNK // D factors (lax.map over vmapped
-#: chunks): the intermediates of forward-mode differentiation then stay in cache, which on
-#: CPU is several times faster than one vmap over all factors of a group.
+#: chunks), so that the intermediates of forward-mode differentiation stay in cache on CPU.
 CHUNK = 256
 
 
@@ -95,7 +97,9 @@ class _GroupBuild:
 
 
 def _describe(f, fi) -> str:
-    return f"factor #{fi} ({f.kind}, keys {tuple(f.keys)!r})"
+    """"factor #i (BetweenFactor, keys …)": the type's class name, a custom factor's kind."""
+    name = f.kind if isinstance(f, CustomFactor) else type(f).__name__
+    return f"factor #{fi} ({name}, keys {tuple(f.keys)!r})"
 
 
 def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
@@ -119,7 +123,6 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
 
     mode "cost":   (½ρ(s) (nf,), valid, finite)
     mode "sparse": (JᵀJ upper triangle (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)
-    mode "dense":  (JᵀJ (nf, D, D), Jᵀr (nf, D), ½ρ(s), valid, finite)
     mode "terms":  (r (nf, m), J (nf, m, D), ½ρ(s), valid, finite)
 
     r and J are whitened and IRLS-weighted: r ← √ρ'(s) W r, J ← √ρ'(s) W ∂r/∂δ, s = ‖W r‖².
@@ -134,14 +137,10 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
     D = spec.D
     iu, ju = np.triu_indices(D)
 
-    def whiten(r, Wi):
-        r = jnp.ravel(jnp.atleast_1d(r))
-        return r if Wi is None else Wi @ r
-
     def one(item):
         xs_i, args_i, W_i, mask_i = item
         if mode == "cost":
-            r = whiten(spec.residual(*xs_i, *args_i), W_i)
+            r = whitened(spec.residual, W_i, xs_i, args_i)
             J = None
         else:
 
@@ -150,27 +149,17 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
                     op.retract(x, d[offs[p] : offs[p + 1]])
                     for p, (op, x) in enumerate(zip(ops, xs_i))
                 ]
-                r = whiten(spec.residual(*ys, *args_i), W_i)
+                r = whitened(spec.residual, W_i, ys, args_i)
                 return r, r
 
             J, r = jax.jacfwd(fun, has_aux=True)(jnp.zeros(D))
-        finite = jnp.all(jnp.isfinite(r))
-        if J is not None:
-            finite &= jnp.all(jnp.isfinite(J))
-        half_rho, r, J = robust_weighting(spec.robust, r, J)
+        r, J, half_rho, valid, finite = finish(spec, r, J, xs_i, args_i)
         half_rho = jnp.where(mask_i, half_rho, 0.0)
-        valid = (
-            jnp.asarray(spec.valid(*xs_i, *args_i), bool) if spec.valid is not None else None
-        )
         if mode == "cost":
             return half_rho, valid, finite
         if mode == "terms":
             return r, J, half_rho, valid, finite
-        JtJ = J.T @ J
-        Jtr = J.T @ r
-        if mode == "sparse":
-            JtJ = JtJ[iu, ju]
-        return JtJ, Jtr, half_rho, valid, finite
+        return (J.T @ J)[iu, ju], J.T @ r, half_rho, valid, finite
 
     nf = idx.shape[0]
     batch = _chunk(nf, D)
@@ -196,10 +185,7 @@ def _retract_all(tspecs, vars_, deltas, free):
     ``deltas``: per type, (rows, tangent dim)."""
     out = []
     for ts, x, d, fr in zip(tspecs, vars_, deltas, free):
-        op = manifold.ops(ts.cls)
-        y = jax.vmap(op.retract)(x, d)
-        if op.regularize is not None:
-            y = jax.vmap(op.regularize)(y)
+        y = retract_rows(ts.cls, x, d)
         y = jax.tree.map(
             lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x
         )
@@ -208,25 +194,14 @@ def _retract_all(tspecs, vars_, deltas, free):
 
 
 def split_delta(delta, tan_idx):
-    """Per-type (rows, dim) blocks of δ; ``tan_idx`` rows of non-free variables point past
-    the end of δ and get zeros. Works on numpy and JAX arrays."""
-    xp = jnp if isinstance(delta, jax.Array) else np
-    dext = xp.concatenate([delta, xp.zeros(1, delta.dtype)])
+    """Per-type (rows, dim) blocks of δ (NumPy); ``tan_idx`` rows of non-free variables
+    point past the end of δ and get zeros."""
+    dext = np.concatenate([delta, np.zeros(1, delta.dtype)])
     return tuple(dext[ti] for ti in tan_idx)
 
 
-def _violates(valid_cur, valid_new):
-    """True if a factor valid in ``valid_cur`` is invalid in ``valid_new``."""
-    bad = jnp.zeros((), bool)
-    for vc, vn in zip(valid_cur, valid_new):
-        if vc is not None:
-            bad |= jnp.any(vc & ~vn)
-    return bad
-
-
 class _Kernels:
-    """The functions of one static structure: plain (``*_fn``, for use inside other traced
-    code such as the batched solver) and jitted."""
+    """The jitted functions of one static structure."""
 
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
@@ -246,31 +221,17 @@ class _Kernels:
                 cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
             return tuple(terms), cost, tuple(valids), finite
 
-        def linearize_dense(vars_, gdata, gidx, gcols, n):
-            H = jnp.zeros((n + 1, n + 1))
-            g = jnp.zeros(n + 1)
-            cost, valids, finite = jnp.zeros(()), [], jnp.ones((), bool)
-            for spec, d, ix, G in zip(gspecs, gdata, gidx, gcols):
-                JtJ, gc, hr, v, fin = _group_map(spec, tspecs, vars_, ix, d, "dense")
-                H = H.at[G[:, :, None], G[:, None, :]].add(JtJ)
-                g = g.at[G].add(gc)
-                cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
-            return H[:n, :n], g[:n], cost, tuple(valids), finite
-
         def step(vars_, deltas, free, gdata, gidx, valid_cur):
             new = _retract_all(tspecs, vars_, deltas, free)
             cost, valid_new = evaluate(new, gdata, gidx)
-            return new, cost, _violates(valid_cur, valid_new)
+            return new, cost, violates(valid_cur, valid_new)
 
         def group_terms(k, vars_, data, gidx):
             r, J, _, _, fin = _group_map(gspecs[k], tspecs, vars_, gidx, data, "terms")
             return r, J, fin
 
-        self.evaluate_fn = evaluate
-        self.linearize_dense_fn = linearize_dense
         self.evaluate = jax.jit(evaluate)
         self.linearize_sparse = jax.jit(linearize_sparse)
-        self.linearize_dense = jax.jit(linearize_dense, static_argnames=("n",))
         self.step = jax.jit(step)
         self.group_terms = jax.jit(group_terms, static_argnums=0)
 
@@ -298,8 +259,8 @@ class Problem:
     ``fixed`` keys keep their values and have no tangent coordinates; so do keys that are
     in ``values`` but touched by no factor (they are left out of the problem).
 
-    Attributes used by the optimisers: ``n`` (tangent dimension) and ``n_pad``; ``vars``
-    (per type, stacked and padded); ``linearize``, ``step``, ``cost``, ``to_values``.
+    Attributes used by the optimisers: ``n`` (tangent dimension); ``vars`` (per type,
+    stacked and padded); ``linearize``, ``step``, ``cost``, ``to_values``.
     """
 
     def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
@@ -399,23 +360,19 @@ class Problem:
             offsets.append(off)
         self.offsets = offsets
         self.n = n
-        self.n_pad = bucket(n)
         if check_free and n == 0:
             raise ValueError(
                 "the graph has no free variables (every key it touches is fixed)"
                 if factors else "the graph has no factors"
             )
         # tangent index of each coordinate of each (padded) variable row; rows without
-        # tangent coordinates point past the end: n for δ ∈ Rⁿ on the host, n_pad in JAX.
-        self.tan_idx, tan_idx_pad, free_j = [], [], []
+        # tangent coordinates point past the end of δ ∈ Rⁿ
+        self.tan_idx, free_j = [], []
         for ts, off, npad in zip(self.tspecs, offsets, nv_pad):
             off = np.concatenate([off, np.full(npad - len(off), -1)])
             ti = off[:, None] + np.arange(ts.dim)
             self.tan_idx.append(np.where(off[:, None] >= 0, ti, n))
-            tan_idx_pad.append(jnp.asarray(np.where(off[:, None] >= 0, ti, self.n_pad),
-                                           dtype=jnp.int32))
             free_j.append(jnp.asarray(off >= 0))
-        self.tan_idx_pad = tuple(tan_idx_pad)
         self.free_j = tuple(free_j)
 
         # --- factor groups -------------------------------------------------------------
@@ -429,6 +386,11 @@ class Problem:
             except Exception as e:
                 raise ValueError(f"{_describe(f0, gb.first)}: residual failed: {e}") from e
             m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
+            if f0.dim is not None and m != f0.dim:
+                raise ValueError(
+                    f"{_describe(f0, gb.first)}: the residual has dimension {m}, but "
+                    f"{type(f0).__name__} declares dim = {f0.dim}"
+                )
             if gb.sig[4] is not None and gb.sig[4] != (m, m):
                 raise ValueError(
                     f"{_describe(f0, gb.first)}: sqrt_info has shape {gb.sig[4]}, "
@@ -469,7 +431,6 @@ class Problem:
         self.gidx = tuple(gidx)
         self.kernels = kernels(self.tspecs, self.gspecs)
         self._sparse = None
-        self._dense_cols = None
 
     # --- index maps --------------------------------------------------------------------
     def _pad_index(self, a: np.ndarray, k: int, trash: int) -> np.ndarray:
@@ -497,8 +458,8 @@ class Problem:
                 code = np.minimum(gi, gj).astype(np.int64) * n + np.maximum(gi, gj)
                 codes.append(np.where(ok, code, -1))
             diag_code = np.arange(n, dtype=np.int64) * (n + 1)
-            # sorted unique codes (an explicit sort: several times faster than np.unique's
-            # hashing on millions of codes)
+            # sorted unique codes (an explicit sort rather than np.unique's hashing, which is
+            # slower on millions of codes: docs/performance.md, graph building)
             uniq = np.sort(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
             uniq = uniq[np.r_[True, uniq[1:] != uniq[:-1]]] if uniq.size else uniq
             nnz = len(uniq)
@@ -524,20 +485,6 @@ class Problem:
                 gslots=gslots,
             )
         return self._sparse
-
-    def dense_cols(self):
-        """Per group (nf_pad, D) global tangent indices, n_pad where discarded."""
-        if self._dense_cols is None:
-            self._dense_cols = tuple(
-                jnp.asarray(self._pad_index(np.where(G >= 0, G, self.n_pad), k, self.n_pad),
-                            dtype=jnp.int32)
-                for k, G in enumerate(self.group_cols)
-            )
-        return self._dense_cols
-
-    def pad_diagonal(self):
-        """(n_pad,): 1 on the pad coordinates of the dense H (keeps it positive definite)."""
-        return jnp.asarray(np.arange(self.n_pad) >= self.n, dtype=float)
 
     # --- evaluation --------------------------------------------------------------------
     def cost(self, vars_=None) -> float:

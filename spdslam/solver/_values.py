@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import MutableMapping
 from typing import Any, Hashable, Iterator
 
-from .. import manifold
+from ..geometry import manifold
 
 __all__ = ["Values"]
 
@@ -21,7 +21,8 @@ def _check_type(key: Hashable, value: Any) -> None:
 class Values(MutableMapping):
     """A dict key → value; every value is an instance of a registered variable type
     (``jaxlie.SE3``, ``Ellipsoid``, ``EllipsoidRTS``, ``EllipsoidFull``, …, see
-    ``spdslam.manifold``). Keys are any hashables. Insertion order is kept.
+    ``spdslam.geometry.manifold``). Keys are any hashables, usually ``X(i)`` / ``L(j)``
+    symbols. Insertion order is kept.
     """
 
     __slots__ = ("_data",)

@@ -12,7 +12,7 @@ expressed in a frame centred on the mean camera centre and scaled by the mean ca
 distance from it: x = s x' + c, so π' = Tᵀπ and Q* = T Q*' Tᵀ with T = [[sI, c], [0, 1]].
 
 Truncated detections: with a ``truncation_margin`` (px), box edges within it of the image
-border (``camera.truncation_mask``) are the image's edge, not the object's, and are left
+border (``geometry.truncation_mask``) are the image's edge, not the object's, and are left
 out of both fits.
 """
 
@@ -24,20 +24,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .camera import Camera, box_planes, project_box, project_cuboid_box, truncation_mask
-from .ellipsoid import Ellipsoid, EllipsoidFull
-from .se3 import as_pose, stack
+from ..geometry import (
+    OBJECT_SHAPES,
+    Camera,
+    Ellipsoid,
+    EllipsoidFull,
+    box_planes,
+    project_box,
+    project_cuboid_box,
+    truncation_mask,
+)
+from ..geometry.se3 import as_pose, stack
 
 __all__ = [
     "InitializationError",
-    "OBJECT_SHAPES",
     "multi_initialize",
     "svd_initialize",
     "triangulate_rays",
 ]
-
-#: Silhouette models: the object's box is that of its ellipsoid, or of its circumscribed cuboid.
-OBJECT_SHAPES = ("ellipsoid", "cuboid")
 
 _TRIU = np.triu_indices(4)
 _OFF = (_TRIU[0] != _TRIU[1]).astype(float)

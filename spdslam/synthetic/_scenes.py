@@ -19,8 +19,7 @@ import jaxlie
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera, conic_box
-from .ellipsoid import Ellipsoid
+from ..geometry import Camera, Ellipsoid, conic_box
 
 __all__ = ["NOISE_LEVELS", "DEFAULT_CAMERA", "Scene", "Scenes", "make_scene", "make_scenes", "random_rotations"]
 
@@ -101,8 +100,8 @@ class Scene:
 
 
 def _views_and_boxes(truth: Ellipsoid, eyes: np.ndarray, aims: np.ndarray, camera: Camera):
-    """Poses (B, V) looking from ``eyes`` at ``aims`` (as ``camera.look_at``, up = +z) and
-    the boxes of ``truth`` in them, in numpy: nothing to compile per batch shape."""
+    """Poses (B, V) looking from ``eyes`` at ``aims`` (as ``geometry.look_at``, up = +z) and
+    the boxes of ``truth`` in them, in NumPy: nothing to compile per batch shape."""
     z = aims - eyes
     z /= np.linalg.norm(z, axis=-1, keepdims=True)
     x = np.cross(z, [0.0, 0.0, 1.0])
@@ -110,6 +109,9 @@ def _views_and_boxes(truth: Ellipsoid, eyes: np.ndarray, aims: np.ndarray, camer
     R_wc = np.stack([x, np.cross(z, x), z], axis=-1)  # (B, V, 3, 3)
     xyzw = Rotation.from_matrix(R_wc.reshape(-1, 3, 3)).as_quat().reshape(*R_wc.shape[:2], 4)
     poses = jaxlie.SE3(jnp.asarray(np.concatenate([xyzw[..., 3:], xyzw[..., :3], eyes], axis=-1)))
+    # M = K [R_cw | t_cw] and C* = M Q* Mᵀ as einsums over (scene, view), as when the
+    # committed study (docs/simulation/) was computed: ``geometry.project_dual_quadric``
+    # rounds differently (up to 7e-13 px on these boxes), and the study is kept bit for bit.
     R_cw = np.swapaxes(R_wc, -1, -2)
     T_cw = np.concatenate([R_cw, -R_cw @ eyes[..., None]], axis=-1)  # (B, V, 3, 4)
     M = np.einsum("ij,bvjk->bvik", np.asarray(camera.K), T_cw)

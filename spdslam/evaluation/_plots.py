@@ -9,7 +9,7 @@
   C* = M Q* Mᵀ (M = K [R_cw | t_cw]), scaled to C*₃₃ = −1, is [[S − ccᵀ, −c], [−cᵀ, −1]]
   for the ellipse {x : (x − c)ᵀ S⁻¹ (x − c) ≤ 1} whose point conic is C ∝ (C*)⁻¹
   (``conic_ellipse``); the outline is c + S^½ (cos θ, sin θ) (``conic_outline``) and its
-  bounding box c ± √diag S is ``camera.project_box``.
+  bounding box c ± √diag S is ``geometry.project_box``.
 - ``write_overlays``: one overlay per frame of a ``Sequence`` with an image and detections.
 
 matplotlib is imported inside the functions (``matplotlib.figure.Figure``, which renders
@@ -22,19 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import Ellipsoid, in_front, project_dual_quadric
+from ..geometry.se3 import as_pose, from_tum
+from ..io import MATCH_TOLERANCE
+
 __all__ = [
     "camera_centers",
-    "conic_box",
     "conic_ellipse",
     "conic_outline",
     "ellipse_points",
-    "ellipsoid_dual_conic",
-    "ellipsoid_in_front",
     "plane_basis",
     "plot_map_top",
     "plot_overlay",
-    "pose_matrix",
-    "projection_matrix",
     "top_view_ellipse",
     "write_overlays",
 ]
@@ -115,53 +114,14 @@ def conic_outline(Cstar, n: int = 100) -> np.ndarray:
     return ellipse_points(c, S, n)
 
 
-def conic_box(Cstar) -> np.ndarray:
-    """[u_min, v_min, u_max, v_max] of a dual conic's ellipse (``camera.conic_box``)."""
-    from .camera import conic_box as _conic_box
-
-    return np.asarray(_conic_box(np.asarray(Cstar, dtype=float)))
-
-
 def _pose(T_wc):
     """jaxlie.SE3 from an SE3, a 4×4 matrix or TUM ``tx ty tz qx qy qz qw`` (7,)."""
-    from .se3 import as_pose, from_tum
-
     if isinstance(T_wc, (np.ndarray, list, tuple)) and np.shape(T_wc) == (7,):
         v = np.asarray(T_wc, dtype=float)
         if not np.all(np.isfinite(v)):
             raise ValueError("pose has non-finite entries")
         return from_tum(v)
     return as_pose(T_wc)
-
-
-def pose_matrix(T_wc) -> np.ndarray:
-    """4×4 camera-to-world matrix of any ``_pose`` input."""
-    return np.asarray(_pose(T_wc).as_matrix(), dtype=float)
-
-
-def projection_matrix(T_wc, camera) -> np.ndarray:
-    """M = K [R_wcᵀ | −R_wcᵀ c] (3×4) for a camera-to-world pose (``camera.projection_matrix``)."""
-    from .camera import projection_matrix as _projection_matrix
-
-    return np.asarray(_projection_matrix(_pose(T_wc), camera))
-
-
-def ellipsoid_dual_conic(P, center, T_wc, camera) -> np.ndarray:
-    """C* = M Q* Mᵀ (3×3) of the ellipsoid (P, t) seen from T_wc (``camera.project_dual_quadric``)."""
-    from .camera import project_dual_quadric
-    from .ellipsoid import Ellipsoid
-
-    Q = Ellipsoid(np.asarray(P, dtype=float), np.asarray(center, dtype=float)).dual_quadric()
-    return np.asarray(project_dual_quadric(Q, _pose(T_wc), camera))
-
-
-def ellipsoid_in_front(P, center, T_wc, min_depth: float = 0.0) -> bool:
-    """True when every point of the ellipsoid has camera depth > ``min_depth`` (``camera.in_front``)."""
-    from .camera import in_front
-    from .ellipsoid import Ellipsoid
-
-    e = Ellipsoid(np.asarray(P, dtype=float), np.asarray(center, dtype=float))
-    return bool(in_front(e, _pose(T_wc), min_depth))
 
 
 def camera_centers(trajectory) -> np.ndarray:
@@ -174,11 +134,7 @@ def camera_centers(trajectory) -> np.ndarray:
 
 
 def _landmark(e) -> tuple[np.ndarray, np.ndarray]:
-    """(P, t) as numpy from an object with ``.P`` and ``.center``, or any spdslam landmark."""
-    if not hasattr(e, "P"):
-        from .ellipsoid import as_ellipsoid
-
-        e = as_ellipsoid(e)
+    """(P, t) as numpy from an object with ``.P`` and ``.center`` (any spdslam landmark)."""
     return np.asarray(e.P, dtype=float), np.asarray(e.center, dtype=float)
 
 
@@ -321,10 +277,10 @@ def plot_overlay(path, image, camera, T_wc, ellipsoids, boxes=None, labels=None,
         if lab:
             ax.text(box[0], box[3], f" {lab}", color="lime", fontsize=fs, va="top", clip_on=True)
     for i, e in enumerate(ellipsoids):
-        P, t = _landmark(e)
-        if not ellipsoid_in_front(P, t, T_wc):
+        landmark = Ellipsoid(*_landmark(e))
+        if not bool(in_front(landmark, T_wc)):
             continue
-        Cs = ellipsoid_dual_conic(P, t, T_wc, camera)
+        Cs = np.asarray(project_dual_quadric(landmark.dual_quadric(), T_wc, camera))
         try:
             c, S = conic_ellipse(Cs)
         except ValueError:
@@ -365,11 +321,9 @@ def write_overlays(folder, sequence, ellipsoids, poses_tum, frames=None, max_fra
     with timestamps), row = frame index, N = len(sequence). ``frames``: the frame indices
     to consider (default all); ``max_frames``: at most this many of the eligible frames,
     evenly spaced (first and last included). A frame's image is the one whose timestamp is
-    nearest its detections' (within ``spdslam.sequence.MATCH_TOLERANCE``). Returns [] when the
+    nearest its detections' (within ``spdslam.io.MATCH_TOLERANCE``). Returns [] when the
     sequence has no images.
     """
-    from .sequence import MATCH_TOLERANCE
-
     if not sequence.images:
         return []
     poses = np.asarray(poses_tum, dtype=float)

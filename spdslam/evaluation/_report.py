@@ -22,29 +22,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .ellipsoid import Ellipsoid
-from .evaluation import (
-    Cuboid,
-    absolute_trajectory_error,
-    cuboid_iou,
-    orientation_error_deg,
-)
-from .sequence import write_folder_atomically
+from ..geometry import Cuboid
+from ..io import tum_text, write_folder_atomically, write_map
+from ._metrics import absolute_trajectory_error, cuboid_iou, orientation_error_deg
+from ._plots import plot_map_top, write_overlays
 
 __all__ = [
-    "MapFormatError",
+    "FRONT_END_NAMES",
     "ObjectMetrics",
     "evaluate_objects",
     "evaluate_run",
     "match_objects",
-    "read_map",
+    "report_markdown",
     "table_iii",
     "write_run",
 ]
-
-
-class MapFormatError(ValueError):
-    """A malformed map.json: ``"<file>: expected …, got …"``."""
 
 
 @dataclass(frozen=True)
@@ -195,22 +187,16 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
-def _tum_text(rows) -> str:
-    return "# timestamp tx ty tz qx qy qz qw (camera-to-world)\n" + "".join(
-        " ".join(repr(float(x)) for x in r) + "\n" for r in np.asarray(rows)
-    )
-
-
 def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
               overwrite: bool = False) -> dict:
     """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
-    map_top.png and overlay/ (with images) into ``out``, atomically. Returns the metrics."""
-    from .plots import plot_map_top, write_overlays
+    map_top.png and overlay/ (with images) into ``out``, atomically. ``result`` is a
+    ``mapping.MapResult`` (anything with its fields and ``as_dict()``). Returns the metrics."""
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
-        (tmp / "map.json").write_text(json.dumps(m, indent=1) + "\n", encoding="utf-8")
-        (tmp / "trajectory.txt").write_text(_tum_text(result.poses_tum), encoding="utf-8")
+        write_map(tmp / "map.json", m)
+        (tmp / "trajectory.txt").write_text(tum_text(result.poses_tum), encoding="utf-8")
         metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
         if "summary" in metrics or "ate" in metrics:
             (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
@@ -230,38 +216,3 @@ def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None =
         return metrics
 
     return write_folder_atomically(out, write, overwrite)
-
-
-def read_map(path) -> tuple[dict, list]:
-    """(map dict, objects with ``id, label, ellipsoid``) of a map.json."""
-    from .mapping import MapObject
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "map.json"
-    try:
-        m = json.loads(path.read_text(encoding="utf-8"))
-    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
-        raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got no such file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise MapFormatError(f"{path}:{getattr(e, 'lineno', 1)}: expected JSON, got {e}") from None
-    if not isinstance(m, dict):
-        raise MapFormatError(f"{path}: expected a JSON object, got {type(m).__name__}")
-    for k, types in (("method", str), ("parameterization", str), ("iterations", int),
-                     ("final_cost", (int, float)), ("objects", list)):
-        if k not in m or not isinstance(m[k], types) or isinstance(m[k], bool):
-            raise MapFormatError(f"{path}: expected the key {k!r} ({getattr(types, '__name__', 'number')}), got {str(m.get(k, 'nothing'))[:40]}")
-    objs = []
-    for i, o in enumerate(m["objects"]):
-        try:
-            P = np.asarray(o["P"], dtype=float)
-            c = np.asarray(o["center"], dtype=float)
-            oid, label = int(o["id"]), str(o["label"])
-            ok = P.shape == (3, 3) and c.shape == (3,) and np.all(np.isfinite(P)) and np.all(np.isfinite(c))
-            ok = ok and np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
-        except (KeyError, TypeError, ValueError, IndexError):
-            ok = False
-        if not ok:
-            raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
-        objs.append(MapObject(oid, label, Ellipsoid(P, c)))
-    return m, objs

@@ -27,6 +27,9 @@ from typing import Any, Hashable
 import jaxlie
 import numpy as np
 
+from ..factors import BetweenFactor, PriorFactor
+from ..solver import NonlinearFactorGraph, Values
+
 __all__ = ["PoseGraph", "Edge", "read_g2o", "parse_g2o", "rpy_to_quaternion", "pose_graph_factors"]
 
 # (rotation, translation) → (translation, rotation), and back (an involution).
@@ -246,9 +249,6 @@ def pose_graph_factors(
     """(graph, values): one BetweenFactor per edge (its information) and a PriorFactor on the
     first pose (``prior_key``, default the smallest id) at its initial value with ``prior_sigma``
     (jaxlie order). ``key(id)`` maps ids to keys (default: the id itself)."""
-    from ..factors import BetweenFactor, PriorFactor
-    from ..solver import NonlinearFactorGraph, Values
-
     key = key or (lambda i: i)
     graph = NonlinearFactorGraph()
     first = min(pg.poses) if prior_key is None else prior_key

@@ -17,17 +17,16 @@ Pure numpy/scipy; every input is validated and degenerate ones raise ``ValueErro
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from .ellipsoid import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid
+from ..geometry import CORNER_SIGNS, CUBOID_EDGES, Cuboid, as_cuboid
+from ..geometry import checked_rotation as _orthonormal
+from ..geometry import checked_vector as _vector
 
 __all__ = [
-    "Cuboid",
-    "as_cuboid",
     "cuboid_iou",
     "cuboid_iou_batch",
     "orientation_error_deg",
@@ -35,17 +34,6 @@ __all__ = [
     "signed_permutations",
     "MAX_ORIENTATION_ERROR_DEG",
 ]
-
-#: Corner signs σ ∈ {±1}³, x varying fastest (the order of ``Ellipsoid.cuboid_corners``).
-_CORNER_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))[:, ::-1]
-#: The 12 edges as pairs of corner indices: corners i and i + 2ᵏ differ in the sign of axis k.
-_EDGES = np.array(
-    [(i, i | (1 << k)) for k in range(3) for i in range(8) if not i & (1 << k)]
-)
-#: Tolerance on ‖RᵀR − I‖ (entrywise) for a matrix to count as orthonormal.
-_ORTHO_TOL = 1e-6
-
-_LANDMARKS = (Ellipsoid, EllipsoidRTS, EllipsoidFull)
 
 
 def _signed_permutations() -> np.ndarray:
@@ -73,116 +61,6 @@ def signed_permutations(proper: bool = True) -> np.ndarray:
 MAX_ORIENTATION_ERROR_DEG = float(np.degrees(2.0 * np.arctan(np.sqrt(23.0 - 16.0 * np.sqrt(2)))))
 
 
-# --- validation ---------------------------------------------------------------------------
-
-
-def _vector(x, name: str) -> np.ndarray:
-    v = np.array(x, dtype=float)  # a copy: Cuboid freezes it
-    if v.shape != (3,):
-        raise ValueError(f"{name} must have shape (3,), got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError(f"{name} must be finite, got {v.tolist()}")
-    return v
-
-
-def _orthonormal(x, name: str) -> np.ndarray:
-    R = np.asarray(x, dtype=float)
-    if R.shape != (3, 3):
-        raise ValueError(f"{name} must have shape (3, 3), got {R.shape}")
-    if not np.all(np.isfinite(R)):
-        raise ValueError(f"{name} must be finite")
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if err > _ORTHO_TOL:
-        raise ValueError(f"{name} must be orthonormal (max |RᵀR − I| = {err:.3g})")
-    return R
-
-
-# --- cuboids ------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class Cuboid:
-    """C = {c + R q : |q_k| ≤ h_k}: ``center`` c, ``rotation`` R (columns = axes, det +1),
-    ``half_extents`` h > 0.
-
-    A reflection (det R = −1) describes the same solid; its third axis is negated.
-    """
-
-    center: np.ndarray
-    rotation: np.ndarray
-    half_extents: np.ndarray
-
-    def __post_init__(self):
-        c = _vector(self.center, "center")
-        R = _orthonormal(self.rotation, "rotation").copy()
-        h = _vector(self.half_extents, "half_extents")
-        if not np.all(h > 0):
-            raise ValueError(f"half_extents must be positive, got {h.tolist()}")
-        if np.linalg.det(R) < 0:
-            R[:, 2] = -R[:, 2]
-        for name, v in (("center", c), ("rotation", R), ("half_extents", h)):
-            v.setflags(write=False)
-            object.__setattr__(self, name, v)
-
-    # --- construction -------------------------------------------------------------------
-    @classmethod
-    def from_ellipsoid(cls, x) -> "Cuboid":
-        """The circumscribed cuboid of any landmark: c = t, R and h = s of ``axes()``."""
-        e = as_ellipsoid(x)
-        R, s = e.axes()
-        return cls(np.asarray(e.center, float), np.asarray(R, float), np.asarray(s, float))
-
-    @classmethod
-    def from_yaw(cls, center, yaw: float, half_extents) -> "Cuboid":
-        """R = R_z(yaw), a rotation about +z (the convention of ground truth boxes)."""
-        yaw = float(yaw)
-        if not np.isfinite(yaw):
-            raise ValueError(f"yaw must be finite, got {yaw}")
-        cy, sy = np.cos(yaw), np.sin(yaw)
-        R = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-        return cls(center, R, half_extents)
-
-    @classmethod
-    def from_row(cls, row) -> "Cuboid":
-        """From a ground truth row ``x y z yaw hx hy hz``."""
-        v = np.asarray(row, dtype=float).ravel()
-        if v.shape != (7,):
-            raise ValueError(f"a cuboid row is 'x y z yaw hx hy hz' (7 numbers), got {v.size}")
-        return cls.from_yaw(v[:3], v[3], v[4:])
-
-    # --- views --------------------------------------------------------------------------
-    def corners(self) -> np.ndarray:
-        """The 8 corners (8×3), c + R diag(h) σ, σ ∈ {±1}³ with x varying fastest."""
-        return self.center + (_CORNER_SIGNS * self.half_extents) @ self.rotation.T
-
-    def volume(self) -> float:
-        """8 h₁h₂h₃."""
-        return float(8.0 * np.prod(self.half_extents))
-
-    def to_local(self, points) -> np.ndarray:
-        """Rᵀ(x − c) for points (…×3)."""
-        return (np.asarray(points, dtype=float) - self.center) @ self.rotation
-
-    def contains(self, points, tol: float = 0.0) -> np.ndarray:
-        """True where |Rᵀ(x − c)|_k ≤ h_k + tol for all k."""
-        return np.all(np.abs(self.to_local(points)) <= self.half_extents + tol, axis=-1)
-
-    def transformed(self, rotation, translation) -> "Cuboid":
-        """The image under x ↦ Q x + u: centre Q c + u, axes Q R."""
-        Q = _orthonormal(rotation, "rotation")
-        u = _vector(translation, "translation")
-        return Cuboid(Q @ self.center + u, Q @ self.rotation, self.half_extents)
-
-
-def as_cuboid(x) -> Cuboid:
-    """A ``Cuboid`` as is; any landmark → its circumscribed cuboid."""
-    if isinstance(x, Cuboid):
-        return x
-    if isinstance(x, _LANDMARKS):
-        return Cuboid.from_ellipsoid(x)
-    raise TypeError(f"not a cuboid or ellipsoid landmark: {type(x).__name__}")
-
-
 # --- IoU ----------------------------------------------------------------------------------
 
 
@@ -197,9 +75,9 @@ def _edge_crossings(corners, c, R, h):
     """Points where the 12 edges of one cuboid (corners n×8×3) cross the 6 face planes
     q_k = ±h_k of another (c, R, h): n×72×3, and a mask of the crossings within the edge."""
     q = (corners - c[:, None, :]) @ R  # local coordinates, n×8×3
-    q0, q1 = q[:, _EDGES[:, 0]], q[:, _EDGES[:, 1]]  # n×12×3
-    p0 = corners[:, _EDGES[:, 0]]
-    d = corners[:, _EDGES[:, 1]] - p0
+    q0, q1 = q[:, CUBOID_EDGES[:, 0]], q[:, CUBOID_EDGES[:, 1]]  # n×12×3
+    p0 = corners[:, CUBOID_EDGES[:, 0]]
+    d = corners[:, CUBOID_EDGES[:, 1]] - p0
     target = np.stack([-h, h], axis=-1)[:, None, :, :]  # n×1×3×2
     with np.errstate(divide="ignore", invalid="ignore"):
         u = (target - q0[..., None]) / (q1 - q0)[..., None]  # n×12×3×2
@@ -239,8 +117,8 @@ def _iou_arrays(ca, Ra, ha, cb, Rb, hb) -> np.ndarray:
     n = ca.shape[0]
     ca, cb = np.zeros_like(ca), cb - ca  # IoU is translation invariant: work about c_a
     tol = 1e-11 * np.maximum(ha.max(axis=1), hb.max(axis=1)) + 1e-13 * np.abs(cb).max(axis=1)
-    corners_a = ca[:, None, :] + (_CORNER_SIGNS * ha[:, None, :]) @ Ra.transpose(0, 2, 1)
-    corners_b = cb[:, None, :] + (_CORNER_SIGNS * hb[:, None, :]) @ Rb.transpose(0, 2, 1)
+    corners_a = ca[:, None, :] + (CORNER_SIGNS * ha[:, None, :]) @ Ra.transpose(0, 2, 1)
+    corners_b = cb[:, None, :] + (CORNER_SIGNS * hb[:, None, :]) @ Rb.transpose(0, 2, 1)
     cross_ab, ok_ab = _edge_crossings(corners_a, cb, Rb, hb)  # edges of A, faces of B
     cross_ba, ok_ba = _edge_crossings(corners_b, ca, Ra, ha)  # edges of B, faces of A
     cand = np.concatenate([corners_a, corners_b, cross_ab, cross_ba], axis=1)  # n×160×3
@@ -283,8 +161,6 @@ def cuboid_iou_batch(list_a, list_b) -> np.ndarray:
 def _rotation_of(x, name: str) -> np.ndarray:
     if isinstance(x, Cuboid):
         return x.rotation
-    if isinstance(x, _LANDMARKS):
-        x = as_ellipsoid(x)
     if hasattr(x, "axes"):
         x = x.axes()[0]
     elif hasattr(x, "as_matrix"):  # jaxlie.SO3
@@ -293,8 +169,6 @@ def _rotation_of(x, name: str) -> np.ndarray:
 
 
 def _center_of(x, name: str) -> np.ndarray:
-    if isinstance(x, _LANDMARKS):
-        x = as_ellipsoid(x)
     if hasattr(x, "center"):
         x = x.center
     return _vector(np.asarray(x, dtype=float), name)

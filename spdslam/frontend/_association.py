@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .camera import truncation_mask
-from .sequence import Sequence, quat_to_matrix
+from ..geometry import Ellipsoid, in_front, project_box, spd, truncation_mask
+from ..geometry.se3 import quat_to_matrix
+from ..io import Sequence
 
 __all__ = [
     "Track",
@@ -32,7 +33,6 @@ __all__ = [
     "associate_detailed",
     "merge_tracks",
     "association_scores",
-    "spd_distance",
 ]
 
 
@@ -72,8 +72,9 @@ def tracks_from_instances(seq: Sequence) -> list:
 
 # --- automatic association -------------------------------------------------------------------
 #
-# Everything below is numpy/scipy: the association runs thousands of tiny geometric problems
-# (one per frame, tracklet or pair of tracklets), where per-call JAX dispatch would dominate.
+# Everything below computes in NumPy (the geometry functions stay in NumPy for NumPy input):
+# the association runs thousands of tiny geometric problems (one per frame, tracklet or pair
+# of tracklets), where per-call JAX dispatch would dominate.
 
 _BIG = 1e6  # cost of a forbidden pairing in the Hungarian assignment
 _MIN_DEPTH = 0.05  # m: a landmark must lie this far in front of the camera to be predicted
@@ -143,25 +144,6 @@ class Association:
     stats: dict
 
 
-def spd_distance(P1, P2) -> np.ndarray:
-    """Affine-invariant distance d(P₁, P₂) = ‖Log(P₁^-½ P₂ P₁^-½)‖_F (paper eq. 22), batched.
-
-    P₁^-½ P₂ P₁^-½ is similar to L⁻¹ P₂ L⁻ᵀ (P₁ = L Lᵀ, Cholesky), so d = √(Σᵢ log² λᵢ) with
-    λᵢ the eigenvalues of that symmetric matrix. Raises ``ValueError`` if P₁ is not SPD.
-    """
-    P1, P2 = np.asarray(P1, dtype=float), np.asarray(P2, dtype=float)
-    try:
-        L = np.linalg.cholesky(P1)
-    except np.linalg.LinAlgError:
-        raise ValueError("spd_distance: P1 is not symmetric positive definite") from None
-    Li = np.linalg.inv(L)
-    S = Li @ P2 @ np.swapaxes(Li, -1, -2)
-    lam = np.linalg.eigvalsh(0.5 * (S + np.swapaxes(S, -1, -2)))
-    if np.any(lam <= 0):
-        raise ValueError("spd_distance: P2 is not symmetric positive definite")
-    return np.sqrt(np.sum(np.log(lam) ** 2, axis=-1))
-
-
 def _iou(a, b) -> np.ndarray:
     """IoU of boxes [u₁, v₁, u₂, v₂] (broadcast over leading axes); 0 for empty boxes."""
     iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
@@ -213,9 +195,9 @@ class _Scene:
     def __init__(self, seq: Sequence, s: AssociationSettings):
         dets = seq.detections
         cam = seq.camera
+        self.camera = cam
         self.fx, self.fy, self.cx, self.cy = (float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
         self.W, self.H = float(cam.width), float(cam.height)
-        self.intrinsics = (self.fx, self.fy, self.cx, self.cy)
         n = len(dets)
         self.F = len(seq)
         self.frame = np.array([d.frame for d in dets], dtype=int).reshape(n)
@@ -240,7 +222,7 @@ class _Scene:
             raise ValueError("the trajectory (poses_tum) has non-finite values")
         self.R = quat_to_matrix(poses[:, 3:7]).reshape(self.F, 3, 3)  # R_wc
         self.C = poses[:, :3]
-        self.up, self.planes = _up_and_planes(seq.priors)
+        self.up, self.planes = (None, None) if seq.priors is None else seq.priors.up_and_planes()
         # per detection: ray, truncation, prior range, fit terms
         b = self.box
         keep = np.asarray(truncation_mask(b, seq.camera, s.truncation_margin)) > 0
@@ -350,50 +332,12 @@ class _Scene:
         """Boxes (m, 4) of landmarks (X (m, 3), P (m, 3, 3)) in ``frames`` (m,), clipped to
         the image (zeros where invisible), and whether each is visible (wholly in front,
         non-empty after clipping)."""
-        box, ok = _project_boxes(X, P, self.R[frames], self.C[frames], self.intrinsics)
-        box = np.clip(box, 0.0, [self.W, self.H, self.W, self.H])
+        landmark, pose = Ellipsoid(P, X), (self.R[frames], self.C[frames])
+        ok = in_front(landmark, pose, _MIN_DEPTH)
+        with np.errstate(divide="ignore", invalid="ignore"):  # boxes of landmarks not in front
+            box = np.clip(project_box(landmark, pose, self.camera), 0.0, [self.W, self.H, self.W, self.H])
         ok &= (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
         return np.where(ok[:, None], box, 0.0), ok
-
-
-def _project_boxes(X, P, R_wc, c, intrinsics):
-    """Untruncated boxes (m, 4) of ellipsoids (X (m, 3), P (m, 3, 3)) seen by cameras
-    (R_wc (m, 3, 3), centres c (m, 3)), and whether each is wholly in front (depth margin
-    ``_MIN_DEPTH``); numpy, batched. Camera frame: x = R_wcᵀ(X − c), P_c = R_wcᵀ P R_wc,
-    D = P_c − x xᵀ; the box is u = c_x + f_x (D₁₃ ± √(D₁₃² − D₁₁D₃₃)) / D₃₃ and likewise v
-    (``camera.conic_box`` of C* = K D Kᵀ). Boxes of landmarks not in front are not boxes."""
-    fx, fy, cx, cy = intrinsics
-    x = np.einsum("mji,mj->mi", R_wc, X - c)
-    Pc = np.einsum("mji,mjk,mkl->mil", R_wc, P, R_wc)
-    D = Pc - x[:, :, None] * x[:, None, :]
-    ok = x[:, 2] - np.sqrt(np.maximum(Pc[:, 2, 2], 0.0)) > _MIN_DEPTH
-    # camera.conic_box in numpy: this runs once per frame, where a JAX dispatch costs more
-    # than the arithmetic
-    d33 = np.where(ok, D[:, 2, 2], -1.0)
-    du = np.sqrt(np.maximum(D[:, 0, 2] ** 2 - D[:, 0, 0] * d33, 0.0))
-    dv = np.sqrt(np.maximum(D[:, 1, 2] ** 2 - D[:, 1, 1] * d33, 0.0))
-    u1, u2 = cx + fx * (D[:, 0, 2] - du) / d33, cx + fx * (D[:, 0, 2] + du) / d33
-    v1, v2 = cy + fy * (D[:, 1, 2] - dv) / d33, cy + fy * (D[:, 1, 2] + dv) / d33
-    box = np.stack([np.minimum(u1, u2), np.minimum(v1, v2), np.maximum(u1, u2), np.maximum(v1, v2)], 1)
-    return box, ok
-
-
-def _up_and_planes(priors):
-    """(unit up or None, support planes (k, 4) with unit normals or None). Up is
-    ``priors.up``, else the first plane's normal; planes are turned to face up."""
-    if priors is None:
-        return None, None
-    planes = None
-    if priors.support_planes:
-        planes = np.array([np.asarray(p, dtype=float) for p in priors.support_planes])
-        planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-    up = priors.up if priors.up is not None else (None if planes is None else planes[0, :3])
-    if up is None:
-        return None, planes
-    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
-    if planes is not None:
-        planes = np.where((planes[:, :3] @ up < 0)[:, None], -planes, planes)
-    return up, planes
 
 
 def _hungarian(cost, allowed):
@@ -472,7 +416,7 @@ def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]
             return None
         if np.intersect1d(sc.frame[groups[a]], sc.frame[groups[b]]).size:
             return None
-        d_spd = float(spd_distance(fa.P, fb.P))
+        d_spd = float(spd.distance(fa.P, fb.P))
         if d_spd > s.spd_gate:
             return None
         tau = s.centre_tolerance * (fa.radius + fb.radius)

@@ -12,17 +12,21 @@ Parameterisations, all registered as optimisation variables:
 
 - ``Ellipsoid`` (SPD): (P, t) ∈ SPD(3) × R³. Tangent (c, δt) ∈ R⁶ × R³:
   P ⊞ c is the affine-invariant exponential (``spd.retract_vec``), t ⊞ δt = t + δt.
-- ``EllipsoidRTS`` (Rot-Trans-Scale): (R, t, s) ∈ SO(3) × R³ × R³. Tangent (δθ, δt, δs):
-  R·Exp(δθ), t + δt, s + δs (the baseline as gtsam-quadrics updates it).
+- ``EllipsoidRTS`` (Rot-Trans-Scale): parameters (``orientation`` R ∈ SO(3), ``center``
+  t ∈ R³, ``scale`` s ∈ R³). Tangent (δθ, δt, δs): R·Exp(δθ), t + δt, s + δs (the baseline
+  as gtsam-quadrics updates it). s is the raw parameter: its entries may be in any order
+  and of either sign.
 - ``EllipsoidFull``: the 10 independent entries of Q*, updated additively, and projected
   to the nearest ellipsoid after every step (QuadricSLAM's "constrain").
 
-Axes are always reported sorted s₁ ≥ s₂ ≥ s₃, with a right-handed rotation.
+The views are the same on all three and mean the same thing: ``P``, ``center``,
+``axes()`` = (``rotation``, ``radii``) with the radii sorted s₁ ≥ s₂ ≥ s₃ ≥ 0 and a
+right-handed rotation whose columns are the axes, ``dual_quadric()``, ``volume()``,
+``contains(x)``, ``cuboid_corners()``.
 """
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -32,11 +36,22 @@ import jaxlie
 import numpy as np
 
 from . import manifold, spd
+from ._arrays import array_namespace
+from ._cuboid import corners_of
 from .matfun import eigh, sym
 
-__all__ = ["Ellipsoid", "EllipsoidRTS", "EllipsoidFull", "as_ellipsoid", "dual_quadric"]
-
-_CORNER_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))[:, ::-1]
+__all__ = [
+    "Ellipsoid",
+    "EllipsoidRTS",
+    "EllipsoidFull",
+    "Landmark",
+    "as_ellipsoid",
+    "dual_quadric",
+    "dual_quadric_of",
+    "sorted_axes",
+    "cuboid_half_axes",
+    "cuboid_corners",
+]
 
 
 def _pytree(cls, fields):
@@ -50,8 +65,9 @@ def _rotation_matrix(rotation):
     return jnp.asarray(rotation, dtype=float)
 
 
-def _sorted_axes(P):
-    """(R, s): columns of R are the axes, s₁ ≥ s₂ ≥ s₃, det R = +1."""
+def sorted_axes(P):
+    """(R, s) of shape matrices P (…, 3, 3): columns of R are the axes, s₁ ≥ s₂ ≥ s₃,
+    det R = +1 (JAX)."""
     w, V = eigh(P)
     s = jnp.sqrt(jnp.maximum(w[..., ::-1], 0.0))
     R = V[..., :, ::-1]
@@ -60,12 +76,13 @@ def _sorted_axes(P):
     return R, s
 
 
-def _quadric_from(P, t):
-    """[[P − ttᵀ, −t], [−tᵀ, −1]], broadcasting over leading axes."""
-    P, t = jnp.asarray(P), jnp.asarray(t)
-    top = jnp.concatenate([P - t[..., :, None] * t[..., None, :], -t[..., :, None]], axis=-1)
-    bottom = jnp.concatenate([-t, -jnp.ones_like(t[..., :1])], axis=-1)[..., None, :]
-    return jnp.concatenate([top, bottom], axis=-2)
+def dual_quadric_of(P, t):
+    """Q* = [[P − ttᵀ, −t], [−tᵀ, −1]] of ellipsoids (P (…, 3, 3), t (…, 3)); NumPy or JAX."""
+    xp = array_namespace(P, t)
+    P, t = xp.asarray(P), xp.asarray(t)
+    top = xp.concatenate([P - t[..., :, None] * t[..., None, :], -t[..., :, None]], axis=-1)
+    bottom = xp.concatenate([-t, -xp.ones_like(t[..., :1])], axis=-1)[..., None, :]
+    return xp.concatenate([top, bottom], axis=-2)
 
 
 def _split_quadric(Q):
@@ -76,8 +93,42 @@ def _split_quadric(Q):
     return Q[:3, :3] + jnp.outer(t, t), t
 
 
+class _Views:
+    """The views every parameterisation shares, all from (P, t)."""
+
+    def axes(self):
+        """(rotation, radii): columns of ``rotation`` are the world-frame axes, radii descending."""
+        return sorted_axes(self.to_ellipsoid().P)
+
+    @property
+    def rotation(self) -> jax.Array:
+        """The axes as the columns of a rotation matrix (sorted by radius, det +1)."""
+        return self.axes()[0]
+
+    @property
+    def radii(self) -> jax.Array:
+        """The semi-axes s₁ ≥ s₂ ≥ s₃ ≥ 0."""
+        return self.axes()[1]
+
+    def cuboid_corners(self) -> jax.Array:
+        """The 8 corners (8×3) of the circumscribed oriented cuboid, t + R diag(s) σ, σ ∈ {±1}³."""
+        R, s = self.axes()
+        return corners_of(R * s, self.to_ellipsoid().center)
+
+    def volume(self) -> jax.Array:
+        """(4/3) π s₁s₂s₃ = (4/3) π √det P."""
+        return 4.0 / 3.0 * jnp.pi * jnp.sqrt(jnp.linalg.det(self.to_ellipsoid().P))
+
+    def contains(self, x) -> jax.Array:
+        """True where (x−t)ᵀ P⁻¹ (x−t) < 1."""
+        e = self.to_ellipsoid()
+        xp = array_namespace(x, e.P, e.center)
+        d = xp.asarray(x) - e.center
+        return xp.einsum("...i,...ij,...j->...", d, xp.linalg.inv(e.P), d) < 1.0
+
+
 @dataclass(frozen=True)
-class Ellipsoid:
+class Ellipsoid(_Views):
     """An ellipsoid as (P, t) ∈ SPD(3) × R³, the paper's parameterisation.
 
     P = R diag(s²) Rᵀ (shape and orientation together), ``center`` = t.
@@ -104,33 +155,7 @@ class Ellipsoid:
     # --- views ------------------------------------------------------------------------
     def dual_quadric(self) -> jax.Array:
         """Q* (4×4, or (..., 4, 4) for a batched Ellipsoid), normalised so that Q*[3, 3] == −1."""
-        return _quadric_from(self.P, self.center)
-
-    def axes(self):
-        """(rotation, radii): columns of ``rotation`` are the world-frame axes, radii descending."""
-        return _sorted_axes(self.P)
-
-    @property
-    def radii(self) -> jax.Array:
-        return self.axes()[1]
-
-    @property
-    def rotation(self) -> jax.Array:
-        return self.axes()[0]
-
-    def cuboid_corners(self) -> jax.Array:
-        """The 8 corners (8×3) of the circumscribed oriented cuboid, t + R diag(s) σ, σ ∈ {±1}³."""
-        R, s = self.axes()
-        return self.center + (jnp.asarray(_CORNER_SIGNS) * s) @ R.T
-
-    def volume(self) -> jax.Array:
-        """(4/3) π s₁s₂s₃ = (4/3) π √det P."""
-        return 4.0 / 3.0 * jnp.pi * jnp.sqrt(jnp.linalg.det(self.P))
-
-    def contains(self, x) -> jax.Array:
-        """True where (x−t)ᵀ P⁻¹ (x−t) < 1."""
-        d = jnp.asarray(x) - self.center
-        return jnp.einsum("...i,ij,...j->...", d, jnp.linalg.inv(self.P), d) < 1.0
+        return dual_quadric_of(self.P, self.center)
 
     # --- manifold ---------------------------------------------------------------------
     def retract(self, delta) -> "Ellipsoid":
@@ -155,19 +180,21 @@ class Ellipsoid:
 
 
 @dataclass(frozen=True)
-class EllipsoidRTS:
-    """Rot-Trans-Scale: (R ∈ SO(3), t ∈ R³, s ∈ R³), P = R diag(s²) Rᵀ.
+class EllipsoidRTS(_Views):
+    """Rot-Trans-Scale: ``orientation`` R ∈ SO(3), ``center`` t ∈ R³, ``scale`` s ∈ R³,
+    P = R diag(s²) Rᵀ (s raw: any order, either sign; ``radii`` are |s| sorted).
 
     Tangent (δθ, δt, δs): R ⊞ δθ = R Exp(δθ), t + δt, s + δs.
     """
 
-    rotation: jaxlie.SO3
+    orientation: jaxlie.SO3
     center: jax.Array
-    radii: jax.Array
+    scale: jax.Array
     tangent_dim: ClassVar[int] = 9
 
     @classmethod
     def from_axes(cls, rotation, center, radii) -> "EllipsoidRTS":
+        """R from a 3×3 matrix (columns = axes) or an SO3, s = ``radii`` along them."""
         R = rotation if isinstance(rotation, jaxlie.SO3) else jaxlie.SO3.from_matrix(
             jnp.asarray(rotation, dtype=float)
         )
@@ -175,12 +202,17 @@ class EllipsoidRTS:
 
     @classmethod
     def from_ellipsoid(cls, e: Ellipsoid) -> "EllipsoidRTS":
+        """The sorted axes of ``e`` as (R, t, s)."""
         R, s = e.axes()
         return cls(jaxlie.SO3.from_matrix(R), e.center, s)
 
     def to_ellipsoid(self) -> Ellipsoid:
-        R = self.rotation.as_matrix()
-        return Ellipsoid(sym((R * self.radii**2) @ R.T), self.center)
+        R = self.orientation.as_matrix()
+        return Ellipsoid(sym((R * self.scale**2) @ R.T), self.center)
+
+    @property
+    def P(self) -> jax.Array:
+        return self.to_ellipsoid().P
 
     def dual_quadric(self) -> jax.Array:
         return self.to_ellipsoid().dual_quadric()
@@ -188,17 +220,17 @@ class EllipsoidRTS:
     def retract(self, delta) -> "EllipsoidRTS":
         delta = jnp.asarray(delta)
         return EllipsoidRTS(
-            self.rotation @ jaxlie.SO3.exp(delta[:3]),
+            self.orientation @ jaxlie.SO3.exp(delta[:3]),
             self.center + delta[3:6],
-            self.radii + delta[6:9],
+            self.scale + delta[6:9],
         )
 
     def local(self, other: "EllipsoidRTS") -> jax.Array:
         return jnp.concatenate(
             [
-                (self.rotation.inverse() @ other.rotation).log(),
+                (self.orientation.inverse() @ other.orientation).log(),
                 other.center - self.center,
-                other.radii - self.radii,
+                other.scale - self.scale,
             ]
         )
 
@@ -207,7 +239,7 @@ _TRIU = np.triu_indices(4)
 
 
 @dataclass(frozen=True)
-class EllipsoidFull:
+class EllipsoidFull(_Views):
     """The 10 independent entries of Q* (upper triangle, row-major), updated additively.
 
     ``regularized()`` maps any symmetric 4×4 back to the nearest ellipsoid: normalise to
@@ -244,6 +276,14 @@ class EllipsoidFull:
     def to_ellipsoid(self) -> Ellipsoid:
         return Ellipsoid.from_dual_quadric(self.matrix())
 
+    @property
+    def P(self) -> jax.Array:
+        return self.to_ellipsoid().P
+
+    @property
+    def center(self) -> jax.Array:
+        return self.to_ellipsoid().center
+
     def regularized(self) -> "EllipsoidFull":
         Q = self.matrix()
         # Q*₃₃ ≈ 0 has no finite centre: normalise by −1 instead of dividing by ~0 (the
@@ -255,7 +295,7 @@ class EllipsoidFull:
         w, V = jnp.linalg.eigh(sym(Q[:3, :3] + jnp.outer(t, t)))
         floor = self.min_eig_ratio * jnp.maximum(jnp.max(jnp.abs(w)), 1e-12)
         P = (V * jnp.maximum(w, floor)) @ V.T
-        return EllipsoidFull(_quadric_from(sym(P), t)[_TRIU])
+        return EllipsoidFull(dual_quadric_of(sym(P), t)[_TRIU])
 
     def retract(self, delta) -> "EllipsoidFull":
         return EllipsoidFull(self.q + jnp.asarray(delta))
@@ -265,7 +305,7 @@ class EllipsoidFull:
 
 
 _pytree(Ellipsoid, ["P", "center"])
-_pytree(EllipsoidRTS, ["rotation", "center", "radii"])
+_pytree(EllipsoidRTS, ["orientation", "center", "scale"])
 _pytree(EllipsoidFull, ["q"])
 
 for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
@@ -277,6 +317,7 @@ for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
         regularize=getattr(_cls, "regularized", None),
     )
 
+#: Any landmark parameterisation.
 Landmark = Ellipsoid | EllipsoidRTS | EllipsoidFull
 
 
@@ -295,3 +336,29 @@ def dual_quadric(x) -> jax.Array:
     if isinstance(x, (Ellipsoid, EllipsoidRTS, EllipsoidFull)):
         return x.dual_quadric()
     return jnp.asarray(x, dtype=float)
+
+
+def cuboid_half_axes(landmark):
+    """(H, t): the columns of H are the circumscribed cuboid's half-edge vectors sᵢRᵢ, t its
+    centre (a pair (H, t) is returned as it is).
+
+    RTS landmarks use their orientation and |scale| directly (smooth in their parameters);
+    SPD and Full go through P = V diag(λ) Vᵀ with the tie-safe ``matfun.eigh``, sᵢ = √λᵢ. The
+    cuboid is invariant to the order and signs of the axes, but at repeated radii its
+    orientation is not determined by P: there the box is that of one valid choice of axes
+    and its derivative is finite (the coupling inside the tie is dropped), not a limit.
+    """
+    if isinstance(landmark, tuple):
+        return landmark
+    if isinstance(landmark, EllipsoidRTS):
+        return landmark.orientation.as_matrix() * jnp.abs(landmark.scale), landmark.center
+    e = as_ellipsoid(landmark)
+    w, V = eigh(e.P)
+    return V * jnp.sqrt(jnp.maximum(w, 1e-300)), e.center
+
+
+def cuboid_corners(cuboid):
+    """The 8 corners (…, 8, 3) t + H σ, σ ∈ {±1}³, of a circumscribed cuboid: a landmark
+    (``cuboid_half_axes``: its axes in the order of P's eigenvectors, or of an RTS
+    orientation) or a pair (H, t)."""
+    return corners_of(*cuboid_half_axes(cuboid))

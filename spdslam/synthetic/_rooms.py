@@ -26,15 +26,11 @@ every object is seen from both sides of its strip and obliquely. With one strip 
 default room for a few objects) this is a rounded rectangle around the room looking inward;
 larger rooms get more strips, so the work per frame stays bounded.
 
-Boxes. For each frame and object, C* = M Q* Mᵀ with M = K [R_cw | t_cw] equals
-K (P_c − x xᵀ) Kᵀ, P_c = R_cw P R_cwᵀ and x the camera-frame centre, and its closed-form box
-(``camera.conic_box``) is
-
-    u = c_x + f_x (D₁₃ ± √(D₁₃² − D₁₁D₃₃)) / D₃₃,  v = c_y + f_y (D₂₃ ± √(D₂₃² − D₂₂D₃₃)) / D₃₃,
-
-D = P_c − x xᵀ. A cuboid's box is that of its 8 projected corners x + R_cw R diag(s) σ,
-σ ∈ {±1}³ (u = c_x + f_x X/Z, v = c_y + f_y Y/Z). A box is kept when the whole object is in
-front (depth > ``MIN_DEPTH``: x₃ − √(a₃ᵀ P a₃), resp. every corner), its centre no deeper
+Boxes. For each frame and object, the closed-form box of the dual conic C* = M Q* Mᵀ,
+M = K [R_cw | t_cw] (``geometry.project_box``); a cuboid's box is that of its 8 projected
+corners t + R diag(s) σ, σ ∈ {±1}³ (``geometry.project_cuboid_box``). Both are computed in
+NumPy for all kept (frame, object) pairs at once. A box is kept when the whole object is in
+front (depth > ``MIN_DEPTH``: ``geometry.depth_range``, resp. every corner), its centre no deeper
 than ``MAX_DEPTH`` (a detector's range; without it every object of a large room would be
 seen in every frame), the camera outside it, the box inside the image with a ``MARGIN_PX``
 margin and at least ``MIN_BOX_PX`` wide and high. Then N(0, ``box_noise_px``²) is added to
@@ -68,24 +64,27 @@ last two streams left the sequences of the earlier five-stream generator unchang
 
 from __future__ import annotations
 
-import itertools
 import math
 import numbers
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera
-from .evaluation import Cuboid
-from .sequence import (
+from ..geometry import (
     OBJECT_SHAPES,
-    ClassPrior,
-    Detection,
-    GroundTruthObject,
-    Priors,
-    Sequence,
+    Camera,
+    Cuboid,
+    Ellipsoid,
+    camera_inside,
+    cuboid_depth_range,
+    depth_range,
+    project_box,
+    project_cuboid_box,
+    project_points,
 )
-from .simulation import DEFAULT_CAMERA
+from ..geometry.se3 import world_to_camera
+from ..io import ClassPrior, Detection, GroundTruthObject, Priors, Sequence
+from ._scenes import DEFAULT_CAMERA
 
 __all__ = ["ROOM_CLASSES", "make_room_sequence"]
 
@@ -296,8 +295,6 @@ def _tum(centres: np.ndarray, R_wc: np.ndarray) -> np.ndarray:
 # --- detections -----------------------------------------------------------------------------
 
 
-_CORNER_SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3))).T  # (3, 8)
-
 
 def _frustum_planes(camera: Camera) -> np.ndarray:
     """Unit normals (4, 3), camera frame, of the planes through the optical centre and the
@@ -315,11 +312,9 @@ def _boxes(centres, R_wc, t, P, R_obj, radii, camera: Camera, shape: str, trunca
     """(frame, object, box) of every valid noise-free detection, frame-major order; boxes
     are unclipped (with ``truncation`` they may extend beyond the image)."""
     F, O = centres.shape[0], t.shape[0]
-    fx, fy, cx, cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     W, H = float(camera.width), float(camera.height)
     cuboid = shape == "cuboid"
-    Pinv = np.linalg.inv(P)
-    P9 = P.reshape(O, 9).T
+    half_axes = R_obj * radii[:, None, :]  # the cuboid's half-edge vectors (columns)
     # bounding-sphere radius of each object (truncation cull)
     bound = np.linalg.norm(radii, axis=1) if cuboid else radii.max(axis=1)
     planes = _frustum_planes(camera)
@@ -327,15 +322,15 @@ def _boxes(centres, R_wc, t, P, R_obj, radii, camera: Camera, shape: str, trunca
     out_f, out_o, out_b = [], [], []
     for f0 in range(0, F, step):
         c, R = centres[f0:f0 + step], R_wc[f0:f0 + step]
-        a1, a2, a3 = R[:, :, 0], R[:, :, 1], R[:, :, 2]
-        # Camera-frame coordinates of the centres, (f, o): x_i = a_iᵀ (t − c).
-        z = a3 @ t.T - np.sum(a3 * c, axis=1)[:, None]
-        if cuboid:  # depth half-extent of the cuboid: Σ_k s_k |a₃ · r_k|
-            half = sum(radii[:, k] * np.abs(a3 @ R_obj[:, :, k].T) for k in range(3))
-        else:  # of the ellipsoid: √(a₃ᵀ P a₃)
-            half2 = (a3[:, :, None] * a3[:, None, :]).reshape(-1, 9) @ P9
-            half = np.sqrt(np.maximum(half2, 0.0))
-        keep = (z - half > MIN_DEPTH) & (z <= MAX_DEPTH)
+        # (f, o) grid: near depth of each object, depth of its centre
+        grid = (R[:, None], c[:, None])
+        if cuboid:
+            near = cuboid_depth_range((half_axes[None], t[None]), grid)[..., 0]
+        else:
+            near = depth_range(Ellipsoid(P[None], t[None]), grid)[..., 0]
+        Rt = world_to_camera((R, c))  # [R_cw | t_cw]
+        z = Rt[:, 2, :3] @ t.T + Rt[:, 2, 3:]
+        keep = (near > MIN_DEPTH) & (z <= MAX_DEPTH)
         if truncation:
             # Cull unless the bounding sphere reaches into each of the four half-spaces
             # (a conservative test: at least MIN_BOX_PX of the outline may be visible).
@@ -344,40 +339,21 @@ def _boxes(centres, R_wc, t, P, R_obj, radii, camera: Camera, shape: str, trunca
                 keep &= n_w @ t.T - np.sum(n_w * c, axis=1)[:, None] >= -bound
         else:
             # The centre projects inside the projected outline: cull by it first.
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = cx + fx * (a1 @ t.T - np.sum(a1 * c, axis=1)[:, None]) / z
-                v = cy + fy * (a2 @ t.T - np.sum(a2 * c, axis=1)[:, None]) / z
+            uv = project_points(t, (R, c), camera)
+            u, v = uv[..., 0], uv[..., 1]
             keep &= (u > MARGIN_PX) & (u < W - MARGIN_PX) & (v > MARGIN_PX) & (v < H - MARGIN_PX)
         fi, oi = np.nonzero(keep)
         if fi.size == 0:
             continue
-        A = R[fi]  # (n, 3, 3): columns a₁ a₂ a₃
-        d = t[oi] - c[fi]
-        x = np.einsum("nij,ni->nj", A, d)  # camera-frame centres
+        pose = (R[fi], c[fi])
         if cuboid:
-            # camera-frame corners x + R_cw R diag(s) σ, σ ∈ {±1}³; box of their projections
-            B = np.einsum("nji,njk->nik", A, R_obj[oi]) * radii[oi][:, None, :]
-            X = x[:, :, None] + B @ _CORNER_SIGNS  # (n, 3, 8)
-            front = np.all(X[:, 2] > MIN_DEPTH, axis=1)
-            Z = np.where(front[:, None], X[:, 2], 1.0)
-            u8, v8 = cx + fx * X[:, 0] / Z, cy + fy * X[:, 1] / Z
-            box = np.stack([u8.min(1), v8.min(1), u8.max(1), v8.max(1)], axis=1)
-            local = np.einsum("nji,nj->ni", R_obj[oi], -d)  # camera centre in the object frame
-            outside = front & np.any(np.abs(local) >= radii[oi], axis=1)
+            box = project_cuboid_box((half_axes[oi], t[oi]), pose, camera)
+            local = np.einsum("nji,nj->ni", R_obj[oi], c[fi] - t[oi])  # camera in the object frame
+            outside = np.any(np.abs(local) >= radii[oi], axis=1)
         else:
-            PA = P[oi] @ A
-            Pc = np.einsum("nij,nik->njk", A, PA)  # R_cw P R_cwᵀ
-            D = Pc - x[:, :, None] * x[:, None, :]
-            d11, d22, d33, d13, d23 = D[:, 0, 0], D[:, 1, 1], D[:, 2, 2], D[:, 0, 2], D[:, 1, 2]
-            du = np.sqrt(np.maximum(d13**2 - d11 * d33, 0.0))
-            dv = np.sqrt(np.maximum(d23**2 - d22 * d33, 0.0))
-            u1, u2 = cx + fx * (d13 - du) / d33, cx + fx * (d13 + du) / d33
-            v1, v2 = cy + fy * (d23 - dv) / d33, cy + fy * (d23 + dv) / d33
-            box = np.stack(
-                [np.minimum(u1, u2), np.minimum(v1, v2), np.maximum(u1, u2), np.maximum(v1, v2)],
-                axis=1,
-            )
-            outside = np.einsum("ni,nij,nj->n", d, Pinv[oi], d) >= 1.0  # camera not inside
+            landmark = Ellipsoid(P[oi], t[oi])
+            box = project_box(landmark, pose, camera)
+            outside = ~camera_inside(landmark, pose)
         if truncation:  # the visible part, box ∩ [0, W] × [0, H]
             ok = (
                 outside

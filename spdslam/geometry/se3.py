@@ -12,8 +12,22 @@ from __future__ import annotations
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-__all__ = ["as_pose", "from_tum", "to_tum", "from_matrix", "to_matrix", "stack"]
+from ._arrays import array_namespace
+
+__all__ = [
+    "as_pose",
+    "from_tum",
+    "to_tum",
+    "from_matrix",
+    "to_matrix",
+    "stack",
+    "camera_axes",
+    "world_to_camera",
+    "quat_to_matrix",
+    "matrix_to_quat",
+]
 
 
 def as_pose(T) -> jaxlie.SE3:
@@ -57,3 +71,34 @@ def to_tum(T) -> np.ndarray:
 def stack(poses) -> jaxlie.SE3:
     """A batched SE3 from a sequence of poses."""
     return jaxlie.SE3(jnp.stack([as_pose(T).wxyz_xyz for T in poses]))
+
+
+def camera_axes(T_wc):
+    """(R_wc, c): the camera axes (columns) and centre in the world. ``T_wc`` is a
+    ``jaxlie.SE3`` or already such a pair of arrays ((…, 3, 3), (…, 3): NumPy stays NumPy)."""
+    if isinstance(T_wc, jaxlie.SE3):
+        return T_wc.rotation().as_matrix(), T_wc.translation()
+    R_wc, c = T_wc
+    return R_wc, c
+
+
+def world_to_camera(T_wc):
+    """[R_cw | t_cw] (…, 3, 4), the world-to-camera map x_c = R_cw x + t_cw: the top rows of
+    T_wc⁻¹ for a ``jaxlie.SE3``; R_cw = R_wcᵀ, t_cw = −R_wcᵀ c for a pair (R_wc, c) of arrays."""
+    if isinstance(T_wc, jaxlie.SE3):
+        return T_wc.inverse().as_matrix()[..., :3, :]
+    R_wc, c = T_wc
+    xp = array_namespace(R_wc, c)
+    R_cw = xp.swapaxes(R_wc, -1, -2)
+    return xp.concatenate([R_cw, -(R_cw @ c[..., None])], axis=-1)
+
+
+def quat_to_matrix(q_xyzw) -> np.ndarray:
+    """Rotation matrix of a quaternion ``qx qy qz qw`` (normalised here), NumPy."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix()
+
+
+def matrix_to_quat(R) -> np.ndarray:
+    """Unit quaternion ``qx qy qz qw`` with qw ≥ 0 of a rotation matrix, NumPy."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    return np.where(q[..., 3:] < 0, -q, q)

@@ -13,13 +13,17 @@ are Frobenius-orthonormal, so Bₖ = P^½ Eₖ P^½ is an orthonormal basis of T
 affine-invariant metric: ξ = Σ cₖ Bₖ has ⟨ξ, ξ⟩_P = ‖c‖². ``retract_vec``/``local_vec`` use these
 coordinates; ``retract``/``local`` take and return symmetric matrices ξ.
 
-All functions accept numpy or JAX arrays and broadcast over leading axes.
+All functions broadcast over leading axes. ``distance`` and ``is_spd`` compute in NumPy for
+NumPy input (no JAX dispatch: the front end calls them per pair of tracks); the others
+compute in JAX and are differentiable at repeated eigenvalues (``matfun``).
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
+from ._arrays import array_namespace
 from .matfun import expm, invsqrtm, logm, sqrtm, sym
 
 __all__ = [
@@ -109,15 +113,35 @@ def local_vec(P, Q):
 
 
 def distance(P, Q):
-    """Affine-invariant geodesic distance ‖Log(P^-½ Q P^-½)‖_F."""
-    return jnp.linalg.norm(local_vec(P, Q), axis=-1)
+    """Affine-invariant geodesic distance d(P, Q) = ‖Log(P^-½ Q P^-½)‖_F (paper eq. 22).
+
+    P^-½ Q P^-½ is similar to L⁻¹ Q L⁻ᵀ (P = L Lᵀ, Cholesky), so d = √(Σᵢ log² λᵢ) with λᵢ
+    the eigenvalues of that symmetric matrix. NumPy input raises ``ValueError`` when P or Q
+    is not symmetric positive definite; in JAX the result is then NaN.
+    """
+    xp = array_namespace(P, Q)
+    if xp is np:
+        P, Q = np.asarray(P, dtype=float), np.asarray(Q, dtype=float)
+        try:
+            L = np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
+            raise ValueError("spd.distance: P is not symmetric positive definite") from None
+    else:
+        L = jnp.linalg.cholesky(P)
+    Li = xp.linalg.inv(L)
+    S = Li @ Q @ xp.swapaxes(Li, -1, -2)
+    lam = xp.linalg.eigvalsh(0.5 * (S + xp.swapaxes(S, -1, -2)))
+    if xp is np and np.any(lam <= 0):
+        raise ValueError("spd.distance: Q is not symmetric positive definite")
+    return xp.sqrt(xp.sum(xp.log(lam) ** 2, axis=-1))
 
 
 def is_spd(P, rtol: float = 0.0):
     """True where P is symmetric with all eigenvalues > rtol·max|λ|."""
-    P = jnp.asarray(P)
-    w = jnp.linalg.eigvalsh(sym(P))
-    scale = jnp.max(jnp.abs(P), axis=(-2, -1), keepdims=True)
-    symmetric = jnp.all(jnp.abs(P - jnp.swapaxes(P, -1, -2)) <= 1e-9 * scale, axis=(-2, -1))
-    return symmetric & (w[..., 0] > rtol * jnp.max(jnp.abs(w), axis=-1))
+    xp = array_namespace(P)
+    P = xp.asarray(P, dtype=float)
+    w = xp.linalg.eigvalsh(0.5 * (P + xp.swapaxes(P, -1, -2)))
+    scale = xp.max(xp.abs(P), axis=(-2, -1), keepdims=True)
+    symmetric = xp.all(xp.abs(P - xp.swapaxes(P, -1, -2)) <= 1e-9 * scale, axis=(-2, -1))
+    return symmetric & (w[..., 0] > rtol * xp.max(xp.abs(w), axis=-1))
 

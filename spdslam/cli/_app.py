@@ -1,0 +1,184 @@
+"""The ``spdslam`` typer application, its conventions and the ``info`` command.
+
+A single typer application, :data:`app`. Commands are plain functions registered with
+``@app.command()`` in the modules of this package (``_simulate``: ``simulate``;
+``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``). Conventions:
+
+* bad user input -> :func:`fail` (one line on stderr, exit status 2);
+* heavy imports (solver, factors, matplotlib, ...) go *inside* the command function, so
+  that ``spdslam --help`` and ``spdslam --version`` stay fast;
+* rich output goes through :data:`console` (stdout) / :data:`err_console` (stderr).
+
+Before any command runs, :func:`main` (the app callback) enables JAX's persistent
+compilation cache in ``$SPDSLAM_CACHE_DIR`` (default ``~/.cache/spdslam/jax``) so that
+repeated runs skip most of the XLA compilation time.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from importlib import metadata
+from pathlib import Path
+from typing import NoReturn
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .._version import __version__
+
+#: Environment variable naming the JAX compilation-cache directory.
+CACHE_ENV = "SPDSLAM_CACHE_DIR"
+#: Default JAX compilation-cache directory.
+DEFAULT_CACHE_DIR = Path("~/.cache/spdslam/jax")
+#: Only compilations that took at least this long are written to the persistent cache.
+CACHE_MIN_COMPILE_SECS = 0.1
+
+app = typer.Typer(
+    name="spdslam",
+    help="Object-level SLAM back end: ellipsoid landmarks on SPD(3) x R^3.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_show_locals=False,
+)
+
+console = Console()
+err_console = Console(stderr=True)
+
+#: Set by :func:`main`: the cache directory in use, or ``None`` if the cache is off.
+_cache_dir_in_use: Path | None = None
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    """Report a bad-input error as one line on stderr and exit with ``code`` (default 2).
+
+    Plain ``typer.echo`` rather than rich, so long messages are never wrapped.
+    """
+    text = " ".join(str(message).split())  # guarantee a single line
+    typer.echo(f"spdslam: error: {text}", err=True)
+    raise typer.Exit(code)
+
+
+def cache_dir() -> Path:
+    """The configured JAX compilation-cache directory (not necessarily existing)."""
+    raw = os.environ.get(CACHE_ENV) or str(DEFAULT_CACHE_DIR)
+    return Path(raw).expanduser()
+
+
+def enable_compilation_cache(path: Path | None = None) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`).
+
+    Returns the directory used, or ``None`` when it could not be created or configured;
+    never raises.
+    """
+    path = cache_dir() if path is None else Path(path).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not os.access(path, os.W_OK):
+            return None
+    except OSError:
+        return None
+    try:
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", str(path))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECS)
+    except Exception:  # noqa: BLE001 - the cache is an optimisation, never fatal
+        return None
+    return path
+
+
+def cholmod_available() -> bool:
+    """Whether scikit-sparse's CHOLMOD bindings import."""
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except Exception:  # noqa: BLE001 - ImportError or a broken shared library
+        return False
+    return True
+
+
+def sparse_solver_name() -> str:
+    """Human-readable name of the sparse linear solver the optimiser will use (as the
+    solver itself decides: ``spdslam.solver.HAVE_CHOLMOD``)."""
+    from ..solver import HAVE_CHOLMOD
+
+    if HAVE_CHOLMOD:
+        return "CHOLMOD (scikit-sparse)"
+    return "scipy.sparse (SuperLU)"
+
+
+def _dist_version(name: str) -> str:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        typer.echo(__version__)
+        raise typer.Exit(0)
+
+
+# --------------------------------------------------------------------------- app callback
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(
+        False,
+        "--version",
+        "-V",
+        help="Print the spdslam version and exit.",
+        callback=_version_callback,
+        is_eager=True,
+    ),
+) -> None:
+    """Object-level SLAM back end: ellipsoid landmarks on SPD(3) x R^3."""
+    global _cache_dir_in_use
+    _cache_dir_in_use = enable_compilation_cache()
+
+
+# --------------------------------------------------------------------------- commands
+
+
+@app.command()
+def info() -> None:
+    """Print versions, the sparse solver in use and the JAX backend."""
+    import jax
+
+    import spdslam  # noqa: F401 - enables float64 as a side effect
+
+    versions = Table(title="spdslam environment", show_header=True, header_style="bold")
+    versions.add_column("component")
+    versions.add_column("value")
+    versions.add_row("python", f"{platform.python_version()} ({sys.executable})")
+    versions.add_row("spdslam", __version__)
+    for dist in ("jax", "jaxlib", "jaxlie", "numpy", "scipy"):
+        versions.add_row(dist, _dist_version(dist))
+    has_cholmod = cholmod_available()
+    versions.add_row(
+        "cholmod",
+        f"available (scikit-sparse {_dist_version('scikit-sparse')})"
+        if has_cholmod
+        else "not available",
+    )
+    versions.add_row("sparse solver", sparse_solver_name())
+    try:
+        backend = jax.default_backend()
+        devices = ", ".join(str(d) for d in jax.devices())
+    except Exception as exc:  # noqa: BLE001
+        backend, devices = "unavailable", f"error: {exc}"
+    versions.add_row("jax backend", backend)
+    versions.add_row("jax devices", devices)
+    versions.add_row("float64 (jax_enable_x64)", "enabled" if jax.config.jax_enable_x64 else "DISABLED")
+    versions.add_row(
+        "compilation cache",
+        str(_cache_dir_in_use) if _cache_dir_in_use is not None else "off",
+    )
+    console.print(versions)

@@ -1,0 +1,38 @@
+"""Evaluation against ground truth: 3D IoU of oriented cuboids, orientation error up to
+axis order and sign, trajectory error, confidence intervals, the run's report and figures.
+Imports ``geometry`` and ``io``; it evaluates any map, however it was made.
+"""
+
+from ._metrics import MAX_ORIENTATION_ERROR_DEG as MAX_ORIENTATION_ERROR_DEG
+from ._metrics import absolute_trajectory_error as absolute_trajectory_error
+from ._metrics import align_rigid as align_rigid
+from ._metrics import associate_timestamps as associate_timestamps
+from ._metrics import cuboid_iou as cuboid_iou
+from ._metrics import cuboid_iou_arrays as cuboid_iou_arrays
+from ._metrics import cuboid_iou_batch as cuboid_iou_batch
+from ._metrics import orientation_error_deg as orientation_error_deg
+from ._metrics import orientation_errors_deg as orientation_errors_deg
+from ._metrics import signed_permutations as signed_permutations
+from ._metrics import translation_error as translation_error
+from ._plots import camera_centers as camera_centers
+from ._plots import conic_ellipse as conic_ellipse
+from ._plots import conic_outline as conic_outline
+from ._plots import ellipse_points as ellipse_points
+from ._plots import plane_basis as plane_basis
+from ._plots import plot_map_top as plot_map_top
+from ._plots import plot_overlay as plot_overlay
+from ._plots import top_view_ellipse as top_view_ellipse
+from ._plots import write_overlays as write_overlays
+from ._report import FRONT_END_NAMES as FRONT_END_NAMES
+from ._report import ObjectMetrics as ObjectMetrics
+from ._report import evaluate_objects as evaluate_objects
+from ._report import evaluate_run as evaluate_run
+from ._report import match_objects as match_objects
+from ._report import report_markdown as report_markdown
+from ._report import table_iii as table_iii
+from ._report import write_run as write_run
+from ._stats import Interval as Interval
+from ._stats import PairedComparison as PairedComparison
+from ._stats import bootstrap as bootstrap
+from ._stats import paired_comparison as paired_comparison
+from ._stats import wilson as wilson

@@ -1,0 +1,18 @@
+"""Experiments: the paper's simulation study (Table II, Fig. 12) as batched solves, its
+summaries beside the paper's numbers, and its files. Imports ``geometry``, ``factors``,
+``solver``, ``synthetic`` and ``evaluation``.
+"""
+
+from ._outputs import plot_convergence as plot_convergence
+from ._outputs import write_outputs as write_outputs
+from ._paper import MODEL_NAMES as MODEL_NAMES
+from ._paper import PAPER_IOU_H as PAPER_IOU_H
+from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
+from ._paper import PARAM_NAMES as PARAM_NAMES
+from ._study import StudyConfig as StudyConfig
+from ._study import StudyResult as StudyResult
+from ._study import run_study as run_study
+from ._summary import COLLAPSED_RATIO as COLLAPSED_RATIO
+from ._summary import CSV_COLUMNS as CSV_COLUMNS
+from ._summary import summarize as summarize
+from ._summary import table_markdown as table_markdown

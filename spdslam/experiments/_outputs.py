@@ -1,0 +1,94 @@
+"""The files of a study: trials.csv, table.md, convergence.png and summary.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ._study import StudyResult
+from ._summary import CSV_COLUMNS, summarize, table_markdown
+
+__all__ = ["plot_convergence", "write_outputs"]
+
+
+def plot_convergence(result: StudyResult, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfg = result.config
+    angle_lab = np.repeat([a for a, _ in cfg.cells], cfg.trials)
+    noise_lab = np.repeat([n for _, n in cfg.cells], cfg.trials)
+    fig, axes = plt.subplots(
+        len(cfg.angles), len(cfg.noise), figsize=(4.2 * len(cfg.noise), 3.4 * len(cfg.angles)),
+        squeeze=False, sharex=True,
+    )  # fmt: skip
+    colors = {"F": "tab:red", "S": "tab:blue", "O": "tab:green"}
+    styles = {"inv": "-", "semi": "--"}
+    for i, a in enumerate(cfg.angles):
+        for j, n in enumerate(cfg.noise):
+            ax = axes[i, j]
+            sel = (angle_lab == a) & (noise_lab == n)
+            for (m, p), h in result.histories.items():
+                y = np.maximum(h[sel], 1e-16)
+                it = np.arange(y.shape[1])
+                med = np.median(y, axis=0)
+                q1, q3 = np.quantile(y, [0.25, 0.75], axis=0)
+                ax.plot(it, med, styles[m], color=colors[p], lw=1.4, label=f"{p}-{m}")
+                ax.fill_between(it, q1, q3, color=colors[p], alpha=0.10)
+            ax.set_yscale("log")
+            ax.set_title(f"{int(a)}°, noise {n}")
+            if i == len(cfg.angles) - 1:
+                ax.set_xlabel("iteration")
+            if j == 0:
+                ax.set_ylabel("cost / initial cost")
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    fig.suptitle("Cost vs iteration: median and interquartile band (F Full, S RTS, O SPD; - inv, -- semi)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+
+
+def write_outputs(result: StudyResult, out: Path) -> dict:
+    """trials.csv, table.md, convergence.png and summary.json under ``out``; each file is
+    written to a temporary name first, so nothing is left half-written."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = summarize(result)
+
+    def atomic(name: str, write):
+        tmp = out / f".{name}.tmp"
+        write(tmp)
+        tmp.replace(out / name)
+
+    def csv(path):
+        with open(path, "w") as f:
+            f.write(",".join(CSV_COLUMNS) + "\n")
+            for r in result.rows:
+                f.write(",".join(_fmt(r[c]) for c in CSV_COLUMNS) + "\n")
+
+    atomic("trials.csv", csv)
+    atomic("table.md", lambda p: p.write_text(table_markdown(summary)))
+    atomic("convergence.png", lambda p: plot_convergence(result, p))
+    atomic("summary.json", lambda p: p.write_text(json.dumps(summary, indent=1, default=_json_default)))
+    return summary
+
+
+def _fmt(v) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, float):
+        return "nan" if not np.isfinite(v) else f"{v:.10g}"
+    return str(v)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)

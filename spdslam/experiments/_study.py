@@ -1,0 +1,293 @@
+"""The paper's simulation study (Sec. IV-A, Table II, Fig. 12), batched.
+
+Grid: viewing range (60°, 120°) × noise level (L, M, H) × box model (inv, semi) ×
+parameterisation (F Full-regularised, S Rot-Trans-Scale, O SPD(3)), ``trials`` scenes per
+(range, noise) cell; the six (model, parameterisation) structures see the same scenes, so
+methods are compared on paired trials. Each structure is one vmapped LM solve over all
+cells × trials (no Python loop over trials); each structure compiles once.
+
+Success rule (same for every method): with C̄ the cost at the ground-truth landmark,
+
+    success  ⇔  final cost ≤ (1 + rtol)·C̄ + atol,
+
+so a run stuck in a wrong basin fails whatever its parameterisation, and a run that reached
+the basin of the truth succeeds even with noisy boxes (its optimum lies below C̄).
+``iterations_to_tol`` is the first iteration whose cost satisfies the same inequality.
+Summaries, tables and figures: ``_summary``, ``_outputs``; the paper's numbers: ``_paper``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from ..evaluation import cuboid_iou_arrays, orientation_errors_deg
+from ..factors import InverseBoxFactor, SemiInverseBoxFactor
+from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, sorted_axes
+from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
+from ..synthetic import NOISE_LEVELS, Scenes, make_scenes
+
+__all__ = ["StudyConfig", "StudyResult", "run_study"]
+
+_PARAM_TYPES = {"F": EllipsoidFull, "S": EllipsoidRTS, "O": Ellipsoid}
+_MODEL_FACTORS = {"inv": InverseBoxFactor, "semi": SemiInverseBoxFactor}
+#: The landmark's key in every trial's graph.
+OBJECT = L(0)
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    trials: int = 24
+    seed: int = 0
+    params: tuple[str, ...] = ("F", "S", "O")
+    models: tuple[str, ...] = ("inv", "semi")
+    angles: tuple[float, ...] = (60.0, 120.0)
+    noise: tuple[str, ...] = ("L", "M", "H")
+    max_iters: int = 100
+    n_views: int = 10
+    #: LM initial damping, relative to diag(H) (see docs/simulation.md).
+    lambda_initial: float = 1.0
+    #: Success: final cost ≤ (1 + success_rtol)·C̄ + success_atol (whitened cost units).
+    success_rtol: float = 0.01
+    success_atol: float = 1e-6
+    #: Box-factor standard deviations: inverse in px per edge, semi-inverse in m² per edge
+    #: plane. One σ per model for every noise level: with one factor type per problem the
+    #: estimate does not depend on it, only the cost's units do.
+    inverse_sigma: float = 1.0
+    semi_sigma: float = 0.01
+    #: Compile the batched solver with XLA's optimisations: None chooses by the work
+    #: (``BatchedProblem``'s rule: off for this grid's size, where compile time dominates);
+    #: True: faster LM loops for a longer compile (docs/performance.md,
+    #: ``benchmarks/simulation.py --optimize yes``).
+    optimize: bool | None = None
+
+    def __post_init__(self):
+        for p in self.params:
+            if p not in _PARAM_TYPES:
+                raise ValueError(f"unknown parameterisation {p!r}: expected F, S or O")
+        for m in self.models:
+            if m not in _MODEL_FACTORS:
+                raise ValueError(f"unknown model {m!r}: expected inv or semi")
+        for n in self.noise:
+            if n not in NOISE_LEVELS:
+                raise ValueError(f"unknown noise level {n!r}: expected L, M or H")
+        for a in self.angles:
+            if not 0 < a <= 360:
+                raise ValueError(f"viewing range must be in (0, 360] degrees, got {a}")
+        if self.trials < 1 or self.max_iters < 1 or self.n_views < 3:
+            raise ValueError("need trials ≥ 1, max_iters ≥ 1 and n_views ≥ 3")
+
+    @property
+    def cells(self) -> list[tuple[float, str]]:
+        return [(a, n) for a in self.angles for n in self.noise]
+
+
+@dataclass
+class StudyResult:
+    config: StudyConfig
+    #: One record per (trial, model, param): the columns of trials.csv.
+    rows: list[dict]
+    #: (model, param) → relative cost history (B, max_iters + 1), cost / initial cost,
+    #: forward-filled after the run stopped; B = cells × trials in config.cells order.
+    histories: dict[tuple[str, str], np.ndarray]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# --- scenes and problems -----------------------------------------------------------------
+def _all_scenes(cfg: StudyConfig) -> tuple[Scenes, np.ndarray, np.ndarray]:
+    """Scenes of every cell, concatenated along the batch axis, with their cell labels."""
+    parts, angle, noise = [], [], []
+    for ia, a in enumerate(cfg.angles):
+        for n in cfg.noise:
+            s = make_scenes(
+                (cfg.seed, ia, "LMH".index(n)), cfg.trials, n, a, n_views=cfg.n_views
+            )
+            parts.append(s)
+            angle += [a] * cfg.trials
+            noise += [n] * cfg.trials
+    cat = lambda *xs: jnp.concatenate(xs)  # noqa: E731
+    scenes = Scenes(
+        jax.tree.map(cat, *[p.truth for p in parts]),
+        jax.tree.map(cat, *[p.initial for p in parts]),
+        jax.tree.map(cat, *[p.poses for p in parts]),
+        np.concatenate([p.boxes for p in parts]),
+        parts[0].camera,
+    )
+    return scenes, np.array(angle), np.array(noise)
+
+
+def _box_sigma(model: str, cfg: StudyConfig) -> float:
+    return cfg.semi_sigma if model == "semi" else cfg.inverse_sigma
+
+
+_FROM_ELLIPSOID = {
+    "F": jax.jit(jax.vmap(EllipsoidFull.from_ellipsoid)),
+    "S": jax.jit(jax.vmap(EllipsoidRTS.from_ellipsoid)),
+}
+_TO_ELLIPSOID = jax.jit(jax.vmap(lambda y: y.to_ellipsoid()))
+
+
+def _convert(param: str, e: Ellipsoid):
+    """Batched Ellipsoid → batched landmark of the parameterisation."""
+    return e if param == "O" else _FROM_ELLIPSOID[param](e)
+
+
+def _to_ellipsoid(x) -> Ellipsoid:
+    return x if isinstance(x, Ellipsoid) else _TO_ELLIPSOID(x)
+
+
+def _template(model: str, scenes: Scenes, cfg: StudyConfig, landmark0):
+    factor = _MODEL_FACTORS[model]
+    graph, values = NonlinearFactorGraph(), Values()
+    for i in range(cfg.n_views):
+        values[X(i)] = jaxlie.SE3(scenes.poses.wxyz_xyz[0, i])
+        graph.add(factor(X(i), OBJECT, scenes.boxes[0, i], scenes.camera,
+                         sigma=_box_sigma(model, cfg)))
+    values[OBJECT] = landmark0
+    return graph, values
+
+
+def _batched_args(scenes: Scenes, cfg: StudyConfig):
+    """Per-factor batched args (box, camera) for the template's factors."""
+    B = len(scenes)
+    cam = jax.tree.map(lambda x: jnp.full((B,), x), scenes.camera)
+    return {i: (jnp.asarray(scenes.boxes[:, i]), cam) for i in range(cfg.n_views)}
+
+
+def _solve_structure(model, param, scenes, cfg):
+    """One vmapped solve of every trial of every cell for one (model, param)."""
+    init = _convert(param, scenes.initial)
+    truth = _convert(param, scenes.truth)
+    first = jax.tree.map(lambda a: a[0], init)
+    graph, values = _template(model, scenes, cfg, first)
+    optimizer = LevenbergMarquardt(max_iterations=cfg.max_iters, lambda_initial=cfg.lambda_initial)
+    problem = optimizer.batched(graph, values, fixed=[X(i) for i in range(cfg.n_views)],
+                                optimize=cfg.optimize)
+    args = _batched_args(scenes, cfg)
+    pose_values = {
+        X(i): jax.tree.map(lambda a, i=i: a[:, i], scenes.poses) for i in range(cfg.n_views)
+    }
+    t0 = time.perf_counter()
+    result = problem.solve(factor_args=args, values={**pose_values, OBJECT: init})
+    t1 = time.perf_counter()
+    truth_cost = problem.cost(factor_args=args, values={**pose_values, OBJECT: truth})
+    return {
+        "estimate": _to_ellipsoid(result.values_batched[OBJECT]),
+        "initial_cost": np.asarray(result.initial_cost),
+        "final_cost": np.asarray(result.final_cost),
+        "truth_cost": np.asarray(truth_cost),
+        "cost_history": np.asarray(result.cost_history),
+        "iterations": np.asarray(result.iterations),
+        "reason": list(result.reason),
+        "seconds": t1 - t0,
+        "timings": dict(result.timings),
+    }
+
+
+# --- evaluation --------------------------------------------------------------------------
+def _forward_fill(h: np.ndarray, initial: np.ndarray) -> np.ndarray:
+    """Cost after each iteration with the initial cost in column 0; NaN padding → last value."""
+    full = np.concatenate([initial[:, None], h], axis=1)
+    mask = np.isfinite(full)
+    idx = np.where(mask, np.arange(full.shape[1])[None, :], 0)
+    np.maximum.accumulate(idx, axis=1, out=idx)
+    return full[np.arange(full.shape[0])[:, None], idx]
+
+
+@jax.jit
+def _axes_batch(P):
+    return jax.vmap(sorted_axes)(P)
+
+
+def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid):
+    """IoU of the circumscribed cuboids, orientation error (deg) and s₃/s₁ of the estimate,
+    for a batch of estimates.
+
+    A collapsed estimate (smallest radius < 1 nm, or non-finite) has no cuboid: IoU 0,
+    orientation error NaN.
+    """
+    Re, se = (np.asarray(a) for a in _axes_batch(est.P))
+    Rt, st = (np.asarray(a) for a in _axes_batch(truth.P))
+    ce, ct = np.asarray(est.center), np.asarray(truth.center)
+    ok = np.all(np.isfinite(Re), axis=(1, 2)) & np.all(np.isfinite(se), axis=1)
+    ok &= np.all(np.isfinite(ce), axis=1) & (np.min(np.where(np.isfinite(se), se, 0), axis=1) > 1e-9)
+    iou = np.zeros(len(ok))
+    if ok.any():
+        iou[ok] = cuboid_iou_arrays(ce[ok], Re[ok], se[ok], ct[ok], Rt[ok], st[ok])
+    orient = orientation_errors_deg(np.where(ok[:, None, None], Re, np.nan), Rt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(np.all(np.isfinite(se), axis=1), se[:, 2] / se[:, 0], np.nan)
+    return iou, orient, ratio
+
+
+def run_study(
+    cfg: StudyConfig = StudyConfig(),
+    progress: Callable[[str, int, int], None] | None = None,
+) -> StudyResult:
+    """Run the grid; ``progress(stage, done, total)`` is called as structures finish."""
+    t_start = time.perf_counter()
+    structures = [(m, p) for m in cfg.models for p in cfg.params]
+    total = len(structures) + 1
+    scenes, angle_lab, noise_lab = _all_scenes(cfg)
+    trial_lab = np.tile(np.arange(cfg.trials), len(cfg.cells))
+    if progress:
+        progress("scenes", 1, total)
+    rows: list[dict] = []
+    histories: dict = {}
+    timings = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0}
+    B = len(scenes)
+    for k, (model, param) in enumerate(structures):
+        out = _solve_structure(model, param, scenes, cfg)
+        t_eval = time.perf_counter()
+        thr = (1 + cfg.success_rtol) * out["truth_cost"] + cfg.success_atol
+        hist = _forward_fill(out["cost_history"], out["initial_cost"])
+        below = hist <= thr[:, None]
+        reached = below.any(axis=1)
+        first = np.where(reached, below.argmax(axis=1), -1)
+        success = out["final_cost"] <= thr
+        iou, orient, ratio = _ious_and_orientation(out["estimate"], scenes.truth)
+        histories[(model, param)] = hist / np.maximum(out["initial_cost"][:, None], 1e-300)
+        per_trial_s = out["seconds"] / B
+        for b in range(B):
+            rows.append(
+                {
+                    "angle": int(angle_lab[b]),
+                    "noise": str(noise_lab[b]),
+                    "model": model,
+                    "param": param,
+                    "trial": int(trial_lab[b]),
+                    "success": bool(success[b]),
+                    "iterations_to_tol": int(first[b]) if success[b] else "",
+                    "final_cost": float(out["final_cost"][b]),
+                    "iou": float(iou[b]),
+                    "orientation_error_deg": float(orient[b]),
+                    "seconds": per_trial_s,
+                    "truth_cost": float(out["truth_cost"][b]),
+                    "initial_cost": float(out["initial_cost"][b]),
+                    "iterations": int(out["iterations"][b]),
+                    "reason": out["reason"][b],
+                    "min_radius_ratio": float(ratio[b]),
+                }
+            )
+        timings["solve"] += out["seconds"]
+        timings.setdefault("structures", {})[f"{model}-{param}"] = {
+            "seconds": out["seconds"], **{k2: float(v) for k2, v in out["timings"].items() if np.isscalar(v)}
+        }
+        timings["evaluate"] += time.perf_counter() - t_eval
+        if progress:
+            progress(f"{model}-{param}", k + 2, total)
+    timings["wall"] = time.perf_counter() - t_start
+    iters = sum(r["iterations"] for r in rows)
+    st = timings.get("structures", {}).values()
+    timings["compile"] = sum(v.get("trace", 0.0) + v.get("compile", 0.0) for v in st)
+    timings["solve_loops"] = sum(v.get("solve", 0.0) for v in st)
+    timings["problem_iterations"] = iters
+    # the batched LM loops alone (compile excluded), per iteration of each problem
+    timings["us_per_problem_iteration"] = 1e6 * timings["solve_loops"] / max(iters, 1)
+    return StudyResult(cfg, rows, histories, timings)

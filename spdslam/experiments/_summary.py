@@ -1,0 +1,153 @@
+"""Summaries of a study: per cell success rates (Wilson), IoU and iterations (bootstrap),
+collapsed estimates, paired iterations O vs S (Wilcoxon); the Markdown table beside the
+paper's."""
+
+from __future__ import annotations
+
+import platform
+from dataclasses import asdict
+
+import jax
+import numpy as np
+
+from .._version import __version__
+from ..evaluation import bootstrap, paired_comparison, wilson
+from ._paper import PAPER_IOU_H, PAPER_SUCCESS
+from ._study import StudyResult
+
+__all__ = ["COLLAPSED_RATIO", "CSV_COLUMNS", "summarize", "table_markdown"]
+
+#: An estimate whose smallest radius is below this fraction of its largest has collapsed.
+COLLAPSED_RATIO = 1e-3
+
+CSV_COLUMNS = [
+    "angle", "noise", "model", "param", "trial", "success", "iterations_to_tol", "final_cost",
+    "iou", "orientation_error_deg", "seconds", "truth_cost", "initial_cost", "iterations", "reason",
+    "min_radius_ratio",
+]  # fmt: skip
+
+
+def _select(rows, **kw):
+    return [r for r in rows if all(r[k] == v for k, v in kw.items())]
+
+
+def summarize(result: StudyResult) -> dict:
+    cfg, rows = result.config, result.rows
+    cells = []
+    for a, n in cfg.cells:
+        for m in cfg.models:
+            for p in cfg.params:
+                rs = _select(rows, angle=int(a), noise=n, model=m, param=p)
+                succ = [r for r in rs if r["success"]]
+                collapsed = [not r["min_radius_ratio"] >= COLLAPSED_RATIO for r in rs]
+                its = [r["iterations_to_tol"] for r in succ]
+                cells.append(
+                    {
+                        "angle": int(a), "noise": n, "model": m, "param": p,
+                        "trials": len(rs), "successes": len(succ),
+                        "failures_collapsed": sum(c and not r["success"] for c, r in zip(collapsed, rs)),
+                        "successes_collapsed": sum(c and r["success"] for c, r in zip(collapsed, rs)),
+                        "success_rate": wilson(len(succ), len(rs)).as_dict(),
+                        "iou_all": bootstrap([r["iou"] for r in rs]).as_dict(),
+                        "iou_success": bootstrap([r["iou"] for r in succ]).as_dict(),
+                        "iterations_to_tol": bootstrap(np.array(its, dtype=float)).as_dict(),
+                        "orientation_error_deg_success": bootstrap(
+                            [r["orientation_error_deg"] for r in succ]).as_dict(),
+                    }
+                )  # fmt: skip
+    paired = {}
+    if "O" in cfg.params and "S" in cfg.params:
+        for m in cfg.models:
+            for scope, filt in [("all", {}), *[(f"noise {n}", {"noise": n}) for n in cfg.noise]]:
+                o = _select(rows, model=m, param="O", **filt)
+                s = _select(rows, model=m, param="S", **filt)
+                key = lambda r: (r["angle"], r["noise"], r["trial"])  # noqa: E731
+                s_by = {key(r): r for r in s}
+                a_it, b_it = [], []
+                for r in o:
+                    q = s_by[key(r)]
+                    if r["success"] and q["success"]:
+                        a_it.append(r["iterations_to_tol"])
+                        b_it.append(q["iterations_to_tol"])
+                paired[f"{m} {scope}"] = paired_comparison(a_it, b_it).as_dict()
+    return {
+        "config": asdict(result.config),
+        "cells": cells,
+        "paired_iterations_O_vs_S": paired,
+        "timings": result.timings,
+        "versions": {"spdslam": __version__, "jax": jax.__version__, "python": platform.python_version()},
+        "machine": {"platform": platform.platform(), "processor": platform.processor()},
+    }
+
+
+def _cell(summary, a, n, m, p):
+    for c in summary["cells"]:
+        if (c["angle"], c["noise"], c["model"], c["param"]) == (int(a), n, m, p):
+            return c
+    raise KeyError((a, n, m, p))
+
+
+def table_markdown(summary: dict) -> str:
+    cfg = summary["config"]
+    params, models, angles = cfg["params"], cfg["models"], [int(a) for a in cfg["angles"]]
+    cols = [(m, a) for a in angles for m in models]
+    N = cfg["trials"]
+    lines = [
+        f"# Table II: successes {'+'.join(params)} out of {N} (paper: out of 24)",
+        "",
+        f"Success: final cost ≤ (1 + {cfg['success_rtol']})·C̄ + {cfg['success_atol']}, C̄ = cost at the ground truth.",
+        "",
+        "| noise | " + " | ".join(f"{m}-{a}" for m, a in cols) + " |",
+        "| --- | " + " | ".join("---" for _ in cols) + " |",
+    ]
+    for n in cfg["noise"]:
+        cells = []
+        for m, a in cols:
+            ours = "+".join(str(_cell(summary, a, n, m, p)["successes"]) for p in params)
+            paper = PAPER_SUCCESS.get((n, m, a))
+            ref = "+".join(str(paper["FSO".index(p)]) for p in params) if paper else "–"
+            cells.append(f"{ours} (paper {ref})")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", f"## Average IoU {'/'.join(params)} over all trials (paper at H)", ""]
+    lines += ["| noise | " + " | ".join(f"{m}-{a}" for m, a in cols) + " |"]
+    lines += ["| --- | " + " | ".join("---" for _ in cols) + " |"]
+    for n in cfg["noise"]:
+        cells = []
+        for m, a in cols:
+            ours = "/".join(f"{_cell(summary, a, n, m, p)['iou_all']['estimate']:.2f}" for p in params)
+            paper = PAPER_IOU_H.get((m, a)) if n == "H" else None
+            ref = " (paper " + "/".join(f"{paper['FSO'.index(p)]:.2f}" for p in params) + ")" if paper else ""
+            cells.append(ours + ref)
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", "## 95 % confidence intervals", ""]
+    lines += [f"Collapsed: the estimate's smallest radius is below {COLLAPSED_RATIO:g} of its largest (a flat disc or a needle)."]
+    lines += [""]
+    lines += ["| range | noise | model | param | success rate (Wilson) | IoU all (bootstrap) | IoU successful | iterations to tol | failed (collapsed) |"]
+    lines += ["| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for c in summary["cells"]:
+        sr, ia, isu, it = c["success_rate"], c["iou_all"], c["iou_success"], c["iterations_to_tol"]
+        f = lambda d, k=".2f": f"{d['estimate']:{k}} [{d['low']:{k}}, {d['high']:{k}}]"  # noqa: E731
+        lines.append(
+            f"| {c['angle']} | {c['noise']} | {c['model']} | {c['param']} | {f(sr)} | {f(ia)} | {f(isu)} | "
+            f"{f(it, '.1f')} | {c['trials'] - c['successes']} ({c['failures_collapsed']}) |"
+        )
+    if summary["paired_iterations_O_vs_S"]:
+        lines += ["", "## Iterations to tolerance, SPD (O) vs RTS (S), paired on trials where both succeed", ""]
+        lines += ["| model, trials | pairs | mean O | mean S | O/S ratio of means [95 % CI] | Wilcoxon p | O faster in |"]
+        lines += ["| --- | --- | --- | --- | --- | --- | --- |"]
+        for k, c in summary["paired_iterations_O_vs_S"].items():
+            r = c["ratio_of_means"]
+            lines.append(
+                f"| {k} | {c['n']} | {c['mean_a']:.2f} | {c['mean_b']:.2f} | "
+                f"{r['estimate']:.3f} [{r['low']:.3f}, {r['high']:.3f}] | {c['wilcoxon_p']:.2g} | "
+                f"{100 * c['fraction_a_less']:.0f} % |"
+            )
+    t = summary["timings"]
+    lines += [
+        "",
+        f"Wall time {t['wall']:.2f} s: scenes {t['scenes']:.2f} s, solves {t['solve']:.2f} s "
+        f"(of which tracing + XLA compilation {t['compile']:.2f} s, LM loops {t['solve_loops']:.2f} s), "
+        f"evaluation {t['evaluate']:.2f} s; {t['us_per_problem_iteration']:.1f} µs per problem-iteration "
+        f"(LM loops / {t['problem_iterations']} problem-iterations).",
+    ]
+    return "\n".join(lines) + "\n"

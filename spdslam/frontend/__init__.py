@@ -1,0 +1,16 @@
+"""The front end: detections grouped into tracks (data association) and each track's
+initial ellipsoid (Quadric-SVD, Quadric-Multi). Imports ``geometry`` and ``io``.
+"""
+
+from ._association import Association as Association
+from ._association import AssociationSettings as AssociationSettings
+from ._association import Track as Track
+from ._association import associate as associate
+from ._association import associate_detailed as associate_detailed
+from ._association import association_scores as association_scores
+from ._association import merge_tracks as merge_tracks
+from ._association import tracks_from_instances as tracks_from_instances
+from ._initialization import InitializationError as InitializationError
+from ._initialization import multi_initialize as multi_initialize
+from ._initialization import svd_initialize as svd_initialize
+from ._initialization import triangulate_rays as triangulate_rays

@@ -1,0 +1,149 @@
+"""Importers of other layouts into the sequence model: the TUM fr3_cabinet folder."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import Camera, Cuboid
+from ._parse import (
+    CAMERA_KEYS,
+    SequenceFormatError,
+    _box,
+    _check_columns,
+    _integer,
+    _match,
+    _number,
+    _rows,
+    camera_from,
+    read_images,
+    read_tum,
+    required,
+)
+from ._sequence import Detection, GroundTruthObject, Priors, Sequence
+
+__all__ = ["import_fr3_cabinet", "is_fr3_cabinet", "COCO_LABELS", "FR3_TRAJECTORY_SIGMA"]
+
+#: Per-step accuracy (m, rad) given to the fr3_cabinet trajectory: motion capture.
+FR3_TRAJECTORY_SIGMA = (1e-4, 1e-4)
+
+#: COCO class indices (YOLO numbering) with a name in the importer; others become "class<k>".
+COCO_LABELS = {28: "suitcase"}
+
+
+def is_fr3_cabinet(folder) -> bool:
+    """True for the TUM fr3_cabinet layout (a ``bbox/`` folder and ``truth_objects.txt``)."""
+    folder = Path(folder)
+    return (folder / "bbox").is_dir() and (folder / "truth_objects.txt").is_file()
+
+
+
+
+
+def _read_opencv_camera(path: Path) -> Camera:
+    """``Camera.fx: 535.4`` lines of an OpenCV YAML file (``%YAML:1.0`` header)."""
+    name = str(path)
+    values, lines = {}, {}
+    for line, tok in _rows(path, name):
+        body = " ".join(tok)
+        if not body.startswith("Camera."):
+            continue
+        key, sep, val = body[len("Camera."):].partition(":")
+        key = key.strip()
+        if key not in CAMERA_KEYS:
+            continue
+        if not sep or not val.strip():
+            raise SequenceFormatError(name, line, f"'Camera.{key}: <number>'", repr(body))
+        values[key] = _number(name, line, val.strip(), f"Camera.{key}")
+        lines[key] = line
+    values.setdefault("width", 640.0)
+    values.setdefault("height", 480.0)
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
+    if missing:
+        raise SequenceFormatError(
+            name, None, "lines Camera.fx, Camera.fy, Camera.cx, Camera.cy",
+            f"{', '.join('Camera.' + k for k in missing)} missing",
+        )
+    return camera_from(name, values, lines)
+
+
+def _coco_label(k: int) -> str:
+    return COCO_LABELS.get(k, f"class{k}")
+
+
+def import_fr3_cabinet(folder) -> Sequence:
+    """The TUM fr3_cabinet layout as a :class:`Sequence`.
+
+    - ``groundtruth.txt`` gives the poses: the trajectory (and ``groundtruth_tum``);
+    - ``bbox/<timestamp>.txt`` rows ``id x1 y1 x2 y2 label score instance`` (label a COCO
+      class index: 28 → "suitcase", others "class<k>"); empty files are frames without
+      detections;
+    - ``TUM3.yaml`` intrinsics (``Camera.fx: …`` lines; 640×480 unless given);
+    - ``truth_objects.txt`` rows ``x y z yaw hx hy hz`` → ``Cuboid.from_yaw``; the object's id
+      is its row index and its label that of the detections with that instance;
+    - priors: the floor z = 0 ([0, 0, 1, 0]), up = +z, and ``trajectory_sigma`` =
+      (1e-4 m, 1e-4 rad) per step: the trajectory is the motion-capture ground truth;
+    - ``rgb.txt`` images when present.
+    """
+    folder = Path(folder)
+    for req in ("groundtruth.txt", "TUM3.yaml", "truth_objects.txt"):
+        required(folder, req)
+    if not (folder / "bbox").is_dir():
+        raise SequenceFormatError(folder / "bbox", None, "a required folder bbox/", "no such folder")
+    camera = _read_opencv_camera(folder / "TUM3.yaml")
+    traj = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt"))
+    timestamps = traj[:, 0]
+
+    files = []
+    for f in (folder / "bbox").iterdir():
+        if f.suffix != ".txt":
+            continue
+        try:
+            t = float(f.stem)
+        except ValueError:
+            raise SequenceFormatError(f, None, "a file named <timestamp>.txt", repr(f.name)) from None
+        if not math.isfinite(t):
+            raise SequenceFormatError(f, None, "a file named <timestamp>.txt", repr(f.name))
+        files.append((t, f))
+    files.sort()
+    layout = "id x1 y1 x2 y2 label score instance"
+    detections = []
+    for t, f in files:
+        name = str(f)
+        frame = None
+        for line, tok in _rows(f, name):
+            _check_columns(name, line, tok, (8,), layout)
+            _integer(name, line, tok[0], "id")
+            box = _box(name, line, tok[1:5])
+            cls = _integer(name, line, tok[5], "label (a COCO class index)")
+            score = _number(name, line, tok[6], "score")
+            inst = _integer(name, line, tok[7], "instance")
+            if frame is None:
+                frame = _match(name, line, t, timestamps)
+            detections.append(Detection(frame, t, box, _coco_label(cls), score, inst))
+
+    labels = {}
+    for d in detections:
+        labels.setdefault(d.instance, set()).add(d.label)
+    objects = []
+    name = str(folder / "truth_objects.txt")
+    for i, (line, tok) in enumerate(_rows(folder / "truth_objects.txt", name)):
+        _check_columns(name, line, tok, (7,), "x y z yaw hx hy hz")
+        v = [_number(name, line, t, f) for t, f in zip(tok, "x y z yaw hx hy hz".split())]
+        if not all(h > 0 for h in v[4:]):
+            raise SequenceFormatError(name, line, "positive half-extents hx hy hz", " ".join(tok[4:]))
+        lab = labels.get(i, set())
+        label = next(iter(lab)) if len(lab) == 1 else "object"
+        objects.append(GroundTruthObject(i, label, Cuboid.from_yaw(v[:3], v[3], v[4:])))
+
+    images = None
+    if (folder / "rgb.txt").is_file():
+        images = read_images(folder / "rgb.txt", folder)
+    priors = Priors(
+        [np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {}, FR3_TRAJECTORY_SIGMA
+    )
+    return Sequence(
+        folder.name, camera, timestamps, traj[:, 1:], detections, objects, traj.copy(), priors, images
+    )

@@ -1,0 +1,76 @@
+"""``map.json``: the objects of a map (and how it was made), written by ``spdslam run`` and
+read back by ``spdslam evaluate`` (see docs/formats.md)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import Ellipsoid
+
+__all__ = ["MapObject", "MapFormatError", "read_map", "write_map"]
+
+
+class MapFormatError(ValueError):
+    """A malformed map.json: ``"<file>: expected …, got …"``."""
+
+
+@dataclass(frozen=True)
+class MapObject:
+    """An object of the map: id, label and ellipsoid (P, t)."""
+
+    id: int
+    label: str
+    ellipsoid: Ellipsoid
+
+    def as_dict(self) -> dict:
+        R, s = (np.asarray(a) for a in self.ellipsoid.axes())
+        return {
+            "id": int(self.id),
+            "label": self.label,
+            "center": np.asarray(self.ellipsoid.center).tolist(),
+            "rotation": R.tolist(),
+            "radii": s.tolist(),
+            "P": np.asarray(self.ellipsoid.P).tolist(),
+        }
+
+
+def write_map(path, map_dict: dict) -> None:
+    """Write a map dict (``MapResult.as_dict()``) as JSON."""
+    Path(path).write_text(json.dumps(map_dict, indent=1) + "\n", encoding="utf-8")
+
+
+def read_map(path) -> tuple[dict, list]:
+    """(map dict, objects as ``MapObject``) of a map.json (or of the folder holding it)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "map.json"
+    try:
+        m = json.loads(path.read_text(encoding="utf-8"))
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got no such file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise MapFormatError(f"{path}:{getattr(e, 'lineno', 1)}: expected JSON, got {e}") from None
+    if not isinstance(m, dict):
+        raise MapFormatError(f"{path}: expected a JSON object, got {type(m).__name__}")
+    for k, types in (("method", str), ("parameterization", str), ("iterations", int),
+                     ("final_cost", (int, float)), ("objects", list)):
+        if k not in m or not isinstance(m[k], types) or isinstance(m[k], bool):
+            raise MapFormatError(f"{path}: expected the key {k!r} ({getattr(types, '__name__', 'number')}), got {str(m.get(k, 'nothing'))[:40]}")
+    objs = []
+    for i, o in enumerate(m["objects"]):
+        try:
+            P = np.asarray(o["P"], dtype=float)
+            c = np.asarray(o["center"], dtype=float)
+            oid, label = int(o["id"]), str(o["label"])
+            ok = P.shape == (3, 3) and c.shape == (3,) and np.all(np.isfinite(P)) and np.all(np.isfinite(c))
+            ok = ok and np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
+        except (KeyError, TypeError, ValueError, IndexError):
+            ok = False
+        if not ok:
+            raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
+        objs.append(MapObject(oid, label, Ellipsoid(P, c)))
+    return m, objs

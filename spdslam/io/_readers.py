@@ -1,0 +1,218 @@
+"""Readers of the canonical sequence folder (see docs/formats.md)::
+
+    camera.yaml       required  fx, fy, cx, cy, width, height
+    trajectory.txt    required  TUM ``timestamp tx ty tz qx qy qz qw`` (camera-to-world)
+    detections.txt    required  ``timestamp x1 y1 x2 y2 label score [instance]``
+    ellipsoids.txt    optional  ``timestamp label qx qy qz qw cx cy cz a b c [instance]``
+                                (measured ellipsoids, camera frame: RGB-D / LiDAR)
+    objects_gt.txt    optional  ``id label cx cy cz qx qy qz qw hx hy hz`` (world frame)
+    groundtruth.txt   optional  TUM format
+    priors.yaml       optional  support_planes, up, classes, trajectory_sigma
+    rgb.txt           optional  TUM style ``timestamp path``
+
+Every malformed input raises ``SequenceFormatError`` (one line, ``file:line: expected, got``).
+Pure NumPy (and PyYAML).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import OBJECT_SHAPES, Camera, Cuboid
+from ..geometry.se3 import quat_to_matrix
+from ._importers import import_fr3_cabinet, is_fr3_cabinet
+from ._parse import (
+    CAMERA_KEYS,
+    SequenceFormatError,
+    _box,
+    _check_columns,
+    _integer,
+    _line,
+    _mapping,
+    _match,
+    _number,
+    _rows,
+    _scalar,
+    _unit_quaternion,
+    _unknown_key,
+    _yaml_root,
+    _ynumber,
+    _yvector,
+    _kind,
+    camera_from,
+    read_images,
+    read_tum,
+    required,
+)
+from ._sequence import ClassPrior, Detection, EllipsoidDetection, GroundTruthObject, Priors, Sequence
+
+__all__ = [
+    "read_sequence",
+    "read_camera",
+    "read_priors",
+    "read_detections",
+    "read_ellipsoids",
+    "read_objects_gt",
+]
+
+
+
+def read_camera(path, name: str | None = None) -> Camera:
+    """``camera.yaml``: a mapping with exactly fx, fy, cx, cy, width, height (all > 0)."""
+    path = Path(path)
+    name = name or str(path)
+    root = _yaml_root(path, name)
+    values, lines = {}, {}
+    for key, knode, vnode in _mapping(name, root, "the camera"):
+        if key not in CAMERA_KEYS:
+            _unknown_key(name, knode, key, CAMERA_KEYS, "camera.yaml")
+        values[key] = _ynumber(name, vnode, key)
+        lines[key] = _line(vnode)
+    missing = [k for k in CAMERA_KEYS if k not in values]
+    if missing:
+        raise SequenceFormatError(name, None, "keys fx, fy, cx, cy, width, height", f"{', '.join(missing)} missing")
+    return camera_from(name, values, lines)
+
+
+def read_priors(path, name: str | None = None) -> Priors:
+    """``priors.yaml``: optional keys support_planes, up, classes, trajectory_sigma."""
+    path = Path(path)
+    name = name or str(path)
+    root = _yaml_root(path, name)
+    planes, up, classes, tsig = [], None, {}, None
+    allowed = ("support_planes", "up", "classes", "trajectory_sigma")
+    import yaml
+
+    for key, knode, vnode in _mapping(name, root, "the priors"):
+        if key == "support_planes":
+            if not isinstance(vnode, yaml.SequenceNode):
+                raise SequenceFormatError(name, _line(vnode), "a list of planes [a, b, c, d]", _kind(vnode))
+            for p in vnode.value:
+                v = _yvector(name, p, 4, "a support plane [a, b, c, d]")
+                if not np.linalg.norm(v[:3]) > 0:
+                    raise SequenceFormatError(name, _line(p), "a plane with a non-zero normal (a, b, c)", str(v.tolist()))
+                planes.append(v)
+        elif key == "up":
+            up = _yvector(name, vnode, 3, "up")
+            if not np.linalg.norm(up) > 0:
+                raise SequenceFormatError(name, _line(vnode), "a non-zero up vector", str(up.tolist()))
+        elif key == "trajectory_sigma":
+            tsig = _yvector(name, vnode, 2, "trajectory_sigma [metres, radians]")
+            if not np.all(tsig > 0):
+                raise SequenceFormatError(name, _line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
+        elif key == "classes":
+            for label, lk, cnode in _mapping(name, vnode, "classes"):
+                radii = sigma = None
+                shape = "ellipsoid"
+                for ck, ckn, cv in _mapping(name, cnode, f"class {label!r}"):
+                    if ck == "radii":
+                        radii = _yvector(name, cv, 3, f"the radii of {label!r}")
+                        if not np.all(radii > 0):
+                            raise SequenceFormatError(name, _line(cv), f"positive radii for {label!r}", str(radii.tolist()))
+                    elif ck == "sigma":
+                        sigma = _ynumber(name, cv, f"the sigma of {label!r}")
+                        if not sigma > 0:
+                            raise SequenceFormatError(name, _line(cv), f"a positive sigma for {label!r}", repr(sigma))
+                    elif ck == "shape":
+                        shape = _scalar(cv)
+                        if shape not in OBJECT_SHAPES:
+                            raise SequenceFormatError(
+                                name, _line(cv), f"shape {' or '.join(OBJECT_SHAPES)} for {label!r}",
+                                _kind(cv),
+                            )
+                    else:
+                        _unknown_key(name, ckn, ck, ("radii", "sigma", "shape"), f"class {label!r}")
+                if radii is None or sigma is None:
+                    raise SequenceFormatError(
+                        name, _line(lk), f"radii and sigma for class {label!r}",
+                        "radii missing" if radii is None else "sigma missing",
+                    )
+                classes[label] = ClassPrior(radii, sigma, shape)
+        else:
+            _unknown_key(name, knode, key, allowed, "priors.yaml")
+    return Priors(planes, up, classes, tsig)
+
+
+def read_detections(path, timestamps, name: str | None = None) -> list:
+    """``detections.txt`` rows ``timestamp x1 y1 x2 y2 label score [instance]``."""
+    path = Path(path)
+    name = name or str(path)
+    timestamps = np.asarray(timestamps, dtype=float)
+    layout = "timestamp x1 y1 x2 y2 label score [instance]"
+    out = []
+    for line, tok in _rows(path, name):
+        _check_columns(name, line, tok, (7, 8), layout)
+        t = _number(name, line, tok[0], "timestamp")
+        box = _box(name, line, tok[1:5])
+        score = _number(name, line, tok[6], "score")
+        inst = _integer(name, line, tok[7], "instance") if len(tok) == 8 else None
+        frame = _match(name, line, t, timestamps)
+        out.append(Detection(frame, t, box, tok[5], score, inst))
+    return out
+
+
+def read_ellipsoids(path, timestamps, name: str | None = None) -> list:
+    """``ellipsoids.txt`` rows ``timestamp label qx qy qz qw cx cy cz a b c [instance]``:
+    measured ellipsoids in the camera frame (quaternion: the rotation whose columns are the
+    axes; a b c the semi-axes along them, > 0)."""
+    path = Path(path)
+    name = name or str(path)
+    timestamps = np.asarray(timestamps, dtype=float)
+    layout = "timestamp label qx qy qz qw cx cy cz a b c [instance]"
+    fields = layout.split()
+    out = []
+    for line, tok in _rows(path, name):
+        _check_columns(name, line, tok, (12, 13), layout)
+        t = _number(name, line, tok[0], "timestamp")
+        v = [_number(name, line, x, f) for x, f in zip(tok[2:12], fields[2:12])]
+        q = _unit_quaternion(name, line, v[:4])
+        radii = np.array(v[7:10])
+        if not np.all(radii > 0):
+            raise SequenceFormatError(name, line, "positive semi-axes a b c", " ".join(tok[9:12]))
+        inst = _integer(name, line, tok[12], "instance") if len(tok) == 13 else None
+        frame = _match(name, line, t, timestamps)
+        out.append(EllipsoidDetection(frame, t, tok[1], quat_to_matrix(q), v[4:7], radii, inst))
+    return out
+
+
+def read_objects_gt(path, name: str | None = None) -> list:
+    """``objects_gt.txt`` rows ``id label cx cy cz qx qy qz qw hx hy hz``."""
+    path = Path(path)
+    name = name or str(path)
+    layout = "id label cx cy cz qx qy qz qw hx hy hz"
+    fields = layout.split()
+    out = []
+    for line, tok in _rows(path, name):
+        _check_columns(name, line, tok, (12,), layout)
+        oid = _integer(name, line, tok[0], "id")
+        v = [_number(name, line, t, f) for t, f in zip(tok[2:], fields[2:])]
+        q = _unit_quaternion(name, line, v[3:7])
+        h = np.array(v[7:10])
+        if not np.all(h > 0):
+            raise SequenceFormatError(name, line, "positive half-extents hx hy hz", " ".join(tok[9:12]))
+        try:
+            cub = Cuboid(np.array(v[:3]), quat_to_matrix(q), h)
+        except ValueError as e:
+            raise SequenceFormatError(name, line, "a valid cuboid", str(e)) from None
+        out.append(GroundTruthObject(oid, tok[1], cub))
+    return out
+
+
+def read_sequence(folder) -> Sequence:
+    """Read a canonical sequence folder (or the fr3_cabinet layout, detected automatically)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SequenceFormatError(folder, None, "a sequence folder", "no such folder")
+    if is_fr3_cabinet(folder) and not (folder / "trajectory.txt").exists():
+        return import_fr3_cabinet(folder)
+    camera = read_camera(required(folder, "camera.yaml"))
+    traj = read_tum(required(folder, "trajectory.txt"), str(folder / "trajectory.txt"))
+    det = read_detections(required(folder, "detections.txt"), traj[:, 0])
+    objs = read_objects_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
+    gt = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt")) if (folder / "groundtruth.txt").is_file() else None
+    priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
+    images = read_images(folder / "rgb.txt", folder) if (folder / "rgb.txt").is_file() else None
+    ell = read_ellipsoids(folder / "ellipsoids.txt", traj[:, 0]) if (folder / "ellipsoids.txt").is_file() else None
+    return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images, ell)

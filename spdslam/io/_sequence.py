@@ -1,0 +1,316 @@
+"""The sequence model: camera, trajectory, detections, measured ellipsoids, priors and the
+optional ground truth, as frozen, validated NumPy data (files: ``_readers``, ``_writers``;
+format: docs/formats.md). Nothing here runs JAX code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry import OBJECT_SHAPES, Camera, Cuboid
+
+__all__ = [
+    "Detection",
+    "EllipsoidDetection",
+    "GroundTruthObject",
+    "ClassPrior",
+    "Priors",
+    "Sequence",
+]
+
+_FLOAT_TOL = 1e-12  # equality of round-tripped floats
+
+
+# --- data classes ---------------------------------------------------------------------------
+
+
+def _close(a, b) -> bool:
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    return a.shape == b.shape and bool(np.allclose(a, b, rtol=_FLOAT_TOL, atol=_FLOAT_TOL))
+
+
+def _frozen_array(x, shape=None) -> np.ndarray:
+    a = np.array(x, dtype=float)
+    if shape is not None and a.shape != shape:
+        raise ValueError(f"expected shape {shape}, got {a.shape}")
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Detection:
+    """A 2D box ``[x1, y1, x2, y2]`` (pixels) seen at trajectory index ``frame``."""
+
+    frame: int
+    timestamp: float
+    box: np.ndarray
+    label: str
+    score: float
+    instance: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "frame", int(self.frame))
+        object.__setattr__(self, "timestamp", float(self.timestamp))
+        object.__setattr__(self, "box", _frozen_array(self.box, (4,)))
+        object.__setattr__(self, "label", str(self.label))
+        object.__setattr__(self, "score", float(self.score))
+        if self.instance is not None:
+            object.__setattr__(self, "instance", int(self.instance))
+
+    def __eq__(self, other):
+        if not isinstance(other, Detection):
+            return NotImplemented
+        return (
+            self.frame == other.frame
+            and self.label == other.label
+            and self.instance == other.instance
+            and _close(self.timestamp, other.timestamp)
+            and _close(self.score, other.score)
+            and _close(self.box, other.box)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class EllipsoidDetection:
+    """A whole ellipsoid measured at trajectory index ``frame`` (an RGB-D or LiDAR front
+    end), in that frame's CAMERA coordinates: ``center`` (3,), ``rotation`` (3×3, columns =
+    the axes, det +1) and ``radii`` (3,) the semi-axes along them, so that
+    P = R diag(radii²) Rᵀ. A reflection (det −1) describes the same ellipsoid: its third
+    axis is negated."""
+
+    frame: int
+    timestamp: float
+    label: str
+    rotation: np.ndarray
+    center: np.ndarray
+    radii: np.ndarray
+    instance: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "frame", int(self.frame))
+        object.__setattr__(self, "timestamp", float(self.timestamp))
+        object.__setattr__(self, "label", str(self.label))
+        R = np.array(self.rotation, dtype=float)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise ValueError(f"rotation must be an orthonormal 3x3 matrix, got {R.tolist()}")
+        if np.linalg.det(R) < 0:
+            R[:, 2] = -R[:, 2]
+        object.__setattr__(self, "rotation", _frozen_array(R, (3, 3)))
+        c = _frozen_array(self.center, (3,))
+        r = _frozen_array(self.radii, (3,))
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"center must be finite, got {c.tolist()}")
+        if not (np.all(np.isfinite(r)) and np.all(r > 0)):
+            raise ValueError(f"radii must be positive, got {r.tolist()}")
+        object.__setattr__(self, "center", c)
+        object.__setattr__(self, "radii", r)
+        if self.instance is not None:
+            object.__setattr__(self, "instance", int(self.instance))
+
+    @property
+    def P(self) -> np.ndarray:
+        """The shape matrix R diag(radii²) Rᵀ (camera frame)."""
+        return (self.rotation * self.radii**2) @ self.rotation.T
+
+    def __eq__(self, other):
+        if not isinstance(other, EllipsoidDetection):
+            return NotImplemented
+        return (
+            self.frame == other.frame
+            and self.label == other.label
+            and self.instance == other.instance
+            and _close(self.timestamp, other.timestamp)
+            and _close(self.rotation, other.rotation)
+            and _close(self.center, other.center)
+            and _close(self.radii, other.radii)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruthObject:
+    """A ground-truth object: its id, class label and oriented cuboid (world frame)."""
+
+    id: int
+    label: str
+    cuboid: Cuboid
+
+    def __eq__(self, other):
+        if not isinstance(other, GroundTruthObject):
+            return NotImplemented
+        a, b = self.cuboid, other.cuboid
+        return (
+            int(self.id) == int(other.id)
+            and self.label == other.label
+            and _close(a.center, b.center)
+            and _close(a.rotation, b.rotation)
+            and _close(a.half_extents, b.half_extents)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class ClassPrior:
+    """Prior of a class: radii (3,), their standard deviation ``sigma``, and the ``shape``
+    whose silhouette the detector boxes (``"ellipsoid"`` or ``"cuboid"``: box-like objects
+    such as cabinets, monitors or tables; the radii are then the cuboid's half-extents)."""
+
+    radii: np.ndarray
+    sigma: float
+    shape: str = "ellipsoid"
+
+    def __post_init__(self):
+        object.__setattr__(self, "radii", _frozen_array(self.radii, (3,)))
+        object.__setattr__(self, "sigma", float(self.sigma))
+        if self.shape not in OBJECT_SHAPES:
+            raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
+
+    def __eq__(self, other):
+        if not isinstance(other, ClassPrior):
+            return NotImplemented
+        return (
+            _close(self.radii, other.radii)
+            and _close(self.sigma, other.sigma)
+            and self.shape == other.shape
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Priors:
+    """Scene priors: support planes ``[a, b, c, d]`` (ax + by + cz + d = 0), the up
+    direction, per-class size priors, and the accuracy of the trajectory's relative motion
+    per frame step ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: the back end's default)."""
+
+    support_planes: list = field(default_factory=list)
+    up: np.ndarray | None = None
+    classes: dict = field(default_factory=dict)
+    trajectory_sigma: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.trajectory_sigma is not None:
+            ts = _frozen_array(self.trajectory_sigma, (2,))
+            if not (np.all(np.isfinite(ts)) and np.all(ts > 0)):
+                raise ValueError(f"trajectory_sigma must be 2 positive numbers, got {ts.tolist()}")
+            object.__setattr__(self, "trajectory_sigma", ts)
+        object.__setattr__(
+            self, "support_planes", [_frozen_array(p, (4,)) for p in self.support_planes]
+        )
+        if self.up is not None:
+            object.__setattr__(self, "up", _frozen_array(self.up, (3,)))
+        object.__setattr__(self, "classes", dict(self.classes))
+
+    def up_and_planes(self):
+        """(unit up or None, support planes (k, 4) with unit normals facing up, or None).
+
+        Up is ``up``, else the first support plane's normal: the one rule every stage uses.
+        """
+        planes = None
+        if self.support_planes:
+            planes = np.array([np.asarray(p, dtype=float) for p in self.support_planes])
+            planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+        up = self.up if self.up is not None else (None if planes is None else planes[0, :3])
+        if up is None:
+            return None, planes
+        up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+        if planes is not None:
+            planes = np.where((planes[:, :3] @ up < 0)[:, None], -planes, planes)
+        return up, planes
+
+    def __eq__(self, other):
+        if not isinstance(other, Priors):
+            return NotImplemented
+        if len(self.support_planes) != len(other.support_planes):
+            return False
+        if not all(_close(a, b) for a, b in zip(self.support_planes, other.support_planes)):
+            return False
+        if (self.up is None) != (other.up is None):
+            return False
+        if self.up is not None and not _close(self.up, other.up):
+            return False
+        if (self.trajectory_sigma is None) != (other.trajectory_sigma is None):
+            return False
+        if self.trajectory_sigma is not None and not _close(self.trajectory_sigma, other.trajectory_sigma):
+            return False
+        return self.classes == other.classes
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """A sequence: camera, trajectory (TUM rows, camera-to-world), detections and the
+    optional ground truth, priors, images and measured ellipsoids
+    (:class:`EllipsoidDetection`, ``ellipsoids.txt``)."""
+
+    name: str
+    camera: Camera
+    timestamps: np.ndarray
+    poses_tum: np.ndarray
+    detections: list
+    objects_gt: list | None = None
+    groundtruth_tum: np.ndarray | None = None
+    priors: Priors | None = None
+    images: dict | None = None
+    ellipsoids: list | None = None
+
+    def __post_init__(self):
+        t = _frozen_array(self.timestamps)
+        if t.ndim != 1:
+            raise ValueError(f"timestamps must have shape (N,), got {t.shape}")
+        object.__setattr__(self, "timestamps", t)
+        object.__setattr__(self, "poses_tum", _frozen_array(self.poses_tum, (t.size, 7)))
+        object.__setattr__(self, "detections", list(self.detections))
+        if self.objects_gt is not None:
+            object.__setattr__(self, "objects_gt", list(self.objects_gt))
+        if self.ellipsoids is not None:
+            object.__setattr__(self, "ellipsoids", list(self.ellipsoids))
+        if self.groundtruth_tum is not None:
+            g = _frozen_array(self.groundtruth_tum)
+            if g.ndim != 2 or g.shape[1] != 8:
+                raise ValueError(f"groundtruth_tum must have shape (M, 8), got {g.shape}")
+            object.__setattr__(self, "groundtruth_tum", g)
+        if self.images is not None:
+            object.__setattr__(
+                self, "images", {float(k): Path(v) for k, v in self.images.items()}
+            )
+
+    def __len__(self) -> int:
+        return int(self.timestamps.size)
+
+    def detections_at(self, frame: int) -> list:
+        """The detections of trajectory index ``frame``."""
+        return [d for d in self.detections if d.frame == frame]
+
+    def ellipsoids_at(self, frame: int) -> list:
+        """The measured ellipsoids of trajectory index ``frame`` (none without the file)."""
+        return [e for e in self.ellipsoids or () if e.frame == frame]
+
+    def __eq__(self, other):
+        if not isinstance(other, Sequence):
+            return NotImplemented
+
+        def opt(a, b, eq):
+            if (a is None) != (b is None):
+                return False
+            return a is None or eq(a, b)
+
+        return (
+            self.name == other.name
+            and self.camera == other.camera
+            and _close(self.timestamps, other.timestamps)
+            and _close(self.poses_tum, other.poses_tum)
+            and self.detections == other.detections
+            and opt(self.objects_gt, other.objects_gt, lambda a, b: a == b)
+            and opt(self.groundtruth_tum, other.groundtruth_tum, _close)
+            and opt(self.priors, other.priors, lambda a, b: a == b)
+            and opt(self.ellipsoids, other.ellipsoids, lambda a, b: a == b)
+            and opt(
+                self.images,
+                other.images,
+                lambda a, b: len(a) == len(b)
+                and all(
+                    _close(ka, kb) and Path(va) == Path(vb)
+                    for (ka, va), (kb, vb) in zip(sorted(a.items()), sorted(b.items()))
+                ),
+            )
+        )

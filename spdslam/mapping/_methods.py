@@ -1,0 +1,159 @@
+"""Back-end methods (Table III), their options and the mapping's noise table.
+
+Methods (:data:`METHODS`) mirror Table III: ``quadric-slam`` (Quadric-SVD initialisation,
+inverse boxes, Rot-Trans-Scale), ``multi-rts`` (multi-constraint initialisation, every
+constraint in its classic form, RTS) and ``multi-spd`` (the paper's: SPD(3), improved
+orientation, sorted shape prior; inverse boxes, because semi-inverse-then-inverse ended in
+worse local minima on the demo rooms, see docs/sequences.md). Each field of a method can be
+overridden.
+
+The noise table (:data:`DEFAULT_MAPPING_SIGMAS`) is the registered factor types' default
+sigmas (``factors.default_sigmas``) with the mapping's own on top: scene knowledge held
+nearly hard, the relative box noise, the odometry and the first pose. Robust kernels are
+chosen per factor group (``factors.robust_groups``: box, ellipsoid, odometry, orientation,
+support_plane, shape, size, prior).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..factors import DEFAULT_TRUNCATION_MARGIN, Cauchy, Huber, default_sigmas, robust_groups
+from ..geometry import OBJECT_SHAPES
+
+__all__ = [
+    "PARAMETERIZATIONS",
+    "BOX_MODELS",
+    "INITIALIZATIONS",
+    "ORIENTATIONS",
+    "ROBUST_KERNELS",
+    "OBJECT_SHAPE_CHOICES",
+    "MAPPING_SIGMAS",
+    "DEFAULT_MAPPING_SIGMAS",
+    "Method",
+    "METHODS",
+    "robust_kernel",
+]
+
+PARAMETERIZATIONS = ("spd", "rts", "full")
+BOX_MODELS = ("inverse", "semi", "semi-then-inverse")
+INITIALIZATIONS = ("svd", "multi")
+ORIENTATIONS = ("improved", "classic", "none")
+ROBUST_KERNELS = ("none", "huber", "cauchy")
+#: The silhouette model of every object, or "priors": per class from priors.yaml.
+OBJECT_SHAPE_CHOICES = ("priors", *OBJECT_SHAPES)
+
+#: The mapping's own noise (value, unit and meaning): its defaults override the factor
+#: types' (``factors.default_sigmas``), the others are its own.
+MAPPING_SIGMAS = {
+    # A detector's box error grows with the box (and so does the misfit of an ellipsoid to
+    # a box-shaped object): per edge σ = inverse_box + inverse_box_relative · box size.
+    "inverse_box_relative": (0.05, "of the box width (u edges) or height (v edges), added to inverse_box"),
+    "inverse_cuboid_box_relative": (0.05, "of the box width or height, added to inverse_cuboid_box"),
+    # Scene knowledge is held nearly hard: upright objects standing on their plane.
+    "orientation": (0.005, "per component of (Log P m) × m"),
+    "classic_orientation": (0.005, "per component of ±n × m (≈ rad)"),
+    "axis_orientation": (0.005, "per component of (nᵢ × m)(nᵢ·m) (≈ rad), cuboid objects"),
+    "support_plane": (0.001, "m² (πᵀQ*π)"),
+    # Accuracy of the input trajectory (visual-odometry keyframes) unless the sequence's
+    # priors.yaml states its own (``trajectory_sigma``).
+    "odometry_translation": (0.005, "m per frame step"),
+    "odometry_rotation": (0.003, "rad per frame step"),
+    "first_pose": (1e-4, "m and rad (prior on the first pose)"),
+}
+#: Sigmas that may be 0 (an additive relative term).
+ZERO_ALLOWED = ("inverse_box_relative", "inverse_cuboid_box_relative")
+
+#: The default sigmas of a run, by name (``spdslam run --sigma NAME=VALUE``).
+DEFAULT_MAPPING_SIGMAS = {
+    **{name: float(s.value) for name, s in default_sigmas().items()},
+    **{name: v for name, (v, _) in MAPPING_SIGMAS.items()},
+}
+
+
+def sigma_units() -> dict[str, str]:
+    """{name: unit and meaning} of every sigma of the table."""
+    out = {name: s.unit for name, s in default_sigmas().items()}
+    out.update({name: unit for name, (_, unit) in MAPPING_SIGMAS.items()})
+    return out
+
+
+@dataclass(frozen=True)
+class Method:
+    """One back end: parameterisation, initialisation, box model and which constraints."""
+
+    name: str
+    parameterization: str = "spd"
+    initialization: str = "multi"
+    box_model: str = "inverse"
+    orientation: str = "improved"
+    support_plane: bool = True
+    shape: bool = True
+    size: bool = True
+    robust: str = "none"
+    robust_k: float = 1.0
+    #: Kernels per factor group, overriding ``robust`` (which covers box and measured-ellipsoid
+    #: factors): ((group, kernel, k), ...) with group a key of ``factors.robust_groups()``.
+    robust_by_type: tuple = ()
+    #: Silhouette model of every object ("ellipsoid" or "cuboid"), or "priors": per class,
+    #: ``priors.classes[label].shape`` ("ellipsoid" for classes without a prior).
+    object_shape: str = "priors"
+    #: Box edges within this many px of the image border carry no bound (truncated
+    #: detections), in the initialisation and in every box factor; negative: keep all edges.
+    truncation_margin: float = DEFAULT_TRUNCATION_MARGIN
+
+    def __post_init__(self):
+        for name, allowed in (
+            ("parameterization", PARAMETERIZATIONS),
+            ("initialization", INITIALIZATIONS),
+            ("box_model", BOX_MODELS),
+            ("orientation", ORIENTATIONS),
+            ("robust", ROBUST_KERNELS),
+            ("object_shape", OBJECT_SHAPE_CHOICES),
+        ):
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
+                )
+        if self.orientation == "classic" and self.parameterization != "rts":
+            raise ValueError("the classic orientation constraint needs the rts parameterization")
+        if not self.robust_k > 0:
+            raise ValueError(f"robust_k must be > 0, got {self.robust_k}")
+        groups = robust_groups()
+        rbt = tuple(tuple(x) for x in self.robust_by_type)
+        for item in rbt:
+            if (len(item) != 3 or item[0] not in groups or item[1] not in ROBUST_KERNELS
+                    or not (isinstance(item[2], (int, float)) and item[2] > 0)):
+                raise ValueError(
+                    f"robust_by_type entries must be (type, kernel, k > 0) with type one of "
+                    f"{', '.join(groups)} and kernel one of {', '.join(ROBUST_KERNELS)}, "
+                    f"got {item!r}"
+                )
+        object.__setattr__(self, "robust_by_type", tuple((t, n, float(k)) for t, n, k in rbt))
+        if not np.isfinite(self.truncation_margin):
+            raise ValueError(f"truncation_margin must be finite (px), got {self.truncation_margin}")
+
+    @property
+    def margin(self) -> float | None:
+        """The truncation margin handed to initialisers and box factors (None: off)."""
+        return None if self.truncation_margin < 0 else float(self.truncation_margin)
+
+    def replace(self, **overrides) -> Method:
+        return dataclasses.replace(self, **{k: v for k, v in overrides.items() if v is not None})
+
+
+METHODS = {
+    "quadric-slam": Method(
+        "quadric-slam", "rts", "svd", "inverse", "none", False, False, False
+    ),
+    "multi-rts": Method("multi-rts", "rts", "multi", "inverse", "classic", True, True, True),
+    "multi-spd": Method("multi-spd", "spd", "multi", "inverse", "improved", True, True, True),
+}
+
+
+def robust_kernel(name: str, k: float):
+    """The kernel ``name`` ("none", "huber", "cauchy") with threshold k, None for "none"."""
+    return {"huber": Huber, "cauchy": Cauchy}[name](k) if name != "none" else None
