@@ -198,3 +198,120 @@ def rng(request) -> np.random.Generator:
 @pytest.fixture
 def gen(rng) -> Gen:
     return Gen(rng)
+
+
+# --- shared helpers (imported by the test modules: ``from conftest import …``) --------------
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random rotation matrix (a normalised Gaussian quaternion)."""
+    q = rng.normal(size=4)
+    return np.asarray(jaxlie.SO3(jax.numpy.asarray(q / np.linalg.norm(q))).as_matrix())
+
+
+def se3(x) -> jaxlie.SE3:
+    """Exp of a 6-vector (v, ω)."""
+    return jaxlie.SE3.exp(jax.numpy.asarray(x, dtype=float))
+
+
+def log_x_residual(T):
+    """A residual that is NaN where the x translation of T is negative (non-finite input)."""
+    return jax.numpy.log(T.translation()[:1])
+
+
+def upright_ellipsoid(yaw=0.4, radii=(0.6, 0.35, 0.3), xy=(1.0, -0.5)) -> Ellipsoid:
+    """An ellipsoid with its third axis vertical, standing on z = 0."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    return Ellipsoid.from_axes(R, [xy[0], xy[1], radii[2]], radii)
+
+
+def ring_of_views(target, n=6, radius=3.5, height=1.4) -> list:
+    """n camera-to-world poses on a horizontal circle around ``target``, looking at it."""
+    from spdslam.geometry import look_at
+
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    eyes = np.c_[target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), np.full(n, height)]
+    return [look_at(e, target) for e in eyes]
+
+
+def cli_runner():
+    """A typer CliRunner that keeps stderr apart (click < 8.2 mixes it in unless told)."""
+    from typer.testing import CliRunner
+
+    try:
+        return CliRunner(mix_stderr=False)
+    except TypeError:  # click >= 8.2 always captures stderr apart
+        return CliRunner()
+
+
+def batched_landmarks(param: str, R, t, s):
+    """Batched landmarks (leading axis n) of one parameterisation ("spd", "rts", "full")
+    from axes R (n, 3, 3), centres t (n, 3) and radii s (n, 3); exact spheres stay exactly
+    s²I (no rounding through R R^T)."""
+    from spdslam import EllipsoidFull, EllipsoidRTS
+
+    P = np.einsum("nij,nj,nkj->nik", R, s**2, R)
+    sphere = np.all(s == s[:, :1], axis=1)
+    P[sphere] = (s[sphere, 0] ** 2)[:, None, None] * np.eye(3)
+    e = Ellipsoid(jax.numpy.asarray(P), jax.numpy.asarray(t))
+    if param == "spd":
+        return e
+    if param == "rts":
+        return EllipsoidRTS(jax.vmap(jaxlie.SO3.from_matrix)(jax.numpy.asarray(R)),
+                            jax.numpy.asarray(t), jax.numpy.asarray(s))
+    if param == "full":
+        return jax.vmap(EllipsoidFull.from_ellipsoid)(e)
+    raise ValueError(param)
+
+
+def _central_differences(residual, values, args, which, h):
+    """∂r/∂δ of variable ``which`` by central differences along its tangent basis."""
+    from spdslam import manifold
+
+    dim = manifold.tangent_dim(values[which])
+
+    def f(delta):
+        vals = list(values)
+        vals[which] = manifold.retract(vals[which], delta)
+        return jax.numpy.atleast_1d(residual(*vals, *args))
+
+    steps = jax.numpy.concatenate([h * jax.numpy.eye(dim), -h * jax.numpy.eye(dim)])
+    r = jax.vmap(f)(steps)  # one traced copy of the residual for all 2·dim steps
+    return ((r[:dim] - r[dim:]) / (2 * h)).T
+
+
+def check_jacobians(residual, values, args, kind=None, symmetric_cols=None, h=1e-6, tol=2e-5):
+    """Assert that the tangent Jacobians of ``residual`` (``factors.tangent_jacobians``, by
+    forward-mode autodiff through each variable's retraction) match central differences,
+    batched over a leading axis of ``values`` and ``args``, and that nothing is NaN.
+
+    Exact spheres (``kind == 2``) are compared only in ``symmetric_cols`` of the last
+    variable when given (see test_factor_jacobians). Returns (r, [J per variable]).
+    """
+    from spdslam.factors import tangent_jacobians
+
+    def one(vals, a):
+        r, J = tangent_jacobians(residual, vals, a)
+        return r, J, [_central_differences(residual, vals, a, k, h) for k in range(len(vals))]
+
+    r, J, J_fd = jax.jit(jax.vmap(one))(tuple(values), tuple(args))
+    assert np.all(np.isfinite(np.asarray(r))), "NaN/inf residual"
+    for k, (Ja, Jn) in enumerate(zip(J, J_fd)):
+        Ja, Jn = np.asarray(Ja), np.asarray(Jn)
+        assert np.all(np.isfinite(Ja)), f"non-finite Jacobian for variable {k}"
+        scale = 1.0 + np.max(np.abs(Jn), axis=(1, 2), keepdims=True)
+        err = np.abs(Ja - Jn) / scale
+        if symmetric_cols is not None and k == len(values) - 1:
+            keep = np.zeros(err.shape[-1], dtype=bool)
+            keep[list(symmetric_cols)] = True
+            mask = np.ones_like(err, dtype=bool)
+            mask[np.asarray(kind) == 2] = keep[None, :]
+            err = np.where(mask, err, 0.0)
+        worst = np.unravel_index(np.argmax(err), err.shape)
+        assert err.max() < tol, (
+            f"variable {k}: max scaled error {err.max():.3g} at configuration {worst[0]}"
+            + ("" if kind is None else f" (kind {np.asarray(kind)[worst[0]]})")
+            + f", entry {worst[1:]}\nanalytic {Ja[worst[0]]}\ncentral differences {Jn[worst[0]]}"
+        )
+    return np.asarray(r), [np.asarray(j) for j in J]

@@ -9,21 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spdslam import Ellipsoid, spd
-from spdslam.association import (
+from spdslam.frontend import (
     AssociationSettings,
     Track,
-    _project_boxes,
     associate,
     associate_detailed,
     association_scores,
     merge_tracks,
-    spd_distance,
     tracks_from_instances,
 )
-from spdslam.camera import Camera, in_front, project_box
-from spdslam.demo import make_room_sequence
-from spdslam.sequence import Detection, Sequence, read_sequence
+from spdslam.geometry import Camera
+from spdslam.synthetic import make_room_sequence
+from spdslam.io import Detection, Sequence, read_sequence
 
 FR3 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "tum_fr3_cabinet"
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
@@ -89,32 +86,6 @@ def test_scores_reject_foreign_boxes_reuse_and_missing_ids():
         association_scores([_track(seq, 0, [0, 1]), _track(seq, 1, [1])], seq)
     with pytest.raises(ValueError, match="instance ids"):
         association_scores([_track(seq, 0, [0])], _without_ids(seq))
-
-
-# --- geometry -------------------------------------------------------------------------------
-
-
-def test_spd_distance_is_eq22(gen):
-    P = np.stack([gen.spd() for _ in range(5)])
-    Q = np.stack([gen.spd() for _ in range(5)])
-    d = spd_distance(P, Q)
-    np.testing.assert_allclose(d, np.asarray(spd.distance(P, Q)), rtol=1e-9)
-    A = gen.rng.normal(size=(3, 3)) + 3 * np.eye(3)  # affine invariance d(APAᵀ, AQAᵀ) = d(P, Q)
-    np.testing.assert_allclose(spd_distance(A @ P @ A.T, A @ Q @ A.T), d, rtol=1e-7)
-    np.testing.assert_allclose(spd_distance(P, P), 0.0, atol=1e-9)
-    with pytest.raises(ValueError, match="positive definite"):
-        spd_distance(-np.eye(3), np.eye(3))
-
-
-def test_batched_projection_matches_camera_module(gen):
-    for _ in range(5):
-        R, t, s = gen.ellipsoid_params()
-        e = Ellipsoid.from_axes(R, t, s)
-        T, R_wc, c = gen.pose_looking_at(R, t, s)
-        box, ok = _project_boxes(np.asarray(e.center)[None], np.asarray(e.P)[None], R_wc[None],
-                                 c[None], (CAM.fx, CAM.fy, CAM.cx, CAM.cy))
-        assert bool(ok[0]) == bool(in_front(e, T, 0.05))
-        np.testing.assert_allclose(box[0], np.asarray(project_box(e, T, CAM)), rtol=1e-8, atol=1e-6)
 
 
 # --- merging --------------------------------------------------------------------------------
@@ -236,7 +207,8 @@ def test_fr3_cabinet_association():
 @pytest.mark.skipif(not FR3.is_dir(), reason=f"fr3_cabinet data not found at {FR3}")
 def test_fr3_cabinet_map_from_automatic_tracks():
     """TARGET: the multi-spd map from automatic tracks has the IoU of the manual one (±0.02)."""
-    from spdslam.evaluation import Cuboid, cuboid_iou
+    from spdslam.evaluation import cuboid_iou
+    from spdslam.geometry import Cuboid
     from spdslam.mapping import run_sequence
 
     seq = read_sequence(FR3)
@@ -253,7 +225,7 @@ def test_demo_target_map_from_automatic_tracks():
     """TARGET: no ids, truncated frames, 10 % outliers: mean IoU of the map ≥ 0.7 (~30 s).
     Track ids are offset so that evaluation matches objects by IoU, not by coinciding ids."""
     from spdslam.mapping import run_sequence
-    from spdslam.report import evaluate_objects
+    from spdslam.evaluation import evaluate_objects
 
     seq = make_room_sequence(0, truncation=True, outliers=0.1)
     tracks = [dataclasses.replace(t, id=1000 + t.id) for t in associate(_without_ids(seq))]

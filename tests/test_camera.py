@@ -23,11 +23,12 @@ from spdslam import (
     project_box,
     project_dual_quadric,
 )
-from spdslam.camera import conic_box, depth_range, projection_matrix
+from spdslam.geometry import conic_box, depth_range, projection_matrix
 
 KINDS = ("general", "sphere", "spheroid_oblate", "spheroid_prolate")
 N_SURFACE = 200_000
 BOX_TOL = 1e-2  # pixels (the refined sampling is good to ~1e-5 px)
+CAM = Camera(520.0, 510.0, 320.0, 240.0, 640.0, 480.0)
 
 
 def _sampled_box(gen, R, t, s, R_wc, c, cam, n=N_SURFACE, refine=True):
@@ -377,7 +378,7 @@ def test_box_derivatives_finite_and_correct(gen, kind):
 
 
 def test_look_at(gen):
-    from spdslam.camera import look_at
+    from spdslam.geometry import look_at
 
     cam = gen.camera()
     # a worked example: at the origin looking north (+y) with z up, east (+x) is to the right
@@ -410,3 +411,75 @@ def test_look_at(gen):
         up_perp = up - (up @ f) * f
         assert gen.world_to_camera((target + 0.1 * up_perp)[None], R, eye)[0, 1] < 0
         assert abs(gen.world_to_camera((target + 0.1 * up_perp)[None], R, eye)[0, 0]) < 1e-9
+
+
+# --- one implementation for NumPy and JAX ------------------------------------------------------
+
+
+def test_numpy_batches_match_the_jax_results_one_at_a_time(gen):
+    """Given NumPy arrays (poses as (R_wc, c), landmarks as Ellipsoids of arrays, cuboids as
+    (H, t)), the geometry computes in NumPy, batched, and agrees with the JAX results for
+    one jaxlie.SE3 and one landmark at a time; nothing comes back as a JAX array."""
+    from spdslam.geometry import (
+        Ellipsoid,
+        box_planes,
+        camera_inside,
+        cuboid_half_axes,
+        cuboid_in_front,
+        depth_range,
+        project_cuboid_box,
+        project_points,
+    )
+
+    n = 12
+    Rs, ts, ss, Ts, Rwc, cs = [], [], [], [], [], []
+    for _ in range(n):
+        R, t, s = gen.ellipsoid_params()
+        T, R_wc, c = gen.pose_looking_at(R, t, s)
+        Rs.append(R); ts.append(t); ss.append(s); Ts.append(T); Rwc.append(R_wc); cs.append(c)
+    Rs, ts, ss, Rwc, cs = map(np.asarray, (Rs, ts, ss, Rwc, cs))
+    P = np.einsum("nij,nj,nkj->nik", Rs, ss**2, Rs)
+    batch, pose = Ellipsoid(P, ts), (Rwc, cs)
+    cub = (Rs * ss[:, None, :], ts)
+    boxes = gen.rng.uniform(50, 400, size=(n, 4))
+    boxes[:, 2:] += boxes[:, :2]
+    got = {
+        "project_box": project_box(batch, pose, CAM),
+        "in_front": in_front(batch, pose, 0.05),
+        "depth_range": depth_range(batch, pose),
+        "camera_inside": camera_inside(batch, pose),
+        "project_cuboid_box": project_cuboid_box(cub, pose, CAM),
+        "cuboid_in_front": cuboid_in_front(cub, pose, 0.05),
+        "box_planes": box_planes(boxes, pose, CAM),
+        "project_points": project_points(ts[:, None], pose, CAM)[:, 0],
+        "projection_matrix": projection_matrix(pose, CAM),
+    }
+    for name, value in got.items():
+        assert isinstance(value, np.ndarray), name
+    for i in range(n):
+        e = Ellipsoid(jnp.asarray(P[i]), jnp.asarray(ts[i]))
+        rts = EllipsoidRTS.from_axes(Rs[i], ts[i], ss[i])
+        want = {
+            "project_box": project_box(e, Ts[i], CAM),
+            "in_front": in_front(e, Ts[i], 0.05),
+            "depth_range": depth_range(e, Ts[i]),
+            "camera_inside": camera_inside(e, Ts[i]),
+            "project_cuboid_box": project_cuboid_box(rts, Ts[i], CAM),
+            "cuboid_in_front": cuboid_in_front(rts, Ts[i], 0.05),
+            "box_planes": box_planes(boxes[i], Ts[i], CAM),
+            "project_points": project_points(jnp.asarray(ts[i])[None], Ts[i], CAM)[0],
+            "projection_matrix": projection_matrix(Ts[i], CAM),
+        }
+        for name, w in want.items():
+            assert isinstance(w, jax.Array), name
+            np.testing.assert_allclose(got[name][i], np.asarray(w), rtol=1e-9, atol=1e-9, err_msg=name)
+        H, t = cuboid_half_axes(cub)
+        assert H is cub[0] and t is cub[1]  # a pair (H, t) is a cuboid as it is
+
+
+def test_conic_box_is_the_same_in_numpy_and_jax(gen):
+    C = np.stack([gen.symmetric() for _ in range(50)])
+    C[:, 2, 2] = -np.abs(C[:, 2, 2]) - 0.1
+    a, b = conic_box(C), conic_box(jnp.asarray(C))
+    assert isinstance(a, np.ndarray) and isinstance(b, jax.Array)
+    np.testing.assert_array_equal(a, np.asarray(b))

@@ -7,12 +7,12 @@ import subprocess
 
 import pytest
 import typer
-from typer.testing import CliRunner
+from conftest import cli_runner
 
 import spdslam
 from spdslam import cli
 
-runner = CliRunner()
+runner = cli_runner()
 
 
 @pytest.fixture(autouse=True)

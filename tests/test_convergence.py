@@ -14,7 +14,7 @@ import pytest
 import spdslam
 from spdslam import spd
 from spdslam.factors import InverseBoxFactor
-from spdslam.simulation import make_scene
+from spdslam.synthetic import make_scene
 from spdslam.solver import LevenbergMarquardt, NonlinearFactorGraph, Values
 
 SEEDS = range(20)

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import spdslam  # noqa: F401  (float64)
+from conftest import random_rotation, ring_of_views, upright_ellipsoid
 from spdslam import Camera, Ellipsoid, EllipsoidRTS, look_at
-from spdslam.camera import (
+from spdslam.geometry import (
     box_planes,
     cuboid_corners,
     cuboid_in_front,
@@ -27,18 +28,13 @@ from spdslam.factors import (
     semi_inverse_cuboid_box_residual,
     tangent_jacobians,
 )
-from spdslam.initialization import multi_initialize
+from spdslam.frontend import multi_initialize
 from spdslam.mapping import Method, object_shape, run_sequence
-from spdslam.sequence import ClassPrior, Priors
+from spdslam.io import ClassPrior, Priors
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 FR3 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "tum_fr3_cabinet"
 PARAMS = ("spd", "rts", "full")
-
-
-def _rotation(rng):
-    q = rng.normal(size=4)
-    return np.asarray(jaxlie.SO3(jnp.asarray(q / np.linalg.norm(q))).as_matrix())
 
 
 def _as(e: Ellipsoid, param):
@@ -47,7 +43,7 @@ def _as(e: Ellipsoid, param):
 
 def _scene(rng, radii=None):
     """A random ellipsoid and a pose 3-6 m away looking near its centre."""
-    R = _rotation(rng)
+    R = random_rotation(rng)
     t = rng.uniform(-1, 1, 3)
     s = rng.uniform(0.2, 0.8, 3) if radii is None else np.asarray(radii, float)
     d = rng.normal(size=3)
@@ -218,21 +214,9 @@ def test_cuboid_factor_builders():
 # --- initialisation and mapping -------------------------------------------------------------
 
 
-def _upright(yaw=0.4, radii=(0.6, 0.35, 0.3), xy=(1.0, -0.5)):
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    return Ellipsoid.from_axes(R, [xy[0], xy[1], radii[2]], radii)
-
-
-def _ring(target, n=6, radius=3.5, height=1.4):
-    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    eyes = np.c_[target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), np.full(n, height)]
-    return [look_at(e, target) for e in eyes]
-
-
 def test_multi_initialize_cuboid_recovers_a_noise_free_box_object():
-    e = _upright()
-    poses = _ring(np.asarray(e.center))
+    e = upright_ellipsoid()
+    poses = ring_of_views(np.asarray(e.center))
     boxes = np.stack([np.asarray(project_cuboid_box(e, T, CAM)) for T in poses])
     got = multi_initialize(boxes, poses, CAM, up=[0, 0, 1], support_plane=[0, 0, 1, 0], shape="cuboid")
     np.testing.assert_allclose(got.center, e.center, atol=1e-6)
@@ -264,8 +248,9 @@ def test_object_shape_from_method_or_class_priors():
 
 
 def test_build_graph_uses_the_cuboid_factors_for_cuboid_classes():
-    from spdslam.demo import make_room_sequence
-    from spdslam.mapping import build_graph, tracks_from_instances
+    from spdslam.synthetic import make_room_sequence
+    from spdslam.frontend import tracks_from_instances
+    from spdslam.mapping import build_graph
 
     seq = make_room_sequence(0, frames=30, objects=1)
     tracks = tracks_from_instances(seq)
@@ -288,8 +273,8 @@ def test_build_graph_uses_the_cuboid_factors_for_cuboid_classes():
 def test_fr3_cabinet_cuboid_model_target():
     """Issue 5's target: with the cuboid silhouette model, IoU ≥ 0.80 and orientation
     error ≤ 1.0° on fr3_cabinet (the ellipsoid model gives IoU 0.375)."""
-    from spdslam.report import evaluate_objects
-    from spdslam.sequence import read_sequence
+    from spdslam.evaluation import evaluate_objects
+    from spdslam.io import read_sequence
 
     seq = read_sequence(FR3)
     r = run_sequence(seq, "multi-spd", object_shape="cuboid")
@@ -333,7 +318,7 @@ def test_axis_orientation_residual_value(radii):
 
 def test_axis_orientation_finite_at_ties():
     from spdslam.factors import axis_orientation_residual
-    from spdslam.factors._base import tangent_jacobians
+    from spdslam.factors import tangent_jacobians
 
     up = jnp.array([0.0, 0.3, 1.0])
     for radii in [(0.3, 0.3, 0.3), (0.3, 0.3, 0.2), (0.3, 0.3 + 1e-9, 0.2)]:

@@ -1,4 +1,4 @@
-"""The synthetic room generator ``spdslam.demo.make_room_sequence``."""
+"""The synthetic room generator ``spdslam.synthetic.make_room_sequence``."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from spdslam import Camera, Ellipsoid, camera_inside, in_front, project_box
-from spdslam.demo import MARGIN_PX, MIN_BOX_PX, ROOM_CLASSES, make_room_sequence
+from spdslam.synthetic import MARGIN_PX, MIN_BOX_PX, ROOM_CLASSES, make_room_sequence
 from spdslam.evaluation import cuboid_iou_batch
-from spdslam.se3 import from_tum
-from spdslam.sequence import read_sequence, write_sequence
-from spdslam.simulation import DEFAULT_CAMERA
+from spdslam.geometry.se3 import from_tum
+from spdslam.io import read_sequence, write_sequence
+from spdslam.synthetic import DEFAULT_CAMERA
 
 
 @pytest.fixture(scope="module")
@@ -347,11 +347,11 @@ def test_noise_free_truncated_boxes_are_clipped_projections(clean_seq, clean_tru
 @pytest.mark.parametrize("shape", ["ellipsoid", "cuboid"])
 def test_truncation_cull_is_conservative(monkeypatch, shape):
     """The bounding-sphere cull only saves work: without it the result is the same."""
-    from spdslam import demo
+    from spdslam.synthetic import _rooms
 
     kw = {"seed": 4, "frames": 300, "objects": 20, "truncation": True, "object_shape": shape}
     culled = make_room_sequence(**kw)
-    monkeypatch.setattr(demo, "_frustum_planes", lambda camera: np.zeros((0, 3)))
+    monkeypatch.setattr(_rooms, "_frustum_planes", lambda camera: np.zeros((0, 3)))
     assert make_room_sequence(**kw) == culled
 
 
@@ -368,7 +368,7 @@ def test_missed_detections(default_seq):
 
 
 def test_false_detections(default_seq):
-    from spdslam.association import tracks_from_instances
+    from spdslam.frontend import tracks_from_instances
 
     n = len(default_seq.detections)
     s = make_room_sequence(outliers=0.2)
@@ -491,17 +491,16 @@ def demo_cli(monkeypatch, tmp_path):
     """(invoke, calls): run ``spdslam demo`` in-process with ``_run_and_write`` recorded
     instead of run, and the JAX cache directory kept in tmp_path."""
     import jax
-    from typer.testing import CliRunner
+    from conftest import cli_runner
 
     from spdslam import cli
+    from spdslam.cli import _sequences
 
-    try:
-        runner = CliRunner(mix_stderr=False)
-    except TypeError:
-        runner = CliRunner()
+    runner = cli_runner()
     calls = []
     monkeypatch.setattr(
-        cli, "_run_and_write", lambda seq, method, out, *a, **k: calls.append((seq, method, out, a))
+        _sequences, "_run_and_write",
+        lambda seq, method, out, *a, **k: calls.append((seq, method, out, a)),
     )
     monkeypatch.setenv(cli.CACHE_ENV, str(tmp_path / "jax-cache"))
     old = jax.config.jax_compilation_cache_dir

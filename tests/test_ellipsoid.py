@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from spdslam import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid
-from spdslam.ellipsoid import dual_quadric
+from spdslam.geometry import dual_quadric
 
 KINDS = ("general", "sphere", "spheroid_oblate", "spheroid_prolate")
 SIGNS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
@@ -143,9 +143,17 @@ def test_conversions_are_lossless(gen, kind):
         ):
             _assert_same_ellipsoid(x, e)
             np.testing.assert_allclose(np.asarray(dual_quadric(x)), Q, atol=1e-10 * np.abs(Q).max())
-        # RTS reports sorted radii and a proper rotation
-        np.testing.assert_allclose(np.asarray(r.radii), np.sort(s)[::-1], rtol=1e-10)
-        np.testing.assert_allclose(np.linalg.det(np.asarray(r.rotation.as_matrix())), 1.0, atol=1e-12)
+        # RTS stores sorted radii and a proper rotation, and its views are those of every
+        # parameterisation: sorted radii, the axes as a rotation matrix
+        np.testing.assert_allclose(np.asarray(r.scale), np.sort(s)[::-1], rtol=1e-10)
+        np.testing.assert_allclose(np.linalg.det(np.asarray(r.orientation.as_matrix())), 1.0, atol=1e-12)
+        for x in (r, f, e):
+            np.testing.assert_allclose(np.asarray(x.radii), np.sort(s)[::-1], rtol=1e-9)
+            if kind == "general":  # the axes are unique up to sign
+                np.testing.assert_allclose(np.abs(np.asarray(x.rotation).T @ np.asarray(e.rotation)),
+                                           np.eye(3), atol=1e-6)
+            np.testing.assert_allclose(np.asarray(x.P), np.asarray(e.P), atol=1e-9 * np.abs(e.P).max())
+            np.testing.assert_allclose(np.asarray(x.center), np.asarray(e.center), atol=1e-9)
         # Full stores the 10 entries of Q* and gives it back
         np.testing.assert_allclose(np.asarray(f.matrix()), Q, atol=1e-15 * np.abs(Q).max())
         np.testing.assert_allclose(np.asarray(f.q), Q[np.triu_indices(4)], atol=0)

@@ -18,14 +18,13 @@ from scipy.spatial import ConvexHull, HalfspaceIntersection
 from spdslam import Ellipsoid, EllipsoidFull, EllipsoidRTS
 from spdslam.evaluation import (
     MAX_ORIENTATION_ERROR_DEG,
-    Cuboid,
-    as_cuboid,
     cuboid_iou,
     cuboid_iou_batch,
     orientation_error_deg,
     signed_permutations,
     translation_error,
 )
+from spdslam.geometry import Cuboid, as_cuboid
 
 
 # --- independent helpers --------------------------------------------------------------
@@ -445,7 +444,7 @@ def test_degenerate_inputs_raise():
 
 def test_array_versions_match_the_scalar_ones():
     from spdslam.evaluation import (
-        Cuboid, cuboid_iou, cuboid_iou_arrays, orientation_error_deg, orientation_errors_deg,
+        cuboid_iou, cuboid_iou_arrays, orientation_error_deg, orientation_errors_deg,
     )  # fmt: skip
 
     rng = np.random.default_rng(123)

@@ -10,6 +10,7 @@ import pytest
 from scipy.optimize import brentq
 
 import spdslam  # noqa: F401
+from conftest import random_rotation
 from spdslam import Camera, Ellipsoid, EllipsoidFull, EllipsoidRTS, box_planes, project_box
 from spdslam.factors import (
     Cauchy,
@@ -34,11 +35,6 @@ from spdslam.factors import (
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 
 
-def rot(rng):
-    q = rng.normal(size=4)
-    return np.asarray(jaxlie.SO3(jnp.asarray(q / np.linalg.norm(q))).as_matrix())
-
-
 def look_at(eye, target, up=(0.0, 0.0, 1.0)):
     z = np.asarray(target, float) - eye
     z /= np.linalg.norm(z)
@@ -58,7 +54,7 @@ def as_param(e: Ellipsoid, param: str):
 def test_box_residuals_vanish_at_truth_for_noise_free_boxes(param):
     rng = np.random.default_rng(0)
     for _ in range(20):
-        e = Ellipsoid.from_axes(rot(rng), rng.uniform(-1, 1, 3), rng.uniform(0.2, 1.0, 3))
+        e = Ellipsoid.from_axes(random_rotation(rng), rng.uniform(-1, 1, 3), rng.uniform(0.2, 1.0, 3))
         T = jaxlie.SE3.from_matrix(look_at(e.center + 5 * rng.normal(size=3) / 1.7, e.center))
         x = as_param(e, param)
         box = project_box(e, T, CAM)
@@ -112,7 +108,7 @@ def _weighted_axis_sum(P, m):
 def test_orientation_residual_is_the_log_weighted_per_axis_sum():
     rng = np.random.default_rng(1)
     for _ in range(30):
-        e = Ellipsoid.from_axes(rot(rng), np.zeros(3), rng.uniform(0.2, 1.0, 3))
+        e = Ellipsoid.from_axes(random_rotation(rng), np.zeros(3), rng.uniform(0.2, 1.0, 3))
         m = rng.normal(size=3)
         m /= np.linalg.norm(m)
         np.testing.assert_allclose(orientation_residual(e, m), _weighted_axis_sum(e.P, m), atol=1e-12)
@@ -164,7 +160,7 @@ def test_shape_and_size_priors():
     prior = np.array([0.5, 0.3, 0.2])
     rng = np.random.default_rng(2)
     for perm in ([0, 1, 2], [2, 1, 0], [1, 0, 2]):
-        e = Ellipsoid.from_axes(rot(rng), rng.normal(size=3), prior[perm] * 1.7)
+        e = Ellipsoid.from_axes(random_rotation(rng), rng.normal(size=3), prior[perm] * 1.7)
         f = ShapeFactor("l", prior[[2, 0, 1]])
         np.testing.assert_allclose(f.evaluate(e), 0.0, atol=1e-10)  # scale-free, order-free
         assert abs(float(size_residual(e, np.log(prior).sum())[0]) - np.log(1.7)) < 1e-10
@@ -176,7 +172,7 @@ def test_shape_and_size_priors():
 def test_support_plane_touching_floor():
     floor = np.array([0.0, 0.0, 1.0, 0.0])
     rng = np.random.default_rng(3)
-    R = rot(rng)
+    R = random_rotation(rng)
     e = Ellipsoid.from_axes(R, [1.0, 2.0, 0.0], [0.5, 0.3, 0.2])
     h = np.sqrt(float(np.asarray(e.P)[2, 2]))  # support function along +z
     touching = Ellipsoid(e.P, jnp.array([1.0, 2.0, h]))
@@ -191,7 +187,7 @@ def test_support_plane_touching_floor():
 
 def test_edge_planes_are_tangent_for_all_params():
     rng = np.random.default_rng(4)
-    e = Ellipsoid.from_axes(rot(rng), [0.2, -0.1, 0.3], [0.7, 0.4, 0.3])
+    e = Ellipsoid.from_axes(random_rotation(rng), [0.2, -0.1, 0.3], [0.7, 0.4, 0.3])
     T = jaxlie.SE3.from_matrix(look_at(np.array([3.0, -3.0, 1.5]), e.center))
     planes = box_planes(project_box(e, T, CAM), T, CAM)
     for p in ("spd", "rts", "full"):
@@ -261,7 +257,7 @@ def test_tum_round_trip():
 
     rng = np.random.default_rng(9)
     for _ in range(10):
-        T = jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(rot(rng)), rng.normal(size=3))
+        T = jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(random_rotation(rng)), rng.normal(size=3))
         v = se3.to_tum(T)
         assert v[6] >= 0
         np.testing.assert_allclose(se3.from_tum(v).as_matrix(), T.as_matrix(), atol=1e-12)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from spdslam import Camera, Ellipsoid, look_at, project_box, spd
-from spdslam.initialization import InitializationError, svd_initialize
-from spdslam.simulation import random_rotations
+from spdslam.frontend import InitializationError, svd_initialize
+from spdslam.synthetic import random_rotations
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 

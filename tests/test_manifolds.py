@@ -94,11 +94,11 @@ CASES = [
         name="EllipsoidRTS",
         dim=9,
         make=_rts_make,
-        arrays=lambda e: [e.rotation.as_matrix(), e.center, e.radii],
+        arrays=lambda e: [e.orientation.as_matrix(), e.center, e.scale],
         nearby=lambda gen, e: EllipsoidRTS.from_axes(
-            np.asarray(e.rotation.as_matrix()) @ _small_rotation(gen, 0.3),
+            np.asarray(e.orientation.as_matrix()) @ _small_rotation(gen, 0.3),
             np.asarray(e.center) + gen.rng.normal(size=3) * 0.1,
-            np.asarray(e.radii) + gen.rng.uniform(-0.1, 0.1, size=3),
+            np.asarray(e.scale) + gen.rng.uniform(-0.1, 0.1, size=3),
         ),
     ),
     Case(
@@ -247,10 +247,10 @@ def test_ellipsoid_retractions_follow_their_definitions(gen):
     r = e.to_rts()
     y = manifold.retract(r, d)
     np.testing.assert_allclose(
-        np.asarray(y.rotation.as_matrix()), np.asarray(r.rotation.as_matrix()) @ sla.expm(_hat(d[:3])), atol=1e-12
+        np.asarray(y.orientation.as_matrix()), np.asarray(r.orientation.as_matrix()) @ sla.expm(_hat(d[:3])), atol=1e-12
     )
     np.testing.assert_allclose(np.asarray(y.center), np.asarray(r.center) + d[3:6], atol=1e-14)
-    np.testing.assert_allclose(np.asarray(y.radii), np.asarray(r.radii) + d[6:], atol=1e-14)
+    np.testing.assert_allclose(np.asarray(y.scale), np.asarray(r.scale) + d[6:], atol=1e-14)
 
     f = e.to_full()
     d10 = gen.rng.normal(size=10)

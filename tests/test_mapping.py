@@ -6,44 +6,29 @@ import jax
 import numpy as np
 import pytest
 
-from spdslam import Ellipsoid
-from spdslam.camera import look_at, project_box
-from spdslam.demo import make_room_sequence
-from spdslam.evaluation import Cuboid, cuboid_iou, orientation_error_deg
-from spdslam.initialization import (
+from conftest import ring_of_views, upright_ellipsoid
+
+from spdslam.geometry import project_box
+from spdslam.synthetic import make_room_sequence
+from spdslam.evaluation import cuboid_iou, orientation_error_deg
+from spdslam.frontend import (
     InitializationError,
     multi_initialize,
+    tracks_from_instances,
     triangulate_rays,
 )
-from spdslam.mapping import (
-    METHODS,
-    Method,
-    mapping_sigmas,
-    run_sequence,
-    tracks_from_instances,
-)
-from spdslam.report import evaluate_objects
-from spdslam.sequence import Detection, Sequence, read_sequence
-from spdslam.simulation import DEFAULT_CAMERA
+from spdslam.geometry import Cuboid
+from spdslam.mapping import METHODS, Method, mapping_sigmas, run_sequence
+from spdslam.evaluation import evaluate_objects
+from spdslam.io import Detection, Sequence, read_sequence
+from spdslam.synthetic import DEFAULT_CAMERA
 
 FR3 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "tum_fr3_cabinet"
 
 
-def _upright(yaw=0.4, radii=(0.6, 0.35, 0.3), xy=(1.0, -0.5)):
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    return Ellipsoid.from_axes(R, [xy[0], xy[1], radii[2]], radii)
-
-
-def _views(target, n=6, radius=3.5, height=1.4):
-    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    eyes = np.c_[target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), np.full(n, height)]
-    return [look_at(e, target) for e in eyes]
-
-
 def test_multi_initialize_recovers_a_noise_free_upright_object():
-    e = _upright()
-    poses = _views(np.asarray(e.center))
+    e = upright_ellipsoid()
+    poses = ring_of_views(np.asarray(e.center))
     boxes = np.stack([np.asarray(project_box(e, T, DEFAULT_CAMERA)) for T in poses])
     got = multi_initialize(boxes, poses, DEFAULT_CAMERA, up=[0, 0, 1], support_plane=[0, 0, 1, 0])
     np.testing.assert_allclose(got.center, e.center, atol=1e-6)
@@ -54,8 +39,8 @@ def test_multi_initialize_recovers_a_noise_free_upright_object():
 
 
 def test_multi_initialize_errors():
-    e = _upright()
-    poses = _views(np.asarray(e.center), n=3)
+    e = upright_ellipsoid()
+    poses = ring_of_views(np.asarray(e.center), n=3)
     boxes = np.stack([np.asarray(project_box(e, T, DEFAULT_CAMERA)) for T in poses])
     with pytest.raises(InitializationError, match="at least 2 views"):
         multi_initialize(boxes[:1], poses[:1], DEFAULT_CAMERA, up=[0, 0, 1])

@@ -1,8 +1,9 @@
-"""Figures (spdslam.plots): PNG files are written, and the geometry behind them is right.
+"""Figures (spdslam.evaluation's plots): PNG files are written, and the geometry behind them
+is right.
 
 The geometry is checked against independent constructions: brute-force projected surface
 points of the ellipsoid (top view and image), the point conic C = (C*)⁻¹ and the
-closed-form box ``camera.project_box``.
+closed-form box ``geometry.project_box``.
 """
 
 from __future__ import annotations
@@ -13,23 +14,19 @@ import numpy as np
 import pytest
 
 from spdslam import Camera, Ellipsoid
-from spdslam.camera import in_front, project_box, project_dual_quadric
-from spdslam.evaluation import Cuboid
-from spdslam.plots import (
+from spdslam.evaluation import (
     camera_centers,
-    conic_box,
     conic_ellipse,
     conic_outline,
-    ellipsoid_dual_conic,
-    ellipsoid_in_front,
     plane_basis,
     plot_map_top,
     plot_overlay,
-    pose_matrix,
     top_view_ellipse,
     write_overlays,
 )
-from spdslam.sequence import Detection, GroundTruthObject, Sequence, matrix_to_quat
+from spdslam.geometry import Cuboid, conic_box, in_front, project_box, project_dual_quadric
+from spdslam.geometry.se3 import from_tum, matrix_to_quat, to_matrix
+from spdslam.io import Detection, GroundTruthObject, Sequence
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -112,14 +109,13 @@ def test_projected_outline_lies_on_the_conic_and_spans_project_box(gen):
     R, t, s = gen.ellipsoid_params()
     T, R_wc, c = gen.pose_looking_at(R, t, s)
     e = Ellipsoid.from_axes(R, t, s)
-    assert bool(in_front(e, T)) and ellipsoid_in_front(e.P, e.center, T)
-    Cs = ellipsoid_dual_conic(e.P, e.center, T, cam)
-    ref = np.asarray(project_dual_quadric(e.dual_quadric(), T, cam))
-    np.testing.assert_allclose(Cs, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
-    # The same from a TUM row and from a 4×4 matrix.
-    Cs7 = ellipsoid_dual_conic(e.P, e.center, tum_of(R_wc, c), cam)
+    assert bool(in_front(e, T))
+    Cs = np.asarray(project_dual_quadric(e.dual_quadric(), T, cam))
+    # The same from a TUM row (as the plots take poses) and from the camera's axes and centre.
+    Cs7 = np.asarray(project_dual_quadric(e.dual_quadric(), from_tum(tum_of(R_wc, c)), cam))
     np.testing.assert_allclose(Cs7, Cs, rtol=1e-9, atol=1e-9 * np.abs(Cs).max())
-    np.testing.assert_allclose(pose_matrix(T), np.asarray(T.as_matrix()), atol=1e-12)
+    Csa = project_dual_quadric(np.asarray(e.dual_quadric()), (R_wc, c), cam)
+    np.testing.assert_allclose(Csa, Cs, rtol=1e-9, atol=1e-9 * np.abs(Cs).max())
 
     uv = conic_outline(Cs, n=4000)
     assert uv.shape == (4001, 2)
@@ -204,7 +200,7 @@ def test_plot_overlay_with_an_image_file(tmp_path, suffix):
     img = np.stack([xx / 320, yy / 240, 0.5 * np.ones_like(xx, float)], axis=-1)
     img_path = tmp_path / f"frame.{suffix}"
     mpimg.imsave(img_path, img)
-    T = np.asarray(pose_matrix(poses[1]))  # a 4×4 pose works too
+    T = to_matrix(from_tum(poses[1]))  # a 4×4 pose works too
     out = plot_overlay(tmp_path / "o.png", img_path, camera, T, ells)
     assert_png(out, 5000)
     assert png_size(out) == (320, 240)

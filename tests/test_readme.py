@@ -15,7 +15,7 @@ def test_readme_example_recovers_the_object(capsys):
     exec(compile(code[0], str(README), "exec"), scope)
     result, truth = scope["result"], scope["truth"]
     assert result.converged
-    est = result.values["chair"]
+    est = result.values[scope["L"](0)]
     np.testing.assert_allclose(est.radii, [0.6, 0.4, 0.3], atol=1e-6)
     np.testing.assert_allclose(est.center, truth.center, atol=1e-6)
     assert capsys.readouterr().out.strip()

@@ -7,25 +7,18 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from conftest import cli_runner
 
 from spdslam import cli
-from spdslam.demo import make_room_sequence
-from spdslam.factors import Cauchy, Huber
-from spdslam.mapping import (
-    METHODS,
-    ROBUST_FACTOR_TYPES,
-    build_graph,
-    initialize_objects,
-    run_sequence,
-    tracks_from_instances,
-)
-from spdslam.report import evaluate_run, match_objects, report_markdown
+from spdslam.synthetic import make_room_sequence
+from spdslam.factors import Cauchy, Huber, robust_groups
+from spdslam.frontend import tracks_from_instances
+from spdslam.mapping import METHODS, build_graph, initialize_objects, run_sequence
 
-try:
-    runner = CliRunner(mix_stderr=False)
-except TypeError:
-    runner = CliRunner()
+ROBUST_FACTOR_TYPES = robust_groups()
+from spdslam.evaluation import evaluate_run, match_objects, report_markdown
+
+runner = cli_runner()
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +45,7 @@ def test_robust_by_type_sets_the_kernels_of_those_factors(small):
             assert f.robust == Huber(2.0)  # the plain kernel still covers the boxes
         else:
             assert f.robust is None, f.kind
-    assert {"BetweenFactor", "orientation", "inverse_box", "support_plane"} <= seen
+    assert {"between", "prior", "orientation", "inverse_box", "support_plane"} <= seen
     with pytest.raises(ValueError, match="robust_by_type"):
         method.replace(robust_by_type=(("boxes", "huber", 1.0),))
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spdslam.camera import Camera
-from spdslam.evaluation import Cuboid
-from spdslam.sequence import (
+from spdslam.geometry import Camera, Cuboid
+from spdslam.geometry.se3 import matrix_to_quat, quat_to_matrix
+from spdslam.io import (
     ClassPrior,
     Detection,
     EllipsoidDetection,
@@ -19,8 +19,6 @@ from spdslam.sequence import (
     Sequence,
     SequenceFormatError,
     import_fr3_cabinet,
-    matrix_to_quat,
-    quat_to_matrix,
     read_sequence,
     write_sequence,
 )

@@ -15,25 +15,20 @@ import numpy as np
 import pytest
 
 import spdslam  # noqa: F401
+from conftest import log_x_residual, se3
 from spdslam import Ellipsoid, EllipsoidFull, spd
-from spdslam.factors import BetweenFactor, Cauchy, Factor, Huber, PriorFactor
+from spdslam.factors import BetweenFactor, Cauchy, CustomFactor, Huber, PriorFactor
 from spdslam.solver import (
     HAVE_CHOLMOD,
-    BatchedProblem,
     GaussNewton,
     LevenbergMarquardt,
     NonlinearFactorGraph,
     Values,
-    solve_batched,
 )
 
 N_POSES = 8
 LOOPS = [(0, 5), (2, 7)]
 SIGMA = np.array([0.05, 0.05, 0.05, 0.02, 0.02, 0.02])  # (translation, rotation)
-
-
-def se3(x) -> jaxlie.SE3:
-    return jaxlie.SE3.exp(jnp.asarray(x, dtype=float))
 
 
 def pose_graph(seed: int, noise: float = 0.02, init_noise: float = 0.2, outlier=None,
@@ -88,6 +83,7 @@ def test_values_and_graph_containers():
 
 def test_lm_and_gn_reach_the_same_optimum():
     graph, values, _ = pose_graph(1)
+    before = pose_matrices(values)
     lm = LevenbergMarquardt(**TIGHT).optimize(graph, values)
     gn = GaussNewton(**TIGHT).optimize(graph, values)
     assert lm.converged and gn.converged, (lm.reason, gn.reason)
@@ -96,8 +92,8 @@ def test_lm_and_gn_reach_the_same_optimum():
     np.testing.assert_allclose(pose_matrices(lm.values), pose_matrices(gn.values), atol=1e-8)
     np.testing.assert_allclose(graph.error(lm.values), lm.final_cost, rtol=1e-12)
     assert lm.initial_cost == pytest.approx(graph.error(values), rel=1e-12)
-    # the input Values are not modified
-    assert pose_matrices(values)[1] == pytest.approx(np.asarray(values[1].as_matrix()))
+    # the input Values are not modified (the result is a new Values with other poses)
+    np.testing.assert_array_equal(pose_matrices(values), before)
     assert not np.allclose(pose_matrices(values), pose_matrices(lm.values))
 
 
@@ -133,7 +129,7 @@ def test_batched_matches_looped_unbatched_solves():
     problems = [pose_graph(10 + s, init_noise=0.3) for s in range(4)]
     graphs = [p[0] for p in problems]
     values = [p[1] for p in problems]
-    batched = solve_batched(graphs, values, **TIGHT)
+    batched = LevenbergMarquardt(**TIGHT).optimize_batched(graphs, values)
     assert len(batched) == 4
     for b, (graph, init, _) in enumerate(problems):
         single = LevenbergMarquardt(linear_solver="dense", **TIGHT).optimize(graph, init)
@@ -157,7 +153,7 @@ def test_batched_matches_looped_unbatched_solves():
         assert not batched.accepted_history[b, its:].any()
 
 
-def test_batched_problem_matches_solve_batched():
+def test_batched_problem_matches_optimize_batched():
     """The template-plus-arrays API on the same problems: identical results."""
     problems = [pose_graph(10 + s, init_noise=0.3) for s in range(4)]
     graphs = [p[0] for p in problems]
@@ -166,9 +162,10 @@ def test_batched_problem_matches_solve_batched():
                                 *[g[i].args for g in graphs]) for i in range(len(graphs[0]))]
     batched_values = {k: jaxlie.SE3(np.stack([np.asarray(v[k].wxyz_xyz) for v in values]))
                       for k in values[0]}
-    bp = BatchedProblem(graphs[0], values[0], **TIGHT)
+    lm = LevenbergMarquardt(**TIGHT)
+    bp = lm.batched(graphs[0], values[0])
     res = bp.solve(factor_args, batched_values, batch_size=3)
-    old = solve_batched(graphs, values, **TIGHT)
+    old = lm.optimize_batched(graphs, values)
     assert res.reason == old.reason
     np.testing.assert_array_equal(res.iterations, old.iterations)
     np.testing.assert_allclose(res.final_cost, old.final_cost, rtol=1e-10)
@@ -190,7 +187,7 @@ def test_batched_rejects_different_structures():
     a = pose_graph(20)
     b = pose_graph(21, outlier=(1, 6))
     with pytest.raises(ValueError, match="problem 1 has a different structure"):
-        solve_batched([a[0], b[0]], [a[1], b[1]])
+        LevenbergMarquardt().optimize_batched([a[0], b[0]], [a[1], b[1]])
 
 
 # ------------------------------------------------------------------------------ fixed, robust
@@ -245,9 +242,12 @@ def test_history_records():
     assert all(b <= a for a, b in zip([res.initial_cost] + costs, costs))
     assert costs[-1] == res.final_cost
     for k, r in enumerate(res.history, start=1):
-        assert r.iteration == k and r.time >= 0.0 and r.lambda_ > 0.0 and r.step_norm >= 0.0
+        assert r.iteration == k and r.time > 0.0 and r.lambda_ > 0.0
+        assert np.isfinite(r.step_norm) and r.step_norm > 0.0 and np.isfinite(r.trial_cost)
         if r.accepted:
             assert r.trial_cost == r.cost and r.gain_ratio > 0
+        else:
+            assert r.trial_cost >= r.cost
     assert res.linearizations == 1 + sum(r.accepted for r in res.history)
     assert {"setup", "linearize", "solve", "step"} <= set(res.timings)
 
@@ -271,10 +271,13 @@ def test_stopping_reasons():
     r = lm(absolute_tolerance=1e-20, gradient_tolerance=0.0, relative_tolerance=0.0
            ).optimize(exact, values)
     assert r.reason in ("absolute", "step") and r.final_cost < 1e-20, (r.reason, r.final_cost)
-    # restarted at the optimum of the noisy problem: ‖g‖∞ ≈ 0 but F > 0
+    # restarted at the optimum of the noisy problem: ‖g‖∞ ≈ 0 but F > 0 (how close to 0 the
+    # relative tolerance stops depends on the machine's round-off: 1e-6 is not always met)
     opt = lm(**TIGHT).optimize(graph, values)
-    r = lm(gradient_tolerance=1e-6).optimize(graph, opt.values)
+    assert opt.final_cost > 1.0
+    r = lm(gradient_tolerance=1e-4).optimize(graph, opt.values)
     assert (r.reason, r.iterations, r.converged) == ("gradient", 0, True)
+    assert lm(gradient_tolerance=1e-4).optimize(graph, values).iterations > 0
     assert r.final_cost > 1e-3
 
 
@@ -289,7 +292,7 @@ def _stay_valid(T, ref):
 
 def test_steps_that_invalidate_a_factor_are_rejected():
     graph, values, _ = pose_graph(8)
-    graph.add(Factor(_stay_residual, (3,), args=(values[3],), valid=_stay_valid, name="stay"))
+    graph.add(CustomFactor(_stay_residual, (3,), args=(values[3],), valid=_stay_valid, name="stay"))
     r = LevenbergMarquardt(lambda_max=1e3).optimize(graph, values)
     assert r.reason == "lambda_max" and not r.converged
     assert not any(rec.accepted for rec in r.history)
@@ -301,11 +304,6 @@ def test_steps_that_invalidate_a_factor_are_rejected():
 
 
 # ------------------------------------------------------------------------------ errors
-
-
-def _log_x(T):
-    """NaN where the x translation is negative."""
-    return jnp.log(T.translation()[:1])
 
 
 def test_error_messages():
@@ -321,14 +319,14 @@ def test_error_messages():
         LevenbergMarquardt().optimize(NonlinearFactorGraph(), values)
     with pytest.raises(TypeError, match=r"key 'm'.*not an optimisation variable type"):
         LevenbergMarquardt().optimize(
-            NonlinearFactorGraph([Factor(lambda x: x, ("m",))]), {"m": np.zeros(3)})
+            NonlinearFactorGraph([CustomFactor(lambda x: x, ("m",))]), {"m": np.zeros(3)})
     with pytest.raises(ValueError, match="sqrt_info has shape"):
         LevenbergMarquardt().optimize(
-            NonlinearFactorGraph([Factor(_log_x, (1,), sqrt_info=np.eye(2))]), values)
+            NonlinearFactorGraph([CustomFactor(log_x_residual, (1,), sqrt_info=np.eye(2))]), values)
     T = values[2]
     values_neg = Values({2: jaxlie.SE3.from_rotation_and_translation(
         T.rotation(), jnp.array([-1.0, 0, 0]))})
-    nan_graph = NonlinearFactorGraph([Factor(_log_x, (2,), name="LogX")])
+    nan_graph = NonlinearFactorGraph([CustomFactor(log_x_residual, (2,), name="LogX")])
     with pytest.raises(ValueError,
                        match=r"factor #0 \(LogX, keys \(2,\)\) has a non-finite residual"):
         LevenbergMarquardt().optimize(nan_graph, values_neg)
@@ -359,8 +357,8 @@ def test_spd_ellipsoid_variable(gen, opt):
     truth = gen.ellipsoid()
     T = gen.pose_random()
     graph = NonlinearFactorGraph([
-        Factor(_ellipsoid_prior, ("E",), args=(truth.P, truth.center), name="EllipsoidPrior"),
-        Factor(_centre_in_camera, ("x", "E"), args=(T.inverse() @ truth.center,)),
+        CustomFactor(_ellipsoid_prior, ("E",), args=(truth.P, truth.center), name="EllipsoidPrior"),
+        CustomFactor(_centre_in_camera, ("x", "E"), args=(T.inverse() @ truth.center,)),
         PriorFactor("x", T, sigma=0.1),
     ])
     start = Ellipsoid.from_axes(gen.rotation(), truth.center + 0.5, truth.radii * 1.5)
@@ -379,7 +377,7 @@ def test_full_quadric_variable_with_singular_scale(gen, opt):
     q; the damping (LM) or ridge (GN) handles it and ``regularized`` renormalises Q*."""
     truth = gen.ellipsoid()
     Q = truth.dual_quadric()
-    graph = NonlinearFactorGraph([Factor(_quadric_prior, ("Q",), args=(Q,), name="QuadricPrior")])
+    graph = NonlinearFactorGraph([CustomFactor(_quadric_prior, ("Q",), args=(Q,), name="QuadricPrior")])
     start = EllipsoidFull.from_ellipsoid(
         Ellipsoid.from_axes(gen.rotation(), truth.center + 0.3, truth.radii * 1.3))
     start = EllipsoidFull(3.0 * start.q)  # not normalised: Q*₃₃ = −3

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from test_solver import TIGHT, pose_graph, pose_matrices
 
-from spdslam.solver import HAVE_CHOLMOD, BatchedProblem, LevenbergMarquardt
+from spdslam.solver import HAVE_CHOLMOD, LevenbergMarquardt
 
 needs_cholmod = pytest.mark.skipif(not HAVE_CHOLMOD, reason="scikit-sparse is not installed")
 
@@ -82,8 +82,6 @@ def test_bad_options_raise():
         LevenbergMarquardt(lambda_schedule="gtsam").optimize(graph, values)
     with pytest.raises(ValueError, match="lambda_factor must be > 1"):
         LevenbergMarquardt(lambda_schedule="fixed", lambda_factor=1.0).optimize(graph, values)
-    with pytest.raises(ValueError, match="batched solver supports"):
-        BatchedProblem(graph, values, lambda_schedule="fixed")
 
 
 @pytest.mark.parametrize("diagonal", [True, False])

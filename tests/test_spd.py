@@ -290,3 +290,24 @@ def _residual(c, P, Q):
 _LOSS = jax.jit(lambda c, P, Q: jnp.sum(_residual(c, P, Q) ** 2))
 _GRAD = jax.jit(jax.grad(lambda c, P, Q: jnp.sum(_residual(c, P, Q) ** 2)))
 _JAC = jax.jit(jax.jacfwd(_residual))
+
+
+def test_distance_in_numpy_and_jax_is_eq22(gen):
+    """One implementation for both: NumPy in, NumPy out (the front end's per-pair calls), the
+    same values as in JAX and as ‖Log(P^-½ Q P^-½)‖_F from the log map; NumPy input that is
+    not SPD is a ValueError."""
+    P = np.stack([gen.spd() for _ in range(5)])
+    Q = np.stack([gen.spd() for _ in range(5)])
+    d = spd.distance(P, Q)
+    assert isinstance(d, np.ndarray)
+    dj = spd.distance(jnp.asarray(P), jnp.asarray(Q))
+    assert isinstance(dj, jax.Array)
+    np.testing.assert_allclose(d, np.asarray(dj), rtol=1e-12)
+    np.testing.assert_allclose(d, np.linalg.norm(np.asarray(spd.local_vec(P, Q)), axis=-1), rtol=1e-9)
+    A = gen.rng.normal(size=(3, 3)) + 3 * np.eye(3)  # affine invariance d(APAᵀ, AQAᵀ) = d(P, Q)
+    np.testing.assert_allclose(spd.distance(A @ P @ A.T, A @ Q @ A.T), d, rtol=1e-7)
+    np.testing.assert_allclose(spd.distance(P, P), 0.0, atol=1e-9)
+    with pytest.raises(ValueError, match="P is not symmetric positive definite"):
+        spd.distance(-np.eye(3), np.eye(3))
+    with pytest.raises(ValueError, match="Q is not symmetric positive definite"):
+        spd.distance(np.eye(3), -np.eye(3))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spdslam.stats import bootstrap, paired_comparison, wilson
+from spdslam.evaluation import bootstrap, paired_comparison, wilson
 
 
 def test_wilson_known_values():

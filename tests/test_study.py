@@ -7,10 +7,10 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from conftest import cli_runner
 
 from spdslam.cli import app
-from spdslam.study import CSV_COLUMNS, StudyConfig, run_study, write_outputs
+from spdslam.experiments import CSV_COLUMNS, StudyConfig, run_study
 
 REQUIRED = [
     "angle", "noise", "model", "param", "trial", "success", "iterations_to_tol",
@@ -26,7 +26,7 @@ def _read_rows(path):
 def test_tiny_study_via_cli(tmp_path, monkeypatch):
     monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "sim"
-    res = CliRunner().invoke(
+    res = cli_runner().invoke(
         app,
         ["simulate", "--trials", "4", "--angles", "120", "--noise", "L,M", "--models", "inv,semi",
          "--params", "S,O", "--max-iters", "60", "--out", str(out)],
@@ -60,7 +60,7 @@ def test_tiny_study_via_cli(tmp_path, monkeypatch):
 
 
 def test_bad_options_exit_2(tmp_path):
-    runner = CliRunner()
+    runner = cli_runner()
     for args in (["--params", "X"], ["--noise", "Q"], ["--angles", "abc"], ["--angles", "0"],
                  ["--optimize", "maybe"]):
         res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "x"), *args])
@@ -102,7 +102,7 @@ def test_default_run_reproduces_the_committed_table(tmp_path, monkeypatch):
     from pathlib import Path
 
     monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path / "cache"))
-    res = CliRunner().invoke(app, ["simulate", "--out", str(tmp_path)])
+    res = cli_runner().invoke(app, ["simulate", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
     rows = _read_rows(tmp_path / "trials.csv")
     assert len(rows) == 864

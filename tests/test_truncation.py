@@ -7,7 +7,7 @@ import pytest
 
 import spdslam  # noqa: F401  (float64)
 from spdslam import Camera, Ellipsoid, look_at
-from spdslam.camera import project_box, project_cuboid_box, truncation_mask
+from spdslam.geometry import project_box, project_cuboid_box, truncation_mask
 from spdslam.factors import (
     DEFAULT_TRUNCATION_MARGIN,
     InverseBoxFactor,
@@ -16,7 +16,7 @@ from spdslam.factors import (
     SemiInverseCuboidBoxFactor,
     inverse_box_residual,
 )
-from spdslam.initialization import InitializationError, multi_initialize, svd_initialize
+from spdslam.frontend import InitializationError, multi_initialize, svd_initialize
 from spdslam.solver import LevenbergMarquardt, NonlinearFactorGraph, Values
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
