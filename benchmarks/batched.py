@@ -2,7 +2,7 @@
 
 The six structures of the simulation study: landmark parameterisation (Ellipsoid = SPD,
 EllipsoidRTS, EllipsoidFull) × box factor (inverse, semi-inverse), each a batch of B scenes
-from ``spdslam.simulation.make_scenes`` (10 fixed camera poses, 1 landmark, 10 box factors).
+from ``spdslam.synthetic.make_scenes`` (10 fixed camera poses, 1 landmark, 10 box factors).
 
     python3 benchmarks/batched.py                      # B = 144, writes results/batched.json
     python3 benchmarks/batched.py --batch 32 --lanes 16 --out my.json
@@ -35,8 +35,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import spdslam  # noqa: E402
 from spdslam import Ellipsoid, EllipsoidFull, EllipsoidRTS  # noqa: E402
 from spdslam.factors import InverseBoxFactor, SemiInverseBoxFactor  # noqa: E402
-from spdslam.simulation import make_scenes  # noqa: E402
-from spdslam.solver import BatchedProblem, NonlinearFactorGraph, Values  # noqa: E402
+from spdslam.solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X  # noqa: E402
+from spdslam.synthetic import make_scenes  # noqa: E402
 
 LANDMARKS = {
     "Ellipsoid": (Ellipsoid, None),
@@ -62,14 +62,14 @@ def structure(scenes, landmark: str, box: str, max_iterations: int, optimize=Non
     boxes = np.asarray(scenes.boxes)
     graph, values = NonlinearFactorGraph(), Values()
     for i in range(views):
-        values[("x", i)] = jaxlie.SE3(poses[0, i])
-        graph.add(factor(("x", i), "o", boxes[0, i], scenes.camera))
-    values["o"] = jax.tree.map(lambda a: a[0], init)
-    bp = BatchedProblem(graph, values, fixed=[("x", i) for i in range(views)],
-                        max_iterations=max_iterations, optimize=optimize, **params)
+        values[X(i)] = jaxlie.SE3(poses[0, i])
+        graph.add(factor(X(i), L(0), boxes[0, i], scenes.camera))
+    values[L(0)] = jax.tree.map(lambda a: a[0], init)
+    bp = LevenbergMarquardt(max_iterations=max_iterations, **params).batched(
+        graph, values, fixed=[X(i) for i in range(views)], optimize=optimize)
     factor_args = {i: (boxes[:, i], scenes.camera) for i in range(views)}
-    pose_values = {("x", i): jaxlie.SE3(poses[:, i]) for i in range(views)}
-    return bp, factor_args, dict(pose_values, o=init), dict(pose_values, o=truth)
+    pose_values = {X(i): jaxlie.SE3(poses[:, i]) for i in range(views)}
+    return bp, factor_args, {**pose_values, L(0): init}, {**pose_values, L(0): truth}
 
 
 def main() -> None:

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spdslam.demo import make_room_sequence
+from spdslam.evaluation import evaluate_objects
+from spdslam.io import read_sequence
 from spdslam.mapping import METHODS, run_sequence
-from spdslam.report import evaluate_objects
-from spdslam.sequence import read_sequence
+from spdslam.synthetic import make_room_sequence
 
 
 def one(seq, method="multi-spd", **kw) -> dict:

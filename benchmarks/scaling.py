@@ -1,6 +1,6 @@
 """Scaling of the joint back end on synthetic rooms: per-iteration time, graph building, memory.
 
-Scenes: ``spdslam.demo.make_room_sequence(seed, frames, objects, drift=0.001)`` (a camera loop
+Scenes: ``spdslam.synthetic.make_room_sequence(seed, frames, objects, drift=0.001)`` (a camera loop
 around strips of upright objects, boxes of every object in range). Graph: the multi-spd
 method's (``spdslam.mapping.build_graph``: pose prior, odometry between factors, inverse box
 factors, orientation, support-plane, shape and size factors per object) with the landmarks
@@ -75,11 +75,11 @@ def scene(frames: int, objects: int, seed: int):
     """(sequence, tracks, landmarks {id: Ellipsoid}, values, seconds to generate)."""
     import numpy as np
 
-    from spdslam.association import tracks_from_instances
-    from spdslam.demo import make_room_sequence
-    from spdslam.ellipsoid import Ellipsoid
-    from spdslam.mapping import object_key, pose_key, trajectory_poses
-    from spdslam.solver import Values
+    from spdslam.frontend import tracks_from_instances
+    from spdslam.geometry import Ellipsoid
+    from spdslam.mapping import SequenceContext
+    from spdslam.solver import L, Values, X
+    from spdslam.synthetic import make_room_sequence
 
     t0 = time.perf_counter()
     seq = make_room_sequence(seed, frames, objects, drift=0.001)
@@ -92,10 +92,10 @@ def scene(frames: int, objects: int, seed: int):
             np.asarray(c.rotation), np.asarray(c.center) + 0.05 * rng.standard_normal(3),
             1.1 * np.asarray(c.half_extents))
     values = Values()
-    for i, T in enumerate(trajectory_poses(seq)):
-        values[pose_key(i)] = T
+    for i, T in enumerate(SequenceContext.of(seq).poses):
+        values[X(i)] = T
     for k, v in lms.items():
-        values[object_key(k)] = v
+        values[L(k)] = v
     return seq, tracks, lms, values, time.perf_counter() - t0
 
 

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spdslam.demo import make_room_sequence
+from spdslam.evaluation import FRONT_END_NAMES, evaluate_objects
+from spdslam.io import read_sequence
 from spdslam.mapping import METHODS, run_sequence
-from spdslam.report import FRONT_END_NAMES, evaluate_objects
-from spdslam.sequence import read_sequence
+from spdslam.synthetic import make_room_sequence
 
 
 def run_all(seq) -> list:

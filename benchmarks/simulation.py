@@ -1,6 +1,6 @@
 """Simulation-study throughput: the full grid, cold compile vs warm persistent compilation cache.
 
-The grid is ``spdslam.study.run_study`` (what ``spdslam simulate`` runs): viewing range (60°,
+The grid is ``spdslam.experiments.run_study`` (what ``spdslam simulate`` runs): viewing range (60°,
 120°) × noise (L, M, H) × box model (inv, semi) × parameterisation (F, S, O), ``--trials``
 scenes per (range, noise) cell: 6 structures × 6 cells × 24 trials = 864 batched solves by
 default. Each pass runs in a fresh Python process:
@@ -46,7 +46,7 @@ def one_pass(trials: int, cache: str | None, optimize: str = "auto") -> dict:
     import jax
 
     from spdslam.cli import enable_compilation_cache
-    from spdslam.study import StudyConfig, run_study
+    from spdslam.experiments import StudyConfig, run_study
 
     used = enable_compilation_cache(Path(cache)) if cache else None
     t_import = time.perf_counter() - t0
