@@ -116,14 +116,15 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
     key = L(track.id)
     priors = ctx.priors
     shape = object_shape(method, priors, track.label)
-    kind = BOX_FACTORS[box_model, shape]
+    box_factor = BOX_FACTORS[box_model, shape]
     out = []
     for f, b in zip(track.frames, track.boxes):
-        sigma = s[kind.kind]
+        sigma = s[box_factor.kind]
         if box_model == "inverse":
-            sigma = sigma + s[kind.kind + "_relative"] * np.array([b[2] - b[0], b[3] - b[1]] * 2)
-        out.append(kind(X(f), key, b, ctx.camera, sigma=sigma, robust=robust,
-                        truncation_margin=method.margin))
+            size = np.array([b[2] - b[0], b[3] - b[1]] * 2)
+            sigma = sigma + s[box_factor.kind + "_relative"] * size
+        out.append(box_factor(X(f), key, b, ctx.camera, sigma=sigma, robust=robust,
+                              truncation_margin=method.margin))
     up = ctx.up
     if up is not None and method.orientation == "improved":
         if shape == "cuboid":
