@@ -621,7 +621,7 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
             accepted = active & acc
             # loading lanes: their initial linearisation
             fin0 = fin1 & jnp.isfinite(c1)
-            r_0 = jnp.where(~fin0, _NONFINITE, initial_reason(c1, gmax1, fin0, h, jnp))
+            r_0 = jnp.where(~fin0, _NONFINITE, initial_reason(c1, gmax1, h, jnp))
             reason = jnp.where(got, r_0, jnp.where(active, r_step, 0))
 
             take_new = got | accepted

@@ -252,8 +252,9 @@ def predicted_decrease(delta, D, g, lam, xp):
     return 0.5 * xp.sum(delta * (xp.asarray(lam)[..., None] * D * delta - g), axis=-1)
 
 
-def initial_reason(cost, gmax, finite, h: dict, xp):
-    """The reason to stop at the initial linearisation (0: none; finite must hold)."""
+def initial_reason(cost, gmax, h: dict, xp):
+    """The reason to stop at the initial linearisation (0: none), for a finite cost and
+    gradient (the drivers check finiteness first)."""
     return xp.where(cost <= h["absolute_tolerance"], ABSOLUTE,
                     xp.where(gmax <= h["gradient_tolerance"], GRADIENT, 0))
 

@@ -151,7 +151,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
     lam, nu = h["lambda_initial"], 2.0
     history: list[IterationRecord] = []
     nlin = 1
-    reason = int(initial_reason(cost, np.max(np.abs(g), initial=0.0), True, h, np))
+    reason = int(initial_reason(cost, np.max(np.abs(g), initial=0.0), h, np))
     it = 0
     while not reason:
         if it >= p.max_iterations:
