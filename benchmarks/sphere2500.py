@@ -23,7 +23,7 @@ assembly of H and g, damping, CHOLMOD factorisation, back-substitution, and the 
     python3 benchmarks/sphere2500.py --quick              # 5 iterations each (smoke run)
 
 spdslam's LM options: ``--lambda-initial``, ``--lambda-schedule nielsen|fixed``,
-``--lambda-factor``, ``--identity-damping``; ``--gtsam-schedule`` sets gtsam's defaults
+``--lambda-factor``, ``--damping``; ``--gtsam-schedule`` sets gtsam's defaults
 (λ₀ = 1e-5, ÷/×10, D = I). ``--cholmod-mode``, ``--cholmod-ordering``: CHOLMOD's
 factorisation and fill-reducing ordering.
 """
@@ -105,8 +105,8 @@ def main() -> int:
     ap.add_argument("--lambda-initial", type=float, default=None)
     ap.add_argument("--lambda-schedule", choices=["nielsen", "fixed"], default=None)
     ap.add_argument("--lambda-factor", type=float, default=None)
-    ap.add_argument("--identity-damping", action="store_true",
-                    help="D = I instead of Marquardt's diag(H)")
+    ap.add_argument("--damping", choices=["isotropic", "marquardt", "identity"], default=None,
+                    help="LM's damping matrix D (default: the solver's, isotropic)")
     ap.add_argument("--gtsam-schedule", action="store_true",
                     help="gtsam's default LM rule: lambda 1e-5, /10 and x10, D = I")
     ap.add_argument("--cholmod-mode", default="supernodal")
@@ -124,12 +124,12 @@ def main() -> int:
                    cholmod_blas_threads=args.blas_threads or None)
     if args.gtsam_schedule:
         lm_opts.update(lambda_initial=1e-5, lambda_schedule="fixed", lambda_factor=10.0,
-                       diagonal_damping=False)
+                       damping="identity")
     for k in ("lambda_initial", "lambda_schedule", "lambda_factor"):
         if getattr(args, k) is not None:
             lm_opts[k] = getattr(args, k)
-    if args.identity_damping:
-        lm_opts["diagonal_damping"] = False
+    if args.damping is not None:
+        lm_opts["damping"] = args.damping
 
     import gtsam
 

@@ -284,8 +284,9 @@ def test_non_finite_initial_values_name_the_problem():
 
 @pytest.mark.parametrize("options", [
     dict(lambda_schedule="fixed", lambda_initial=1e-3),
-    dict(diagonal_damping=False, lambda_initial=1e-2),
-    dict(lambda_schedule="fixed", diagonal_damping=False, lambda_factor=4.0),
+    dict(damping="identity", lambda_initial=1e-2),
+    dict(damping="marquardt"),
+    dict(lambda_schedule="fixed", damping="identity", lambda_factor=4.0),
 ])
 def test_every_lm_option_runs_batched_in_lock_step(options):
     """The fixed λ schedule and identity damping are the one rule's, in both drivers."""

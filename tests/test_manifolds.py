@@ -412,3 +412,13 @@ def test_registry():
         manifold.ops(np.eye(3))
     with pytest.raises(TypeError, match="Ellipsoid"):
         manifold.retract(np.eye(3), np.zeros(6))
+
+
+def test_every_manifold_declares_blocks_that_tile_its_tangent_space():
+    from spdslam.geometry import manifold
+
+    for cls, op in manifold._REGISTRY.items():
+        assert sum(op.blocks) == op.tangent_dim and min(op.blocks) >= 1, cls
+    with pytest.raises(ValueError, match="sum to tangent_dim"):
+        manifold.register(type("Bad", (), {}), tangent_dim=3, retract=None, local=None,
+                          blocks=(2, 2))

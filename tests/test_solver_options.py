@@ -84,12 +84,12 @@ def test_bad_options_raise():
         LevenbergMarquardt(lambda_schedule="fixed", lambda_factor=1.0).optimize(graph, values)
 
 
-@pytest.mark.parametrize("diagonal", [True, False])
-def test_fixed_schedule_follows_its_rule_and_reaches_the_optimum(diagonal):
+@pytest.mark.parametrize("damping", ["isotropic", "marquardt", "identity"])
+def test_fixed_schedule_follows_its_rule_and_reaches_the_optimum(damping):
     graph, values, _ = pose_graph(4, init_noise=0.5)
     ref = LevenbergMarquardt(linear_solver="dense", **TIGHT).optimize(graph, values)
     res = LevenbergMarquardt(linear_solver="dense", lambda_schedule="fixed", lambda_factor=10.0,
-                             lambda_initial=1e-5, diagonal_damping=diagonal,
+                             lambda_initial=1e-5, damping=damping,
                              **TIGHT).optimize(graph, values)
     assert res.converged, res.reason
     np.testing.assert_allclose(res.final_cost, ref.final_cost, rtol=1e-9)
@@ -101,3 +101,18 @@ def test_fixed_schedule_follows_its_rule_and_reaches_the_optimum(diagonal):
         assert b.lambda_ == pytest.approx(expected, rel=1e-12)
     # the Nielsen rule changes λ by other factors, so the two histories differ
     assert [r.lambda_ for r in ref.history][:3] != [r.lambda_ for r in h][:3]
+
+
+def test_isotropic_damping_is_the_largest_curvature_of_each_block():
+    from spdslam.solver._lm import StepRule, damping
+
+    h = dict(min_diagonal=1e-6, max_diagonal=1e32)
+    diag = np.array([1.0, 4.0, 2.0, 0.0, 9.0, 3.0, 5.0, 1e-9, 7.0, 8.0])
+    blocks = ((2, (3, 2)), (0, (4,)))  # two variables of a (3, 2)-block type, none of another
+    D = damping(diag, StepRule(damping="isotropic"), h, np, blocks)
+    np.testing.assert_array_equal(D, [4, 4, 4, 9, 9, 5, 5, 5, 8, 8])
+    np.testing.assert_array_equal(damping(diag, StepRule(damping="identity"), h, np), 1.0)
+    np.testing.assert_array_equal(damping(diag, StepRule(damping="marquardt"), h, np),
+                                  np.clip(diag, 1e-6, 1e32))
+    with pytest.raises(ValueError, match="damping must be one of"):
+        LevenbergMarquardt(damping="diag")

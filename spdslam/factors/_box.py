@@ -147,10 +147,16 @@ class InverseBoxFactor(_BoxFactor):
 
 
 class SemiInverseBoxFactor(_BoxFactor):
-    """Semi-inverse box model: tangency of the 4 back-projected box-edge planes."""
+    """Semi-inverse box model: tangency of the 4 back-projected box-edge planes.
+
+    Not gated on ``box_visible``: πᵀQ*π is a polynomial in the landmark, defined and smooth
+    wherever the ellipsoid is, so a step may carry the landmark through poses where it
+    cuts a camera's principal plane (gating it there blocked the path to the optimum in
+    most of the simulation's failures; docs/core.md, "Validity")."""
 
     kind = "semi_inverse_box"
     residual = staticmethod(semi_inverse_box_residual)
+    valid = None
     sigmas = (Sigma(0.01, "m² per edge plane (≈ 2 px for a 0.3 m object at 3 m, f = 500)"),)
 
 

@@ -308,10 +308,15 @@ _pytree(Ellipsoid, ["P", "center"])
 _pytree(EllipsoidRTS, ["orientation", "center", "scale"])
 _pytree(EllipsoidFull, ["q"])
 
+#: Tangent blocks with an isotropic metric: SPD(3) (affine-invariant, orthonormal basis) and
+#: R³; so(3), R³, R³; the 10 entries of Q*.
+_BLOCKS = {Ellipsoid: (6, 3), EllipsoidRTS: (3, 3, 3), EllipsoidFull: (10,)}
+
 for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
     manifold.register(
         _cls,
         tangent_dim=_cls.tangent_dim,
+        blocks=_BLOCKS[_cls],
         retract=_cls.retract,
         local=_cls.local,
         regularize=getattr(_cls, "regularized", None),

@@ -6,7 +6,10 @@ Every optimisation variable is a JAX pytree of one registered type. For each typ
 - ``retract(x, delta)``: x ⊞ delta, a point of the manifold for a tangent vector ``delta``;
 - ``local(x, y)``: y ⊟ x, the tangent vector with ``retract(x, local(x, y)) == y``;
 - ``regularize(x)``: an optional projection applied by the solver after every accepted step
-  (identity for true manifolds; the QuadricSLAM "constrain" for the Full quadric).
+  (identity for true manifolds; the QuadricSLAM "constrain" for the Full quadric);
+- ``blocks``: the split of the tangent coordinates into consecutive blocks in which the
+  metric is isotropic (default: one block), e.g. (3, 3) for SE3's (v, ω); the solver's
+  isotropic damping scales each block by its own curvature.
 
 The functions act on one element; the solver vmaps them over all variables of a type.
 ``jaxlie.SE3`` (camera-to-world poses ``T_wc``) is registered here with jaxlie's right
@@ -40,6 +43,7 @@ class ManifoldOps:
     retract: Callable[[Any, jax.Array], Any]
     local: Callable[[Any, Any], jax.Array]
     regularize: Callable[[Any], Any] | None = None
+    blocks: tuple[int, ...] = ()
 
 
 _REGISTRY: dict[type, ManifoldOps] = {}
@@ -52,9 +56,13 @@ def register(
     retract: Callable,
     local: Callable,
     regularize: Callable | None = None,
+    blocks: tuple[int, ...] | None = None,
 ) -> None:
     """Register a pytree class as an optimisation variable type."""
-    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize)
+    blocks = (int(tangent_dim),) if blocks is None else tuple(int(b) for b in blocks)
+    if sum(blocks) != tangent_dim or min(blocks, default=1) < 1:
+        raise ValueError(f"blocks {blocks} must be positive and sum to tangent_dim {tangent_dim}")
+    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize, blocks)
 
 
 def is_registered(cls: type) -> bool:
@@ -95,6 +103,7 @@ def regularize(x: Any) -> Any:
 register(
     jaxlie.SE3,
     tangent_dim=6,
+    blocks=(3, 3),
     retract=lambda T, d: jaxlie.manifold.rplus(T, d),
     local=lambda T, U: jaxlie.manifold.rminus(T, U),
 )

@@ -417,9 +417,9 @@ class _Kernel:
         return tuple(out)
 
 
-def _damped_solve(H, g, lam, rule, h):
+def _damped_solve(H, g, lam, rule, h, blocks):
     """δ from (H + λD)δ = −g by Cholesky, D from ``_lm.damping``; (δ, solved, D)."""
-    D = damping(jnp.diagonal(H), rule, h, jnp)
+    D = damping(jnp.diagonal(H), rule, h, jnp, blocks)
     A = H + jnp.diag(lam * D)
     # lower Cholesky factor (from the lower triangle, like the unbatched dense solver) and
     # two triangular solves, through the lax primitives: less to trace than jnp.linalg
@@ -582,7 +582,8 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
         h = {k: hyper_arr[i] for i, k in enumerate(HYPER)}
         B = jax.tree.leaves(x0)[0].shape[0]
         L = min(lanes, B)
-        solve_l = jax.vmap(lambda H, g, lam: _damped_solve(H, g, lam, rule, h))
+        blocks = tuple((nf, manifold.ops(ts.cls).blocks) for ts, nf in zip(kern.tspecs, kern.nfree))
+        solve_l = jax.vmap(lambda H, g, lam: _damped_solve(H, g, lam, rule, h, blocks))
 
         # initial state: lanes 0..L-1 load problems 0..L-1
         pid = jnp.arange(L, dtype=jnp.int32)

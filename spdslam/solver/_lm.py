@@ -3,12 +3,24 @@
 Cost F(x) = Σᵢ ½ ρᵢ(‖Wᵢ rᵢ(x)‖²). At x the solver linearises (IRLS for robust kernels),
 H = JᵀJ, g = Jᵀr, and solves the damped normal equations
 
-    (H + λ D) δ = −g,    D = diag(clip(diag H, min_diagonal, max_diagonal))
+    (H + λ D) δ = −g,
 
-(Marquardt's scaling, as in Ceres: the damping is invariant to the units of each coordinate,
-and the clip keeps it positive on coordinates that no residual sees, e.g. the scale of a
-Full quadric; ``diagonal_damping=False`` damps with D = I, gtsam's default). The candidate
-is x' = regularize(x ⊞ δ).
+with the damping matrix D (``damping``):
+
+- "isotropic": D = μ_b I on each tangent block b of each variable, the blocks in which
+  its manifold's metric is isotropic (``manifold.register(blocks=…)``: SPD(3) and R³ of an
+  ellipsoid, ω and v of a pose), with μ_b = max diag H_bb the block's largest curvature
+  (clipped to [min_diagonal, max_diagonal]). In orthonormal tangent bases (the
+  affine-invariant basis of SPD(3)) λD is λμ_b times the metric on each block, so
+  the damped step minimises the model in a ball of the metric: it cannot run far along a
+  direction the residuals barely see, such as a vanishing radius, whose diagonal vanishes
+  with it (docs/core.md, "The damping");
+- "marquardt": D = clip(diag H, min_diagonal, max_diagonal), Marquardt's scaling as in
+  Ceres: invariant to the units of each coordinate, but a coordinate with a vanishing
+  diagonal is left undamped;
+- "identity": D = I (gtsam's default), λ in the units of H.
+
+The candidate is x' = regularize(x ⊞ δ).
 
 LM (Nielsen's rule, ``lambda_schedule="nielsen"``, the default). The gain ratio
 ρ = (F(x) − F(x')) / L, with the model decrease L = −gᵀδ − ½δᵀHδ = ½ δᵀ(λDδ − g) > 0. The step
@@ -60,6 +72,7 @@ __all__ = [
     "IterationRecord",
     "REASONS",
     "CONVERGED_REASONS",
+    "DAMPINGS",
     "StepRule",
     "resolve_params",
     "damping",
@@ -84,6 +97,8 @@ REASONS = (
 ABSOLUTE, RELATIVE, GRADIENT, STEP, MAX_ITERATIONS, LAMBDA_MAX, COST_INCREASE, LINEAR_SOLVER, \
     CALLBACK = range(1, 10)
 CONVERGED_REASONS = ("absolute", "relative", "gradient", "step")
+#: The damping matrices of LM (see the module docstring).
+DAMPINGS = ("isotropic", "marquardt", "identity")
 
 
 @dataclass
@@ -132,14 +147,15 @@ class LevenbergMarquardtParams(OptimizerParams):
     """LM damping: λ starts at ``lambda_initial``, stays ≥ ``lambda_min``, and the run stops
     (reason "lambda_max") when rejections push it above ``lambda_max``. ``lambda_schedule``:
     "nielsen" (gain-ratio rule) or "fixed" (÷/× ``lambda_factor``, gtsam's default);
-    ``diagonal_damping``: D = clip(diag H) (Marquardt) or D = I (False, gtsam's default)."""
+    ``damping``: "isotropic" (μᵥI per variable, the default), "marquardt" (clip(diag H)) or
+    "identity" (I, gtsam's default); see the module docstring."""
 
     lambda_initial: float = 1e-4
     lambda_min: float = 1e-10
     lambda_max: float = 1e10
     lambda_schedule: str = "nielsen"
     lambda_factor: float = 10.0
-    diagonal_damping: bool = True
+    damping: str = "isotropic"
 
 
 @dataclass
@@ -184,17 +200,17 @@ class IterationRecord:
 @dataclass(frozen=True)
 class StepRule:
     """The static part of the rule (what changes the code, not the numbers): Gauss-Newton
-    or LM, the λ schedule, identity damping."""
+    or LM, the λ schedule, the damping matrix (GN: Marquardt's, for its ridge)."""
 
     gn: bool = False
     schedule: str = "nielsen"
-    identity_damping: bool = False
+    damping: str = "marquardt"
 
     @classmethod
     def of(cls, params: OptimizerParams) -> "StepRule":
         if isinstance(params, GaussNewtonParams):
             return cls(gn=True)
-        return cls(False, params.lambda_schedule, not params.diagonal_damping)
+        return cls(False, params.lambda_schedule, params.damping)
 
 
 #: The numbers of the rule, in the order of ``hyper`` (the batched solver passes them as
@@ -234,17 +250,42 @@ def resolve_params(cls_params: type, params: OptimizerParams | None, overrides: 
             raise ValueError(
                 f"lambda_schedule must be 'nielsen' or 'fixed', got {params.lambda_schedule!r}"
             )
+        if params.damping not in DAMPINGS:
+            raise ValueError(
+                f"damping must be one of {', '.join(map(repr, DAMPINGS))}, got {params.damping!r}"
+            )
         if not params.lambda_factor > 1:
             raise ValueError(f"lambda_factor must be > 1, got {params.lambda_factor!r}")
     check_cholmod_options(params.cholmod_mode, params.cholmod_ordering)
     return params
 
 
-def damping(diag_h, rule: StepRule, h: dict, xp):
-    """D: clip(diag H, min_diagonal, max_diagonal), or ones for identity damping."""
-    if rule.identity_damping:
+def damping(diag_h, rule: StepRule, h: dict, xp, blocks=None):
+    """D of ``rule.damping`` from diag H (n,). ``blocks``: the tangent layout, a sequence of
+    (number of variables, block dims of one variable) in order (the drivers lay variables
+    of one type out contiguously); "isotropic" takes μ over each block of each variable
+    (None: one block)."""
+    if rule.damping == "identity":
         return xp.ones_like(diag_h)
-    return xp.clip(diag_h, h["min_diagonal"], h["max_diagonal"])
+    if rule.damping == "marquardt":
+        return xp.clip(diag_h, h["min_diagonal"], h["max_diagonal"])
+    if blocks is None:
+        blocks = ((1, (diag_h.shape[-1],)),)
+    flat, o = [], 0
+    for count, dims in blocks:
+        dim = sum(dims)
+        if not count:
+            continue
+        seg = xp.reshape(diag_h[o : o + count * dim], (count, dim))
+        pieces, b = [], 0
+        for d in dims:
+            mu = xp.max(seg[:, b : b + d], axis=1, keepdims=True)
+            pieces.append(xp.broadcast_to(mu, (count, d)))
+            b += d
+        flat.append(xp.reshape(xp.concatenate(pieces, axis=1), (-1,)))
+        o += count * dim
+    D = xp.concatenate(flat) if len(flat) > 1 else flat[0]
+    return xp.clip(D, h["min_diagonal"], h["max_diagonal"])
 
 
 def predicted_decrease(delta, D, g, lam, xp):

@@ -17,6 +17,7 @@ from typing import Any, Hashable, Iterable, Sequence
 
 import numpy as np
 
+from ..geometry import manifold
 from ._linear import make_linear_solver, resolve_linear_solver
 from ._lm import (
     CONVERGED_REASONS,
@@ -134,6 +135,8 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
     tick = time.perf_counter
     timings.update(linearize=0.0, jacobians=0.0, assemble=0.0, damp=0.0, solve=0.0, step=0.0)
     diag = problem.sparse_pattern()["diag"]
+    blocks = tuple((int(f.sum()), manifold.ops(ts.cls).blocks)
+                   for ts, f in zip(problem.tspecs, problem.free))
     h = hyper(p)
 
     def linearize(x):
@@ -159,7 +162,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
             break
         it += 1
         t_it = tick()
-        D = damping(H[diag], rule, h, np)
+        D = damping(H[diag], rule, h, np, blocks)
         hd = H.copy()
         hd[diag] += lam * D
         t = tick()
