@@ -53,3 +53,13 @@ def test_scaling_quick(tmp_path):
     assert set(b) == {"linearise", "assemble", "damp", "factorise", "backsolve", "retract"}
     assert (tmp_path / "sc.png").stat().st_size > 0
     assert "1000" in out
+
+
+def test_reference_quick(tmp_path):
+    out = run("reference.py", "--out", str(tmp_path / "r.json"))
+    d = json.loads((tmp_path / "r.json").read_text())
+    assert len(d["cells"]) == 2 * 2 * 3  # angles × models × params at H
+    for c in d["cells"]:
+        assert c["trials"] == 8 and 0 <= c["ours"] <= 1 and 0 <= c["reference"] <= 1
+        assert c["max_initial_cost_mismatch"] < 1e-9
+    assert "| range | noise | model | param | ours | TRF |" in out

@@ -35,7 +35,7 @@ def simulate(
     models: str = typer.Option("inv,semi", help="Box models: inv (inverse), semi (semi-inverse)."),
     angles: str = typer.Option("60,120", help="Viewing ranges in degrees."),
     noise: str = typer.Option("L,M,H", help="Noise levels (the paper's L, M, H)."),
-    max_iters: int = typer.Option(100, "--max-iters", min=1, help="LM iteration budget."),
+    max_iters: int = typer.Option(200, "--max-iters", min=1, help="LM iteration budget."),
     optimize: str = typer.Option(
         "auto", help="XLA optimisation of the batched solver: auto (by work: off for small "
         "grids), yes (faster loops for a longer compile; worth it with the compilation "

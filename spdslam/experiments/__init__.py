@@ -1,5 +1,6 @@
 """Experiments: the paper's simulation study (Table II, Fig. 12) as batched solves, its
-summaries beside the paper's numbers, and its files. Imports ``geometry``, ``factors``,
+summaries beside the paper's numbers, its files, and an independent reference solver
+(SciPy's trust-region least squares on the same trials and residuals). Imports ``geometry``, ``factors``,
 ``solver``, ``synthetic`` and ``evaluation``.
 """
 
@@ -9,6 +10,9 @@ from ._paper import MODEL_NAMES as MODEL_NAMES
 from ._paper import PAPER_IOU_H as PAPER_IOU_H
 from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
 from ._paper import PARAM_NAMES as PARAM_NAMES
+from ._reference import compare_with_reference as compare_with_reference
+from ._reference import reference_solve as reference_solve
+from ._reference import reference_table as reference_table
 from ._study import StudyConfig as StudyConfig
 from ._study import StudyResult as StudyResult
 from ._study import run_study as run_study
