@@ -44,7 +44,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run from a ch
 
 import spdslam  # noqa: E402
 from spdslam.io import pose_graph_factors, read_g2o  # noqa: E402
-from spdslam.solver import HAVE_CHOLMOD, LevenbergMarquardt  # noqa: E402
+import dataclasses  # noqa: E402
+
+from spdslam.solver import HAVE_CHOLMOD, Dogleg, LevenbergMarquardt, OptimizerParams  # noqa: E402
+
+#: The options every optimiser takes (the λ options are LM's).
+_SHARED = {f.name for f in dataclasses.fields(OptimizerParams)}
 
 PRIOR_SIGMA = 1e-6
 RELATIVE_TOLERANCE = 1e-10
@@ -105,6 +110,8 @@ def main() -> int:
     ap.add_argument("--lambda-initial", type=float, default=None)
     ap.add_argument("--lambda-schedule", choices=["nielsen", "fixed"], default=None)
     ap.add_argument("--lambda-factor", type=float, default=None)
+    ap.add_argument("--optimizer", choices=["lm", "dogleg"], default="lm",
+                    help="spdslam's optimiser: Levenberg-Marquardt (default) or Powell's dogleg")
     ap.add_argument("--damping", choices=["isotropic", "marquardt", "identity"], default=None,
                     help="LM's damping matrix D (default: the solver's, isotropic)")
     ap.add_argument("--gtsam-schedule", action="store_true",
@@ -186,10 +193,14 @@ def main() -> int:
     gt["per_trial_ms"] = 1e3 * t_gtsam / max(gt["lambda_trials"], 1)
 
     # ---- spdslam ---------------------------------------------------------------------------
-    lm = LevenbergMarquardt(relative_tolerance=RELATIVE_TOLERANCE,
-                            max_iterations=args.max_iterations, **lm_opts)
+    if args.optimizer == "dogleg":
+        Opt = Dogleg
+        lm_opts = {k: v for k, v in lm_opts.items() if k in _SHARED}
+    else:
+        Opt = LevenbergMarquardt
+    lm = Opt(relative_tolerance=RELATIVE_TOLERANCE, max_iterations=args.max_iterations, **lm_opts)
     t0 = time.perf_counter()
-    LevenbergMarquardt(max_iterations=2, **lm_opts).optimize(graph, values)
+    Opt(max_iterations=2, **lm_opts).optimize(graph, values)
     t_warm = time.perf_counter() - t0
     t0 = time.perf_counter()
     res = lm.optimize(graph, values)

@@ -59,6 +59,7 @@ from .geometry import project_dual_quadric as project_dual_quadric  # noqa: E402
 from .geometry import se3 as se3  # noqa: E402
 from .geometry import spd as spd  # noqa: E402
 from .solver import BatchedProblem as BatchedProblem  # noqa: E402
+from .solver import Dogleg as Dogleg  # noqa: E402
 from .solver import GaussNewton as GaussNewton  # noqa: E402
 from .solver import L as L  # noqa: E402
 from .solver import LevenbergMarquardt as LevenbergMarquardt  # noqa: E402

@@ -346,3 +346,20 @@ def test_gauss_newton_is_the_same_rule_batched():
         single = GaussNewton(linear_solver="dense", max_iterations=15).optimize(
             graphs[b], values[b], fixed=fixed)
         assert_matches_single(res, b, single)
+
+
+@pytest.mark.parametrize("param", [Ellipsoid, EllipsoidRTS])
+def test_dogleg_runs_batched_in_lock_step(param):
+    """Powell's dogleg is the one rule's too: the batched loop takes the host's steps."""
+    from spdslam.solver import Dogleg
+
+    S, graphs, values, fa, bv, fixed = box_problems(10, param, InverseBoxFactor, n=3)
+    opt = Dogleg(max_iterations=25, trust_radius_initial=0.5)
+    res = opt.batched(graphs[0], values[0], fixed=fixed).solve(fa, bv)
+    for b in range(3):
+        single = Dogleg(linear_solver="dense", max_iterations=25,
+                        trust_radius_initial=0.5).optimize(graphs[b], values[b], fixed=fixed)
+        assert_matches_single(res, b, single)
+        steps = [r.step_norm for r in single.history]
+        radii = [r.lambda_ for r in single.history]
+        assert all(s <= d * (1 + 1e-9) for s, d in zip(steps, radii))  # inside the region

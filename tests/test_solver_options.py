@@ -116,3 +116,37 @@ def test_isotropic_damping_is_the_largest_curvature_of_each_block():
                                   np.clip(diag, 1e-6, 1e32))
     with pytest.raises(ValueError, match="damping must be one of"):
         LevenbergMarquardt(damping="diag")
+
+
+def test_dogleg_step_follows_the_dogleg_path():
+    from spdslam.solver._lm import dogleg_step
+
+    H = np.diag([4.0, 1.0])
+    g = np.array([-4.0, -2.0])
+    gn = -np.linalg.solve(H, g)  # (1, 2), ‖·‖ = √5
+    np.testing.assert_allclose(dogleg_step(gn, g, H @ g, 3.0, np), gn)  # fits: GN itself
+    alpha = (g @ g) / (g @ H @ g)  # Cauchy point −αg, ‖·‖ = α‖g‖ ≈ 0.83
+    tiny = dogleg_step(gn, g, H @ g, 0.1, np)  # Cauchy point outside: along −g
+    np.testing.assert_allclose(tiny, -0.1 * g / np.linalg.norm(g))
+    mid = dogleg_step(gn, g, H @ g, 1.5, np)  # on the segment Cauchy → GN, on the boundary
+    assert np.linalg.norm(mid) == pytest.approx(1.5)
+    d_sd = -alpha * g
+    t = (mid - d_sd) / (gn - d_sd)
+    assert t[0] == pytest.approx(t[1]) and 0 < t[0] < 1
+
+
+def test_dogleg_reaches_the_optimum_and_checks_its_radius():
+    from spdslam.solver import Dogleg
+
+    graph, values, _ = pose_graph(4, init_noise=0.5)
+    ref = LevenbergMarquardt(linear_solver="dense", **TIGHT).optimize(graph, values)
+    res = Dogleg(linear_solver="dense", **TIGHT).optimize(graph, values)
+    assert res.converged, res.reason
+    np.testing.assert_allclose(res.final_cost, ref.final_cost, rtol=1e-9)
+    np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(ref.values), atol=1e-7)
+    assert res.history[0].lambda_ == 1.0
+    for a, b in zip(res.history, res.history[1:]):  # Δ only shrinks after a poor step
+        if b.lambda_ < a.lambda_:
+            assert a.gain_ratio < 0.25
+    with pytest.raises(ValueError, match="trust_radius_initial"):
+        Dogleg(trust_radius_initial=0.0)

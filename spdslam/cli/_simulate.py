@@ -35,7 +35,9 @@ def simulate(
     models: str = typer.Option("inv,semi", help="Box models: inv (inverse), semi (semi-inverse)."),
     angles: str = typer.Option("60,120", help="Viewing ranges in degrees."),
     noise: str = typer.Option("L,M,H", help="Noise levels (the paper's L, M, H)."),
-    max_iters: int = typer.Option(200, "--max-iters", min=1, help="LM iteration budget."),
+    max_iters: int = typer.Option(200, "--max-iters", min=1, help="Iteration budget."),
+    optimizer: str = typer.Option(
+        "lm", help="The solver: lm (Levenberg-Marquardt) or dogleg (Powell's dogleg)."),
     optimize: str = typer.Option(
         "auto", help="XLA optimisation of the batched solver: auto (by work: off for small "
         "grids), yes (faster loops for a longer compile; worth it with the compilation "
@@ -54,6 +56,9 @@ def simulate(
         noise=_split("noise", noise, ("L", "M", "H")),
         max_iters=max_iters,
     )
+    if optimizer not in ("lm", "dogleg"):
+        fail(f"--optimizer: expected lm or dogleg, got {optimizer!r}")
+    cfg_kwargs["optimizer"] = optimizer
     if optimize not in ("auto", "yes", "no"):
         fail(f"--optimize: expected auto, yes or no, got {optimize!r}")
     cfg_kwargs["optimize"] = {"auto": None, "yes": True, "no": False}[optimize]

@@ -30,7 +30,7 @@ import numpy as np
 from ..evaluation import cuboid_iou_arrays, orientation_errors_deg
 from ..factors import InverseBoxFactor, SemiInverseBoxFactor
 from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, sorted_axes
-from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
+from ..solver import Dogleg, L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ..synthetic import NOISE_LEVELS, Scenes, make_scenes
 
 __all__ = ["StudyConfig", "StudyResult", "run_study"]
@@ -53,8 +53,12 @@ class StudyConfig:
     #: approaches geometrically (docs/simulation.md, "Budget").
     max_iters: int = 200
     n_views: int = 10
-    #: LM initial damping, relative to diag(H) (see docs/simulation.md).
+    #: The solver: "lm" (Levenberg-Marquardt) or "dogleg" (Powell's dogleg, trust region).
+    optimizer: str = "lm"
+    #: LM initial damping, relative to the damping matrix (see docs/simulation.md).
     lambda_initial: float = 1.0
+    #: Dogleg's initial trust radius, in the tangent metric.
+    trust_radius_initial: float = 1.0
     #: Success: final cost ≤ (1 + success_rtol)·C̄ + success_atol (whitened cost units).
     success_rtol: float = 0.01
     success_atol: float = 1e-6
@@ -82,6 +86,8 @@ class StudyConfig:
         for a in self.angles:
             if not 0 < a <= 360:
                 raise ValueError(f"viewing range must be in (0, 360] degrees, got {a}")
+        if self.optimizer not in ("lm", "dogleg"):
+            raise ValueError(f"unknown optimizer {self.optimizer!r}: expected lm or dogleg")
         if self.trials < 1 or self.max_iters < 1 or self.n_views < 3:
             raise ValueError("need trials ≥ 1, max_iters ≥ 1 and n_views ≥ 3")
 
@@ -168,7 +174,12 @@ def _solve_structure(model, param, scenes, cfg):
     truth = _convert(param, scenes.truth)
     first = jax.tree.map(lambda a: a[0], init)
     graph, values = _template(model, scenes, cfg, first)
-    optimizer = LevenbergMarquardt(max_iterations=cfg.max_iters, lambda_initial=cfg.lambda_initial)
+    if cfg.optimizer == "dogleg":
+        optimizer = Dogleg(max_iterations=cfg.max_iters,
+                           trust_radius_initial=cfg.trust_radius_initial)
+    else:
+        optimizer = LevenbergMarquardt(max_iterations=cfg.max_iters,
+                                       lambda_initial=cfg.lambda_initial)
     problem = optimizer.batched(graph, values, fixed=[X(i) for i in range(cfg.n_views)],
                                 optimize=cfg.optimize)
     args = _batched_args(scenes, cfg)

@@ -5,7 +5,7 @@ free variables; steps are taken in tangent coordinates, x ⊞ δ (``spdslam.geom
 
 One rule (``_lm``: damping, gain ratio, λ schedules, stopping) and one per-factor
 linearisation (``_linearize``: whitening, robust weighting, validity), driven two ways:
-``LevenbergMarquardt(...).optimize(graph, values)`` / ``GaussNewton`` run the sparse host
+``LevenbergMarquardt(...).optimize(graph, values)`` / ``Dogleg`` / ``GaussNewton`` run the sparse host
 loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
 ``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
 problems of one structure in one jitted loop (``_batched``). Imports only
@@ -20,10 +20,12 @@ from ._keys import Symbol as Symbol
 from ._keys import X as X
 from ._linear import HAVE_CHOLMOD as HAVE_CHOLMOD
 from ._lm import CONVERGED_REASONS as CONVERGED_REASONS
+from ._lm import DoglegParams as DoglegParams
 from ._lm import GaussNewtonParams as GaussNewtonParams
 from ._lm import IterationRecord as IterationRecord
 from ._lm import LevenbergMarquardtParams as LevenbergMarquardtParams
 from ._lm import OptimizerParams as OptimizerParams
+from ._optimizers import Dogleg as Dogleg
 from ._optimizers import GaussNewton as GaussNewton
 from ._optimizers import LevenbergMarquardt as LevenbergMarquardt
 from ._optimizers import OptimizationResult as OptimizationResult

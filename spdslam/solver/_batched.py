@@ -68,8 +68,10 @@ from ._lm import (
     IterationRecord,
     damping,
     decide,
+    dogleg_step,
     hyper,
     initial_reason,
+    model_decrease,
     predicted_decrease,
 )
 from ._linearize import finish, retract_rows, violates, whitened
@@ -417,19 +419,24 @@ class _Kernel:
         return tuple(out)
 
 
-def _damped_solve(H, g, lam, rule, h, blocks):
-    """δ from (H + λD)δ = −g by Cholesky, D from ``_lm.damping``; (δ, solved, D)."""
+def _step(H, g, lam, rule, h, blocks):
+    """The trial step and its model decrease, (δ, solved, L): LM/GN δ from (H + λD)δ = −g,
+    D from ``_lm.damping``; dogleg (λ = Δ) the dogleg point of the GN step
+    (H + ridge·D)δ = −g. Cholesky of the lower triangle, as the unbatched dense solver."""
     D = damping(jnp.diagonal(H), rule, h, jnp, blocks)
-    A = H + jnp.diag(lam * D)
-    # lower Cholesky factor (from the lower triangle, like the unbatched dense solver) and
-    # two triangular solves, through the lax primitives: less to trace than jnp.linalg
+    A = H + jnp.diag((h["ridge"] if rule.dogleg else lam) * D)
+    # lower Cholesky factor and two triangular solves, through the lax primitives: less to
+    # trace than jnp.linalg
     L = jax.lax.linalg.cholesky(A, symmetrize_input=False)
     y = jax.lax.linalg.triangular_solve(L, g[:, None], left_side=True, lower=True)
     delta = -jax.lax.linalg.triangular_solve(L, y, left_side=True, lower=True,
                                              transpose_a=True)[:, 0]
     solved = jnp.all(jnp.isfinite(delta))
     delta = jnp.where(solved, delta, 0.0)
-    return delta, solved, D
+    if rule.dogleg:
+        delta = dogleg_step(delta, g, H @ g, lam, jnp)
+        return delta, solved, model_decrease(delta, g, H @ delta, jnp)
+    return delta, solved, predicted_decrease(delta, D, g, lam, jnp)
 
 
 # ------------------------------------------------------------------------------------------
@@ -583,7 +590,7 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
         B = jax.tree.leaves(x0)[0].shape[0]
         L = min(lanes, B)
         blocks = tuple((nf, manifold.ops(ts.cls).blocks) for ts, nf in zip(kern.tspecs, kern.nfree))
-        solve_l = jax.vmap(lambda H, g, lam: _damped_solve(H, g, lam, rule, h, blocks))
+        step_l = jax.vmap(lambda H, g, lam: _step(H, g, lam, rule, h, blocks))
 
         # initial state: lanes 0..L-1 load problems 0..L-1
         pid = jnp.arange(L, dtype=jnp.int32)
@@ -607,14 +614,13 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
             active = status == _ACTIVE
             got = status == _LOADING
             # trial step of the active lanes; the loading lanes evaluate their x0 instead
-            delta, solved, D = solve_l(H, g, lam)
+            delta, solved, pred = step_l(H, g, lam)
             x1 = retract_l(x, delta)
             xe = _where(got, jax.tree.map(lambda a: a[pid], x0), x1)
             H1, g1, c1, valid1, fin1 = lin_l(xe, _take(xfix, fix_ax, pid),
                                             _take(gdata, data_ax, pid))
 
             step_norm = jnp.sqrt(jnp.sum(delta * delta, axis=-1))
-            pred = predicted_decrease(delta, D, g, lam, jnp)
             usable = solved & jnp.isfinite(c1) & fin1 & ~violates(valid, valid1, axis=-1)
             gmax1 = jnp.max(jnp.abs(g1), axis=-1, initial=0.0)
             acc, gain, lam_u, nu_u, r_step = decide(rule, h, cost, c1, usable, solved, pred,

@@ -29,6 +29,15 @@ is valid at x is invalid at x'. On acceptance λ ← max(λ_min, λ·max(1/3, 1 
 ν ← 2; on rejection λ ← λν, ν ← 2ν. ``lambda_schedule="fixed"`` is gtsam's default rule
 instead: λ ← max(λ_min, λ/f) on acceptance, λ ← λf on rejection (f = ``lambda_factor``, 10).
 
+Dogleg (``DoglegParams``, Powell's method as in GTSAM's DoglegOptimizer and Ceres): the
+Gauss-Newton step solves (H + ε clip(diag H))δ = −g (ε = ``ridge``, so that Cholesky
+survives gauge and scale directions), the Cauchy point d_sd = −(gᵀg / gᵀHg) g, and the step
+is the dogleg path's point in the trust region ‖δ‖₂ ≤ Δ (``dogleg_step``): the GN step
+itself whenever it fits, so no damping slows a run down a long valley, and never longer
+than Δ in the metric. ρ against L = −gᵀδ − ½δᵀHδ; acceptance as for LM; Δ ← ‖δ‖/4 when
+ρ < 1/4 (and on rejection), Δ ← min(2Δ, Δ_max) when ρ > 3/4 and the step reached the
+boundary. The records' ``lambda_`` holds Δ.
+
 GN: λ is a fixed tiny ridge (``ridge``, relative to D) so that Cholesky survives singular
 directions. Every step that lowers the cost is taken; the first that does not (cost increase,
 invalid factor, non-finite cost) ends the run, keeping the values before it: reason
@@ -68,6 +77,7 @@ from ._linear import DENSE_THRESHOLD, check_cholmod_options
 __all__ = [
     "OptimizerParams",
     "LevenbergMarquardtParams",
+    "DoglegParams",
     "GaussNewtonParams",
     "IterationRecord",
     "REASONS",
@@ -77,6 +87,8 @@ __all__ = [
     "resolve_params",
     "damping",
     "predicted_decrease",
+    "dogleg_step",
+    "model_decrease",
     "initial_reason",
     "decide",
 ]
@@ -159,6 +171,17 @@ class LevenbergMarquardtParams(OptimizerParams):
 
 
 @dataclass
+class DoglegParams(OptimizerParams):
+    """Powell's dogleg in a trust region ‖δ‖₂ ≤ Δ of the tangent coordinates (the metric in
+    orthonormal bases): Δ starts at ``trust_radius_initial`` and stays ≤
+    ``trust_radius_max``; the Gauss-Newton step solves (H + ``ridge``·clip(diag H))δ = −g."""
+
+    trust_radius_initial: float = 1.0
+    trust_radius_max: float = 1e4
+    ridge: float = 1e-9
+
+
+@dataclass
 class GaussNewtonParams(OptimizerParams):
     """GN: ``ridge`` is the fixed relative damping λ in (H + λD)δ = −g."""
 
@@ -205,11 +228,14 @@ class StepRule:
     gn: bool = False
     schedule: str = "nielsen"
     damping: str = "marquardt"
+    dogleg: bool = False
 
     @classmethod
     def of(cls, params: OptimizerParams) -> "StepRule":
         if isinstance(params, GaussNewtonParams):
             return cls(gn=True)
+        if isinstance(params, DoglegParams):
+            return cls(dogleg=True)
         return cls(False, params.lambda_schedule, params.damping)
 
 
@@ -217,20 +243,22 @@ class StepRule:
 #: one array, so changing them compiles nothing).
 HYPER = ("relative_tolerance", "absolute_tolerance", "gradient_tolerance", "step_tolerance",
          "min_diagonal", "max_diagonal", "lambda_initial", "lambda_min", "lambda_max",
-         "lambda_factor")
+         "lambda_factor", "ridge")
 
 
 def hyper(params: OptimizerParams) -> dict[str, float]:
     """The numbers of the rule: tolerances, clip of D, and λ₀, λ_min, λ_max, f (GN: the
-    ridge, held fixed)."""
-    gn = isinstance(params, GaussNewtonParams)
+    ridge, held fixed; dogleg: Δ₀, 0, Δ_max, 1), and the ridge of the GN step (LM: 0)."""
     out = {k: float(getattr(params, k)) for k in HYPER[:6]}
-    out.update(
-        lambda_initial=params.ridge if gn else params.lambda_initial,
-        lambda_min=params.ridge if gn else params.lambda_min,
-        lambda_max=np.inf if gn else params.lambda_max,
-        lambda_factor=1.0 if gn else params.lambda_factor,
-    )
+    if isinstance(params, GaussNewtonParams):
+        out.update(lambda_initial=params.ridge, lambda_min=params.ridge, lambda_max=np.inf,
+                   lambda_factor=1.0, ridge=params.ridge)
+    elif isinstance(params, DoglegParams):
+        out.update(lambda_initial=params.trust_radius_initial, lambda_min=0.0,
+                   lambda_max=params.trust_radius_max, lambda_factor=1.0, ridge=params.ridge)
+    else:
+        out.update(lambda_initial=params.lambda_initial, lambda_min=params.lambda_min,
+                   lambda_max=params.lambda_max, lambda_factor=params.lambda_factor, ridge=0.0)
     return {k: float(v) for k, v in out.items()}
 
 
@@ -245,7 +273,11 @@ def resolve_params(cls_params: type, params: OptimizerParams | None, overrides: 
         params = cls_params(**shared)
     if overrides:
         params = dataclasses.replace(params, **overrides)
-    if not isinstance(params, GaussNewtonParams):
+    if isinstance(params, DoglegParams):
+        if not 0 < params.trust_radius_initial <= params.trust_radius_max:
+            raise ValueError("need 0 < trust_radius_initial ≤ trust_radius_max, got "
+                             f"{params.trust_radius_initial!r}, {params.trust_radius_max!r}")
+    elif not isinstance(params, GaussNewtonParams):
         if params.lambda_schedule not in ("nielsen", "fixed"):
             raise ValueError(
                 f"lambda_schedule must be 'nielsen' or 'fixed', got {params.lambda_schedule!r}"
@@ -293,6 +325,32 @@ def predicted_decrease(delta, D, g, lam, xp):
     return 0.5 * xp.sum(delta * (xp.asarray(lam)[..., None] * D * delta - g), axis=-1)
 
 
+def dogleg_step(d_gn, g, Hg, radius, xp):
+    """Powell's dogleg in ‖δ‖₂ ≤ Δ (1-D arrays): the Gauss-Newton step d_gn if it fits,
+    else the steepest-descent step to the boundary if the Cauchy point d_sd = −(gᵀg/gᵀHg) g
+    lies outside, else the point of the segment d_sd → d_gn on the boundary."""
+    gg = xp.sum(g * g)
+    gHg = xp.sum(g * Hg)
+    alpha = xp.where(gHg > 0, gg / xp.where(gHg > 0, gHg, 1.0), np.inf)
+    gnorm = xp.sqrt(gg)
+    n_gn = xp.sqrt(xp.sum(d_gn * d_gn))
+    to_boundary = radius / xp.where(gnorm > 0, gnorm, 1.0)
+    d_sd = -xp.minimum(alpha, to_boundary) * g
+    n_sd = xp.minimum(alpha, to_boundary) * gnorm
+    d = d_gn - d_sd
+    a = xp.sum(d * d)
+    b = 2.0 * xp.sum(d_sd * d)
+    c = n_sd**2 - radius**2
+    tau = (-b + xp.sqrt(xp.maximum(b * b - 4.0 * a * c, 0.0))) / (2.0 * xp.where(a > 0, a, 1.0))
+    blend = d_sd + xp.clip(tau, 0.0, 1.0) * d
+    return xp.where(n_gn <= radius, d_gn, xp.where(alpha >= to_boundary, d_sd, blend))
+
+
+def model_decrease(delta, g, Hdelta, xp):
+    """L = −gᵀδ − ½δᵀHδ, the decrease the quadratic model predicts (over the last axis)."""
+    return -xp.sum(g * delta, axis=-1) - 0.5 * xp.sum(delta * Hdelta, axis=-1)
+
+
 def initial_reason(cost, gmax, h: dict, xp):
     """The reason to stop at the initial linearisation (0: none), for a finite cost and
     gradient (the drivers check finiteness first)."""
@@ -315,6 +373,13 @@ def decide(rule: StepRule, h: dict, cost, trial_cost, usable, solved, pred, step
     if rule.gn:
         lam_acc, lam_rej, nu_acc, nu_rej = lam, lam, nu, nu
         fail = xp.where(solved, COST_INCREASE, LINEAR_SOLVER)
+    elif rule.dogleg:  # λ is the trust radius Δ
+        grow = (gain > 0.75) & (step_norm >= 0.99 * lam)
+        shrunk = 0.25 * xp.where(xp.isfinite(step_norm), xp.minimum(step_norm, lam), lam)
+        lam_acc = xp.where(gain < 0.25, shrunk,
+                           xp.where(grow, xp.minimum(2.0 * lam, h["lambda_max"]), lam))
+        lam_rej, nu_acc, nu_rej = shrunk, nu, nu
+        fail = xp.where(solved, 0, LINEAR_SOLVER)
     else:
         if rule.schedule == "fixed":
             lam_acc = xp.maximum(h["lambda_min"], lam / h["lambda_factor"])

@@ -23,6 +23,7 @@ from ._lm import (
     CONVERGED_REASONS,
     MAX_ITERATIONS,
     REASONS,
+    DoglegParams,
     GaussNewtonParams,
     IterationRecord,
     LevenbergMarquardtParams,
@@ -30,8 +31,10 @@ from ._lm import (
     StepRule,
     damping,
     decide,
+    dogleg_step,
     hyper,
     initial_reason,
+    model_decrease,
     predicted_decrease,
     resolve_params,
 )
@@ -42,6 +45,7 @@ __all__ = [
     "OptimizationResult",
     "Optimizer",
     "LevenbergMarquardt",
+    "Dogleg",
     "GaussNewton",
 ]
 
@@ -120,9 +124,15 @@ class Optimizer:
 
 
 class LevenbergMarquardt(Optimizer):
-    """Levenberg-Marquardt with Marquardt scaling and Nielsen's λ update (``_lm``)."""
+    """Levenberg-Marquardt with damping in the metric and Nielsen's λ update (``_lm``)."""
 
     Params = LevenbergMarquardtParams
+
+
+class Dogleg(Optimizer):
+    """Powell's dogleg in a trust region of the tangent metric (``_lm``)."""
+
+    Params = DoglegParams
 
 
 class GaussNewton(Optimizer):
@@ -131,10 +141,20 @@ class GaussNewton(Optimizer):
     Params = GaussNewtonParams
 
 
+def _sym_matvec(sp: dict, h: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """H x for H stored as its lower triangle in the CSC pattern ``sp`` (data ``h``)."""
+    rows, cols = sp["rows"], sp["cols"]
+    n = len(x)
+    y = np.bincount(rows, weights=h * x[cols], minlength=n)
+    y += np.bincount(cols, weights=h * x[rows], minlength=n)
+    return y - h[sp["diag"]] * x
+
+
 def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> OptimizationResult:
     tick = time.perf_counter
     timings.update(linearize=0.0, jacobians=0.0, assemble=0.0, damp=0.0, solve=0.0, step=0.0)
-    diag = problem.sparse_pattern()["diag"]
+    sp = problem.sparse_pattern()
+    diag = sp["diag"]
     blocks = tuple((int(f.sum()), manifold.ops(ts.cls).blocks)
                    for ts, f in zip(problem.tspecs, problem.free))
     h = hyper(p)
@@ -152,6 +172,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
         raise ValueError("the cost or its gradient is not finite at the initial values")
     initial_cost = cost
     lam, nu = h["lambda_initial"], 2.0
+    d_gn = Hg = None  # dogleg: the GN step at the current linearisation
     history: list[IterationRecord] = []
     nlin = 1
     reason = int(initial_reason(cost, np.max(np.abs(g), initial=0.0), h, np))
@@ -162,12 +183,25 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
             break
         it += 1
         t_it = tick()
-        D = damping(H[diag], rule, h, np, blocks)
-        hd = H.copy()
-        hd[diag] += lam * D
-        t = tick()
-        timings["damp"] += t - t_it
-        delta = solver.solve(hd, -g)
+        if rule.dogleg:
+            if d_gn is None:  # once per linearisation: the GN step and the Cauchy data
+                hd = H.copy()
+                hd[diag] += h["ridge"] * damping(H[diag], rule, h, np, blocks)
+                t = tick()
+                timings["damp"] += t - t_it
+                d_gn = solver.solve(hd, -g)
+                Hg = _sym_matvec(sp, H, g)
+            else:
+                t = tick()
+            delta = None if d_gn is None or not np.all(np.isfinite(d_gn)) else \
+                dogleg_step(d_gn, g, Hg, lam, np)
+        else:
+            D = damping(H[diag], rule, h, np, blocks)
+            hd = H.copy()
+            hd[diag] += lam * D
+            t = tick()
+            timings["damp"] += t - t_it
+            delta = solver.solve(hd, -g)
         timings["solve"] += tick() - t
         t = tick()
         solved = delta is not None
@@ -175,7 +209,8 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
         usable = False
         if solved:
             step_norm = float(np.linalg.norm(delta))
-            pred = float(predicted_decrease(delta, D, g, lam, np))
+            pred = float(model_decrease(delta, g, _sym_matvec(sp, H, delta), np) if rule.dogleg
+                         else predicted_decrease(delta, D, g, lam, np))
             x_new, c_new, violated = problem.step(x, delta, valid)
             trial_cost = float(c_new)
             timings["step"] += tick() - t
@@ -194,6 +229,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
         if accepted:
             x, cost = x_new, trial_cost
             H, g, _, valid, _ = lin
+            d_gn = None
         lam, nu, reason = float(lam_new), float(nu_new), int(code)
         rec.time = tick() - t_it
         history.append(rec)
