@@ -127,3 +127,36 @@ def test_run_is_deterministic_and_finite():
     assert np.all(np.isfinite(a.poses_tum))
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda v: bool(np.all(np.isfinite(v))),
                                                          [o.ellipsoid for o in a.objects]))
+
+
+def test_degenerate_objects_are_reported_not_mapped(monkeypatch):
+    """A singular initial ellipsoid does not enter the optimisation, and one that ends
+    degenerate is listed under ``failed`` with its radii, never in the map (real data made
+    both crash the run: a zero radius in the report's cuboid)."""
+    import spdslam.mapping._run as run_mod
+    from spdslam.geometry import Ellipsoid
+    from spdslam.mapping import degenerate, run_sequence
+
+    assert degenerate(Ellipsoid(np.diag([1.0, 1.0, 1e-10]), np.zeros(3)))
+    assert "non-finite" in degenerate(Ellipsoid(np.diag([1.0, np.nan, 1.0]), np.zeros(3)))
+    assert not degenerate(Ellipsoid(np.diag([1.0, 1.0, 0.01]), np.zeros(3)))
+
+    seq = make_room_sequence(3, frames=60, objects=3)
+    real = run_mod.multi_initialize
+    calls = {"n": 0}
+
+    def flat_first(*a, **kw):
+        e = real(*a, **kw)
+        calls["n"] += 1
+        if calls["n"] == 1:  # the first object: a disc of zero thickness
+            w, V = np.linalg.eigh(np.asarray(e.P))
+            return Ellipsoid((V * np.r_[0.0, w[1:]]) @ V.T, e.center)
+        return e
+
+    monkeypatch.setattr(run_mod, "multi_initialize", flat_first)
+    r = run_sequence(seq, "multi-spd")
+    assert len(r.objects) == 2 and len(r.failed) == 1
+    (why,) = r.failed.values()
+    assert "initial ellipsoid is singular" in why
+    for o in r.objects:
+        assert not degenerate(o.ellipsoid)

@@ -231,17 +231,27 @@ def evaluate(
 
 @app.command("import")
 def import_(
-    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt)."),
+    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt) or an OA-SLAM-style one (detections*.json, a camera YAML, TUM trajectories; docs/formats.md)."),
     dest: Path = typer.Argument(..., help="Destination folder (canonical format)."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
+    trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth."),
+    min_score: float = typer.Option(0.5, help="OA-SLAM layout: leave out detections scored below this."),
 ) -> None:
-    """Convert an fr3_cabinet-style folder to the canonical sequence format."""
-    from ..io import SequenceFormatError, import_fr3_cabinet, write_sequence
+    """Convert an fr3_cabinet- or OA-SLAM-style folder to the canonical sequence format."""
+    from ..io import SequenceFormatError, import_fr3_cabinet, import_oaslam, is_oaslam_layout
+    from ..io import write_sequence
 
     if not source.is_dir():
-        fail(f"{source}: expected an fr3_cabinet-style folder, got no such folder")
+        fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder, got no such folder")
+    if trajectory not in ("odometry", "groundtruth"):
+        fail(f"--trajectory: expected odometry or groundtruth, got {trajectory!r}")
+    if source.resolve() == dest.resolve() or source.resolve() in dest.resolve().parents:
+        fail(f"{dest}: expected a destination outside the source folder {source}")
     try:
-        seq = import_fr3_cabinet(source)
+        if is_oaslam_layout(source):
+            seq = import_oaslam(source, trajectory, min_score)
+        else:
+            seq = import_fr3_cabinet(source)
         write_sequence(seq, dest, overwrite=overwrite)
     except SequenceFormatError as e:
         fail(str(e))

@@ -199,7 +199,12 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
             J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
             H = J.T @ J
             g = J.T @ r
-            step = -jnp.linalg.solve(H + lam * (jnp.diag(jnp.diag(H)) + 1e-9 * jnp.eye(7)), g)
+            # damping isotropic per block of θ (centre, log radii, yaw), as the back end's
+            # LM (solver._lm, "isotropic"): Marquardt's diag(H) leaves a log radius whose
+            # curvature vanishes undamped, and it runs to −∞ (a zero radius)
+            d = jnp.diagonal(H)
+            D = jnp.concatenate([jnp.full(3, jnp.max(d[:3])), jnp.full(3, jnp.max(d[3:6])), d[6:]])
+            step = -jnp.linalg.solve(H + lam * jnp.diag(D + 1e-9), g)
             cand = th + step
             cc = cost(cand)
             ok = cc < c

@@ -60,6 +60,8 @@ __all__ = [
     "cuboid_depth_range",
     "cuboid_in_front",
     "truncation_mask",
+    "undistort_points",
+    "undistort_boxes",
 ]
 
 
@@ -288,3 +290,46 @@ def truncation_mask(box, camera: Camera, margin):
         axis=-1,
     )
     return keep.astype(b.dtype)
+
+
+# --- lens distortion ---------------------------------------------------------------------
+
+
+def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
+    """Pinhole pixels (…, 2) of pixels ``uv`` measured through OpenCV's radial-tangential
+    model, ``distortion`` = (k1, k2, p1, p2, k3): x_d = x·(1 + k1r² + k2r⁴ + k3r⁶) +
+    (2p1xy + p2(r² + 2x²), p1(r² + 2y²) + 2p2xy) on normalised coordinates, inverted by
+    fixed-point iteration (as OpenCV's ``undistortPoints``). NumPy."""
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    uv = np.asarray(uv, dtype=float)
+    xd = (uv[..., 0] - camera.cx) / camera.fx
+    yd = (uv[..., 1] - camera.cy) / camera.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        x, y = (xd - dx) / radial, (yd - dy) / radial
+    return np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], axis=-1)
+
+
+def undistort_boxes(boxes, camera: Camera, distortion, samples: int = 16):
+    """The pinhole box (…, 4) of boxes measured on a distorted image: the extremes of the
+    undistorted box outline (``samples`` points per edge). The object's outline lies inside
+    the box in the distorted image, so its pinhole outline lies inside the undistorted
+    outline, whose bounding box this is (exact where the object touches an edge at the
+    edge's extreme after undistortion; larger by the edge's bow elsewhere). NumPy."""
+    b = np.asarray(boxes, dtype=float)
+    s = np.linspace(0.0, 1.0, samples)
+    u0, v0, u1, v1 = (b[..., k, None] for k in range(4))
+    us = u0 + s * (u1 - u0)
+    vs = v0 + s * (v1 - v0)
+    pts = np.concatenate([
+        np.stack([us, np.broadcast_to(v0, us.shape)], -1),
+        np.stack([us, np.broadcast_to(v1, us.shape)], -1),
+        np.stack([np.broadcast_to(u0, vs.shape), vs], -1),
+        np.stack([np.broadcast_to(u1, vs.shape), vs], -1),
+    ], axis=-2)
+    q = undistort_points(pts, camera, distortion)
+    return np.concatenate([q.min(axis=-2), q.max(axis=-2)], axis=-1)

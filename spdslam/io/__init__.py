@@ -16,6 +16,13 @@ from ._importers import COCO_LABELS as COCO_LABELS
 from ._importers import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
 from ._importers import import_fr3_cabinet as import_fr3_cabinet
 from ._importers import is_fr3_cabinet as is_fr3_cabinet
+from ._oaslam import COCO80 as COCO80
+from ._oaslam import estimate_up as estimate_up
+from ._oaslam import import_oaslam as import_oaslam
+from ._oaslam import is_oaslam_layout as is_oaslam_layout
+from ._oaslam import read_detections_json as read_detections_json
+from ._oaslam import read_opencv_camera as read_opencv_camera
+from ._oaslam import read_quadrics_gt as read_quadrics_gt
 from ._map import MapFormatError as MapFormatError
 from ._map import MapObject as MapObject
 from ._map import read_map as read_map

@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import Camera, Cuboid
+from ..geometry import Cuboid
 from ._parse import (
-    CAMERA_KEYS,
     SequenceFormatError,
     _box,
     _check_columns,
@@ -17,11 +16,11 @@ from ._parse import (
     _match,
     _number,
     _rows,
-    camera_from,
     read_images,
     read_tum,
     required,
 )
+from ._oaslam import read_opencv_camera
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
 __all__ = ["import_fr3_cabinet", "is_fr3_cabinet", "COCO_LABELS", "FR3_TRAJECTORY_SIGMA"]
@@ -40,33 +39,6 @@ def is_fr3_cabinet(folder) -> bool:
 
 
 
-
-
-def _read_opencv_camera(path: Path) -> Camera:
-    """``Camera.fx: 535.4`` lines of an OpenCV YAML file (``%YAML:1.0`` header)."""
-    name = str(path)
-    values, lines = {}, {}
-    for line, tok in _rows(path, name):
-        body = " ".join(tok)
-        if not body.startswith("Camera."):
-            continue
-        key, sep, val = body[len("Camera."):].partition(":")
-        key = key.strip()
-        if key not in CAMERA_KEYS:
-            continue
-        if not sep or not val.strip():
-            raise SequenceFormatError(name, line, f"'Camera.{key}: <number>'", repr(body))
-        values[key] = _number(name, line, val.strip(), f"Camera.{key}")
-        lines[key] = line
-    values.setdefault("width", 640.0)
-    values.setdefault("height", 480.0)
-    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
-    if missing:
-        raise SequenceFormatError(
-            name, None, "lines Camera.fx, Camera.fy, Camera.cx, Camera.cy",
-            f"{', '.join('Camera.' + k for k in missing)} missing",
-        )
-    return camera_from(name, values, lines)
 
 
 def _coco_label(k: int) -> str:
@@ -92,7 +64,7 @@ def import_fr3_cabinet(folder) -> Sequence:
         required(folder, req)
     if not (folder / "bbox").is_dir():
         raise SequenceFormatError(folder / "bbox", None, "a required folder bbox/", "no such folder")
-    camera = _read_opencv_camera(folder / "TUM3.yaml")
+    camera, _ = read_opencv_camera(folder / "TUM3.yaml")  # its distortion is 0
     traj = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt"))
     timestamps = traj[:, 0]
 

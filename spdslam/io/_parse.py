@@ -92,9 +92,11 @@ def _unit_quaternion(file, line, q) -> np.ndarray:
     return q / n
 
 
-def read_tum(path: Path, name: str) -> np.ndarray:
+def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
     """(N, 8) rows ``timestamp tx ty tz qx qy qz qw``, quaternions normalised, strictly
-    increasing timestamps."""
+    increasing timestamps (``skip_repeats``: a row whose timestamp does not exceed the
+    previous one is left out instead, as motion-capture files repeat a timestamp now and
+    then)."""
     layout = "timestamp tx ty tz qx qy qz qw"
     fields = layout.split()
     rows = []
@@ -103,6 +105,8 @@ def read_tum(path: Path, name: str) -> np.ndarray:
         v = [_number(name, line, t, f) for t, f in zip(tok, fields)]
         v[4:8] = _unit_quaternion(name, line, v[4:8]).tolist()
         if rows and not v[0] > rows[-1][0]:
+            if skip_repeats:
+                continue
             raise SequenceFormatError(
                 name, line, f"a timestamp greater than the previous one ({rows[-1][0]!r})",
                 repr(tok[0]),

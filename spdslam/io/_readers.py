@@ -23,6 +23,7 @@ import numpy as np
 from ..geometry import OBJECT_SHAPES, Camera, Cuboid
 from ..geometry.se3 import quat_to_matrix
 from ._importers import import_fr3_cabinet, is_fr3_cabinet
+from ._oaslam import is_oaslam_layout
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
@@ -201,12 +202,17 @@ def read_objects_gt(path, name: str | None = None) -> list:
 
 
 def read_sequence(folder) -> Sequence:
-    """Read a canonical sequence folder (or the fr3_cabinet layout, detected automatically)."""
+    """Read a canonical sequence folder (or the fr3_cabinet or OA-SLAM layout, detected
+    automatically; the latter with its odometry as the trajectory)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise SequenceFormatError(folder, None, "a sequence folder", "no such folder")
     if is_fr3_cabinet(folder) and not (folder / "trajectory.txt").exists():
         return import_fr3_cabinet(folder)
+    if is_oaslam_layout(folder) and not (folder / "trajectory.txt").exists():
+        from ._oaslam import import_oaslam
+
+        return import_oaslam(folder)
     camera = read_camera(required(folder, "camera.yaml"))
     traj = read_tum(required(folder, "trajectory.txt"), str(folder / "trajectory.txt"))
     det = read_detections(required(folder, "detections.txt"), traj[:, 0])

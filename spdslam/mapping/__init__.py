@@ -26,7 +26,10 @@ from ._run import ASSOCIATIONS as ASSOCIATIONS
 from ._run import Association as Association
 from ._run import Initialization as Initialization
 from ._run import MapResult as MapResult
+from ._run import MIN_RADIUS as MIN_RADIUS
+from ._run import MIN_RADIUS_RATIO as MIN_RADIUS_RATIO
 from ._run import associate_tracks as associate_tracks
+from ._run import degenerate as degenerate
 from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects

@@ -180,8 +180,35 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3):
         except InitializationError as err:
             failed[tr.id] = str(err)
             continue
+        why = degenerate(e, min_radius=0.0, min_ratio=SINGULAR_RATIO)
+        if why:  # not a point of SPD(3) the solver can start from (a flat start is one)
+            failed[tr.id] = f"the initial ellipsoid is singular ({why}): the boxes do not fix its extent"
+            continue
         init[tr.id] = e
     return init, failed, notes
+
+
+#: An ellipsoid is degenerate when its smallest radius is below this (m) …
+MIN_RADIUS = 1e-3
+#: … or below this fraction of its largest.
+MIN_RADIUS_RATIO = 1e-3
+
+
+#: An initial ellipsoid whose smallest radius is below this fraction of its largest is
+#: numerically singular: the solver does not start from it.
+SINGULAR_RATIO = 1e-6
+
+
+def degenerate(e, min_radius: float = MIN_RADIUS, min_ratio: float = MIN_RADIUS_RATIO) -> str:
+    """Why the ellipsoid ``e`` is degenerate ("" if it is not): a non-finite value, or a
+    smallest radius below ``min_radius`` (m) or ``min_ratio`` of the largest."""
+    P, c = np.asarray(e.P, float), np.asarray(e.center, float)
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(c))):
+        return "non-finite values"
+    r = np.sqrt(np.clip(np.linalg.eigvalsh(0.5 * (P + P.T)), 0.0, None))
+    if r[0] < min_radius or r[0] < min_ratio * r[2]:
+        return f"radii {r[0]:.3g}, {r[1]:.3g}, {r[2]:.3g} m"
+    return ""
 
 
 def initialize_from_measurements(ctx, measurements) -> Ellipsoid:
@@ -327,11 +354,15 @@ def run_sequence(
     initial = [MapObject(k, labels[k], front.ellipsoids[k]) for k in sorted(front.ellipsoids)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(seq))])
     poses_out = np.c_[np.asarray(seq.timestamps), rows]
-    for o in objects:
-        if not (np.all(np.isfinite(np.asarray(o.ellipsoid.P)))
-                and np.all(np.isfinite(np.asarray(o.ellipsoid.center)))):
-            raise FloatingPointError(f"object {o.id}: the optimiser returned non-finite values")
+    failed = dict(front.failed)
+    kept = []
+    for o in objects:  # reported, not mapped: an object whose extent the data do not fix
+        why = degenerate(o.ellipsoid)
+        if why:
+            failed[o.id] = f"degenerate after the optimisation ({why}): the boxes do not fix its extent"
+        else:
+            kept.append(o)
     return MapResult(
-        method, objects, initial, poses_out, total_it, first_cost, res.final_cost,
-        res.converged, res.reason, front.failed, front.notes, association.record,
+        method, kept, initial, poses_out, total_it, first_cost, res.final_cost,
+        res.converged, res.reason, failed, front.notes, association.record,
     )

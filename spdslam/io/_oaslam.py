@@ -1,0 +1,308 @@
+"""Importer of the OA-SLAM-style layout of real recordings (e.g. ``tum_fr2_desk``):
+
+- ``detections*.json``: OA-SLAM's detection file, a list of ``{"file_name": "<timestamp>.png",
+  "detections": [{"category_id": k, "detection_score": s, "bbox": [x1, y1, x2, y2]}]}``, k a
+  0-indexed COCO-80 class, boxes in pixels of the (distorted) image, no instance ids;
+- a camera YAML in OpenCV / ORB-SLAM style (``Camera.fx: …``, ``Camera.k1 k2 p1 p2 k3``,
+  ``Camera.width/height``);
+- TUM trajectories: the odometry (``odometry.txt`` or ``*orb*.txt``, the visual SLAM's
+  camera-to-world poses) and ``groundtruth.txt`` (motion capture, gaps allowed);
+- ``objects_gt.txt``: gtsam-quadrics-style ground-truth ellipsoids
+  ``name roll pitch yaw cx cy cz r1 r2 r3 coco`` (degrees, R = Rz(yaw)Ry(pitch)Rx(roll), semi-
+  axes along R's columns, ``coco`` = ``<id>:<name>`` of the class the detector reports, ``-:none``
+  for none); evaluated as their circumscribed cuboids.
+
+Boxes are undistorted (``geometry.undistort_boxes``) so that the sequence is a pinhole one. The
+mapping never reads ground truth: with the odometry as the trajectory, the ground truth (its
+trajectory and objects) is moved into the odometry's frame by the rigid alignment of the two
+trajectories over their common timestamps, for the evaluation only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..geometry import Camera, Cuboid, undistort_boxes
+from ._parse import CAMERA_KEYS, SequenceFormatError, _number, _rows, camera_from, read_tum, required
+from ._sequence import Detection, GroundTruthObject, Priors, Sequence
+
+__all__ = ["COCO80", "is_oaslam_layout", "import_oaslam", "read_opencv_camera",
+           "read_detections_json", "read_quadrics_gt", "estimate_up"]
+
+#: The 80 COCO classes in YOLO's 0-indexed order.
+COCO80 = (
+    "person", "bicycle", "car", "motorcycle", "airplane", "bus", "train", "truck", "boat",
+    "traffic_light", "fire_hydrant", "stop_sign", "parking_meter", "bench", "bird", "cat", "dog",
+    "horse", "sheep", "cow", "elephant", "bear", "zebra", "giraffe", "backpack", "umbrella",
+    "handbag", "tie", "suitcase", "frisbee", "skis", "snowboard", "sports_ball", "kite",
+    "baseball_bat", "baseball_glove", "skateboard", "surfboard", "tennis_racket", "bottle",
+    "wine_glass", "cup", "fork", "knife", "spoon", "bowl", "banana", "apple", "sandwich",
+    "orange", "broccoli", "carrot", "hot_dog", "pizza", "donut", "cake", "chair", "couch",
+    "potted_plant", "bed", "dining_table", "toilet", "tv", "laptop", "mouse", "remote",
+    "keyboard", "cell_phone", "microwave", "oven", "toaster", "sink", "refrigerator", "book",
+    "clock", "vase", "scissors", "teddy_bear", "hair_drier", "toothbrush",
+)
+
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+#: Detections below this score are left out by default (YOLO's usual deployment threshold).
+DEFAULT_MIN_SCORE = 0.5
+#: σ of the trajectory's motion per frame step (m, rad) unless priors.yaml gives one: a
+#: visual SLAM's optimised trajectory (ORB-SLAM2 RGB-D on fr2_desk: about 8 mm ATE against
+#: the motion capture, ../shared/data/tum_fr2_desk/README.md), and motion capture (as the
+#: fr3_cabinet importer).
+ODOMETRY_SIGMA = (1e-3, 1e-3)
+GROUNDTRUTH_SIGMA = (1e-4, 1e-4)
+
+
+def _json_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.glob("detections*.json") if p.is_file())
+
+
+def _odometry_files(folder: Path) -> list[Path]:
+    c = [folder / "odometry.txt"] + sorted(folder.glob("*orb*.txt")) + sorted(folder.glob("*ORB*.txt"))
+    seen, out = set(), []
+    for p in c:
+        if p.is_file() and p not in seen:
+            seen.add(p)
+            out.append(p)
+    return out
+
+
+def _camera_files(folder: Path) -> list[Path]:
+    out = []
+    for p in sorted(folder.glob("*.yaml")):
+        if p.name in ("camera.yaml", "priors.yaml") or not p.is_file():
+            continue
+        try:
+            head = p.read_text(encoding="utf-8", errors="replace")[:4096]
+        except OSError:
+            continue
+        if "Camera.fx" in head:
+            out.append(p)
+    return out
+
+
+def is_oaslam_layout(folder) -> bool:
+    """True for a folder with one ``detections*.json`` and no canonical ``detections.txt``."""
+    folder = Path(folder)
+    return len(_json_files(folder)) == 1 and not (folder / "detections.txt").exists()
+
+
+def read_opencv_camera(path: Path) -> tuple[Camera, np.ndarray]:
+    """(pinhole intrinsics, distortion (k1, k2, p1, p2, k3)) of ``Camera.<key>: <number>``
+    lines (``%YAML:1.0`` header; 640×480 and no distortion unless given)."""
+    name = str(path)
+    values, lines = {}, {}
+    for line, tok in _rows(path, name):
+        body = " ".join(tok)
+        if not body.startswith("Camera."):
+            continue
+        key, sep, val = body[len("Camera."):].partition(":")
+        key = key.strip()
+        if key not in CAMERA_KEYS and key not in DISTORTION_KEYS:
+            continue
+        if not sep or not val.strip():
+            raise SequenceFormatError(name, line, f"'Camera.{key}: <number>'", repr(body))
+        values[key] = _number(name, line, val.strip(), f"Camera.{key}")
+        lines[key] = line
+    values.setdefault("width", 640.0)
+    values.setdefault("height", 480.0)
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
+    if missing:
+        raise SequenceFormatError(
+            name, None, "lines Camera.fx, Camera.fy, Camera.cx, Camera.cy",
+            f"{', '.join('Camera.' + k for k in missing)} missing",
+        )
+    dist = np.array([values.pop(k, 0.0) for k in DISTORTION_KEYS])
+    for k in DISTORTION_KEYS:
+        lines.pop(k, None)
+    return camera_from(name, values, lines), dist
+
+
+def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE):
+    """[(timestamp, box (4,), label, score)] of an OA-SLAM detection file, scores ≥
+    ``min_score``; errors name the entry (``<file>: entry <i>``)."""
+    name = str(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as e:
+        raise SequenceFormatError(name, None, "a UTF-8 JSON file", f"undecodable bytes ({e.reason})") from None
+    except json.JSONDecodeError as e:
+        raise SequenceFormatError(name, e.lineno, "valid JSON", e.msg) from None
+    if not isinstance(data, list):
+        raise SequenceFormatError(name, None, "a JSON list of images", type(data).__name__)
+    out = []
+    for i, entry in enumerate(data):
+        where = f"{name}: entry {i}"
+        if not isinstance(entry, dict) or "file_name" not in entry or "detections" not in entry:
+            raise SequenceFormatError(where, None, "an object with 'file_name' and 'detections'",
+                                      repr(entry)[:80])
+        stem = Path(str(entry["file_name"])).stem
+        try:
+            t = float(stem)
+        except ValueError:
+            t = math.nan
+        if not math.isfinite(t):
+            raise SequenceFormatError(where, None, "a file_name '<timestamp>.png'", repr(entry["file_name"]))
+        if not isinstance(entry["detections"], list):
+            raise SequenceFormatError(where, None, "a list of detections", repr(entry["detections"])[:80])
+        for j, d in enumerate(entry["detections"]):
+            w = f"{where} detection {j}"
+            try:
+                k = d["category_id"]
+                s = float(d["detection_score"])
+                b = np.asarray(d["bbox"], dtype=float)
+            except (KeyError, TypeError, ValueError):
+                raise SequenceFormatError(w, None, "category_id, detection_score and bbox [x1, y1, x2, y2]",
+                                          repr(d)[:80]) from None
+            if not (isinstance(k, int) and 0 <= k < len(COCO80)):
+                raise SequenceFormatError(w, None, "a COCO-80 category_id in 0…79", repr(k))
+            if b.shape != (4,) or not np.all(np.isfinite(b)) or b[2] < b[0] or b[3] < b[1] \
+                    or not math.isfinite(s):
+                raise SequenceFormatError(w, None, "a finite bbox [x1, y1, x2, y2] with x2 ≥ x1, y2 ≥ y1",
+                                          repr(d.get("bbox")))
+            if s >= min_score:
+                out.append((t, b, COCO80[k], s))
+    return out
+
+
+def read_quadrics_gt(path: Path) -> list[GroundTruthObject]:
+    """Ground-truth ellipsoids ``name roll pitch yaw cx cy cz r1 r2 r3 [coco]`` as the
+    circumscribed cuboids; the label is the ``coco`` class name when given (the detector's
+    name for the object), else ``name``."""
+    name = str(path)
+    layout = "name roll pitch yaw cx cy cz r1 r2 r3 [coco]"
+    out = []
+    for i, (line, tok) in enumerate(_rows(path, name)):
+        if len(tok) not in (10, 11):
+            raise SequenceFormatError(name, line, f"10 or 11 columns '{layout}'", f"{len(tok)} columns")
+        v = [_number(name, line, t, f) for t, f in zip(tok[1:10], layout.split()[1:10])]
+        if not all(r > 0 for r in v[6:9]):
+            raise SequenceFormatError(name, line, "positive semi-axes r1 r2 r3", " ".join(tok[7:10]))
+        R = Rotation.from_euler("ZYX", [v[2], v[1], v[0]], degrees=True).as_matrix()
+        label = tok[0]
+        if len(tok) == 11:
+            k, _, cname = tok[10].partition(":")
+            if k != "-":
+                label = cname or tok[0]
+        out.append(GroundTruthObject(i, label, Cuboid(np.array(v[3:6]), R, np.array(v[6:9]))))
+    return out
+
+
+def _one(files: list[Path], folder: Path, what: str) -> Path:
+    if len(files) != 1:
+        got = "none" if not files else ", ".join(p.name for p in files)
+        raise SequenceFormatError(folder, None, f"exactly one {what}", got)
+    return files[0]
+
+
+def estimate_up(poses_tum: np.ndarray) -> np.ndarray:
+    """The world's up direction from camera-to-world poses carried without roll: their x
+    axes are horizontal, so up is the direction most orthogonal to all of them (the
+    smallest right singular vector of the stacked x axes), signed so that the image's
+    down (+y) points against it on average. Needs x axes spanning a plane (a camera that
+    turns about the vertical); raises ``ValueError`` otherwise."""
+    R = Rotation.from_quat(np.asarray(poses_tum)[:, 3:7]).as_matrix()
+    x = R[:, :, 0]
+    _, sv, Vt = np.linalg.svd(x, full_matrices=False)
+    if not sv[1] > 0.05 * sv[0]:
+        raise ValueError("the cameras' x axes do not span a plane: the up direction is not "
+                         "determined (give up in priors.yaml)")
+    up = Vt[2]
+    if np.mean(R[:, :, 1] @ up) > 0:
+        up = -up
+    return up
+
+
+def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAULT_MIN_SCORE,
+                  undistort: bool = True) -> Sequence:
+    """The OA-SLAM-style layout (module docstring) as a :class:`Sequence`.
+
+    ``trajectory``: "odometry" (the visual SLAM's poses, as the paper) or "groundtruth".
+    Detections of frames without a pose within 0.02 s are left out; boxes are undistorted;
+    ``priors.yaml`` is read when present; ``up`` is estimated from the cameras
+    (``estimate_up``) and ``trajectory_sigma`` is ``ODOMETRY_SIGMA`` or
+    ``GROUNDTRUTH_SIGMA`` unless it gives them. ``undistort=False`` keeps the measured boxes
+    (to measure what the distortion does). With the odometry, the ground-truth trajectory and objects are
+    expressed in the odometry's frame (rigid alignment over common timestamps)."""
+    from ._parse import MATCH_TOLERANCE
+    from ._readers import read_priors
+
+    folder = Path(folder)
+    if trajectory not in ("odometry", "groundtruth"):
+        raise ValueError(f"trajectory must be 'odometry' or 'groundtruth', got {trajectory!r}")
+    camera, dist = read_opencv_camera(_one(_camera_files(folder), folder,
+                                           "camera YAML with Camera.fx lines"))
+    gt = None
+    if (folder / "groundtruth.txt").is_file():
+        gt = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt"), skip_repeats=True)
+    if trajectory == "odometry":
+        path = _one(_odometry_files(folder), folder, "odometry trajectory (odometry.txt or *orb*.txt)")
+        traj = read_tum(path, str(path))
+    else:
+        traj = read_tum(required(folder, "groundtruth.txt"), str(folder / "groundtruth.txt"),
+                        skip_repeats=True)
+    timestamps = traj[:, 0]
+    raw = read_detections_json(_one(_json_files(folder), folder, "detections*.json"), min_score)
+    detections = []
+    if raw:
+        t = np.array([r[0] for r in raw])
+        idx = np.clip(np.searchsorted(timestamps, t), 1, len(timestamps) - 1) if len(timestamps) > 1 \
+            else np.zeros(len(t), int)
+        near = np.where(np.abs(timestamps[idx - 1] - t) < np.abs(timestamps[idx] - t), idx - 1, idx) \
+            if len(timestamps) > 1 else idx
+        ok = np.abs(timestamps[near] - t) <= MATCH_TOLERANCE
+        boxes = undistort_boxes(np.stack([r[1] for r in raw]), camera, dist) if undistort and np.any(dist) \
+            else np.stack([r[1] for r in raw])
+        for k in np.flatnonzero(ok):
+            detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
+    objects = read_quadrics_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
+    if trajectory == "odometry" and gt is not None:
+        gt, objects = _into_frame_of(traj, gt, objects)
+    priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
+    if priors is None or priors.trajectory_sigma is None:
+        ts = ODOMETRY_SIGMA if trajectory == "odometry" else GROUNDTRUTH_SIGMA
+        priors = Priors([], None, {}, ts) if priors is None else Priors(
+            priors.support_planes, priors.up, priors.classes, ts)
+    if priors.up is None:
+        try:
+            up = estimate_up(traj[:, 1:])
+        except ValueError as e:
+            raise SequenceFormatError(folder, None, "an up direction (priors.yaml) or cameras "
+                                      "that turn about the vertical", str(e)) from None
+        priors = Priors(priors.support_planes, up, priors.classes, priors.trajectory_sigma)
+    return Sequence(folder.name, camera, timestamps, traj[:, 1:], detections, objects, gt, priors)
+
+
+def _into_frame_of(traj: np.ndarray, gt: np.ndarray, objects):
+    """The ground truth (TUM rows, objects) moved into the frame of ``traj`` by the rigid
+    motion that best maps the ground-truth camera centres onto the trajectory's over
+    timestamps within 0.02 s of each other (Horn's method)."""
+    from ._parse import MATCH_TOLERANCE
+
+    i = np.clip(np.searchsorted(gt[:, 0], traj[:, 0]), 1, len(gt) - 1)
+    j = np.where(np.abs(gt[i - 1, 0] - traj[:, 0]) < np.abs(gt[i, 0] - traj[:, 0]), i - 1, i)
+    ok = np.abs(gt[j, 0] - traj[:, 0]) <= MATCH_TOLERANCE
+    if ok.sum() < 3:
+        return gt, objects
+    A, B = gt[j[ok], 1:4], traj[ok, 1:4]
+    ma, mb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((B - mb).T @ (A - ma))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ S @ Vt
+    t = mb - R @ ma
+    out = gt.copy()
+    out[:, 1:4] = gt[:, 1:4] @ R.T + t
+    q = Rotation.from_matrix(R) * Rotation.from_quat(gt[:, 4:8])
+    out[:, 4:8] = q.as_quat()
+    if objects is not None:
+        objects = [GroundTruthObject(o.id, o.label, Cuboid(R @ o.cuboid.center + t,
+                                                           R @ o.cuboid.rotation,
+                                                           o.cuboid.half_extents))
+                   for o in objects]
+    return out, objects
