@@ -173,3 +173,28 @@ def test_the_shipped_fr2_desk_folder_imports():
     # the estimated up, moved into motion capture by the ground truth's alignment, is +z
     gt = read_sequence(FR2).groundtruth_tum
     assert gt is not None and np.all(np.diff(gt[:, 0]) > 0)
+
+
+@pytest.mark.skipif(not FR2.is_dir(), reason="../shared/data/tum_fr2_desk is not on this machine")
+def test_fr2_desk_runs_end_to_end_without_a_degenerate_object(tmp_path, monkeypatch):
+    """``spdslam run`` on the raw folder: no traceback, every output written, no object in
+    map.json with a radius below 1 mm or 1/1000 of its largest, failures listed with a
+    reason. (The IoU target of the real-sequences issue is not met yet: docs/sequences.md.)"""
+    from conftest import cli_runner
+
+    from spdslam.cli import app
+
+    monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "fr2"
+    res = cli_runner().invoke(app, ["run", str(FR2), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "Traceback" not in res.output
+    for f in ("map.json", "metrics.json", "report.md", "map_top.png", "trajectory.txt"):
+        assert (out / f).is_file(), f
+    m = json.loads((out / "map.json").read_text())
+    assert m["objects"] and m["failed"]
+    for o in m["objects"]:
+        r = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(o["P"])), 0, None))
+        assert r[0] >= 1e-3 and r[0] >= 1e-3 * r[2], o
+        assert min(o["radii"]) >= 1e-3
+    assert all(isinstance(v, str) and v for v in m["failed"].values())

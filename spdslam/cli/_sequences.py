@@ -44,9 +44,10 @@ def _load_sequence(path: Path):
     from ..io import SequenceFormatError, read_sequence
 
     try:
-        return read_sequence(path)
+        seq = read_sequence(path)
     except SequenceFormatError as e:
         fail(str(e))
+    return seq
 
 
 def _parse_sigmas(items) -> dict:
@@ -111,6 +112,11 @@ def _parse_robust(items, robust_k):
     return out
 
 
+def _progress(message: str) -> None:
+    """The run's stages and LM iterations, on stderr (stdout keeps the results)."""
+    err_console.print(f"[dim]{message}[/dim]", highlight=False)
+
+
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
                    **overrides):
     from ..evaluation import write_run
@@ -119,7 +125,7 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
     _check_out(out, overwrite)
     try:
         result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
-                              associate=associate, **overrides)
+                              associate=associate, progress=_progress, **overrides)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     try:

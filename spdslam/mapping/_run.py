@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -313,6 +314,7 @@ def run_sequence(
     max_iterations: int = 100,
     min_views: int = 3,
     verbose: bool = False,
+    progress: Callable[[str], Any] | None = None,
     **overrides,
 ) -> MapResult:
     """Initialise and jointly optimise a sequence with a named method (or a :class:`Method`);
@@ -322,15 +324,20 @@ def run_sequence(
     instance ids), ``"auto"`` (:func:`spdslam.frontend.associate`, which ignores the ids),
     or None: the ids when every detection has one, automatic otherwise. With automatic
     association the result records precision and recall against the ids where they exist.
+    ``progress(message)`` is called at each stage and after each LM iteration.
     """
+    say = progress or (lambda message: None)
     if isinstance(method, str):
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
         method = METHODS[method]
     method = method.replace(**overrides)
     ctx = SequenceContext.of(seq)
+    say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
     association = associate_tracks(ctx, tracks, associate)
+    say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
     front = initialize(ctx, association, method, min_views)
+    say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
     landmarks = {k: _landmark(e, method) for k, e in front.ellipsoids.items()}
     values = Values()
@@ -339,10 +346,16 @@ def run_sequence(
     for k, lm in landmarks.items():
         values[L(k)] = lm
     stages = ["semi", "inverse"] if method.box_model == "semi-then-inverse" else [method.box_model]
-    optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose)
+    def each_iteration(rec):
+        say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
+            f"({'accepted' if rec.accepted else 'rejected'}, λ {rec.lambda_:.2g})")
+
+    optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
+                                   callback=each_iteration if progress else None)
     total_it, first_cost, res = 0, None, None
     for stage in stages:
         graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured)
+        say(f"optimisation ({stage} boxes): {len(values)} variables, {len(graph)} factors")
         res = optimizer.optimize(graph, values)
         values = res.values
         total_it += res.iterations
