@@ -346,6 +346,7 @@ def run_sequence(
     for k, lm in landmarks.items():
         values[L(k)] = lm
     stages = ["semi", "inverse"] if method.box_model == "semi-then-inverse" else [method.box_model]
+
     def each_iteration(rec):
         say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
             f"({'accepted' if rec.accepted else 'rejected'}, λ {rec.lambda_:.2g})")
