@@ -242,6 +242,7 @@ def import_(
     overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
     trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth."),
     min_score: float = typer.Option(0.5, help="OA-SLAM layout: leave out detections scored below this."),
+    undistort: bool = typer.Option(True, help="OA-SLAM layout: replace each box by the pinhole box of its undistorted outline (--no-undistort keeps the measured boxes)."),
 ) -> None:
     """Convert an fr3_cabinet- or OA-SLAM-style folder to the canonical sequence format."""
     from ..io import SequenceFormatError, import_fr3_cabinet, import_oaslam, is_oaslam_layout
@@ -255,7 +256,7 @@ def import_(
         fail(f"{dest}: expected a destination outside the source folder {source}")
     try:
         if is_oaslam_layout(source):
-            seq = import_oaslam(source, trajectory, min_score)
+            seq = import_oaslam(source, trajectory, min_score, undistort)
         else:
             seq = import_fr3_cabinet(source)
         write_sequence(seq, dest, overwrite=overwrite)

@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import Camera, Cuboid, undistort_boxes
-from ._parse import CAMERA_KEYS, SequenceFormatError, _number, _rows, camera_from, read_tum, required
+from ..geometry import Camera, Cuboid, align_rigid, undistort_boxes
+from ._parse import (CAMERA_KEYS, MATCH_TOLERANCE, SequenceFormatError, _number, _rows,
+                     camera_from, read_tum, required)
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
 __all__ = ["COCO80", "is_oaslam_layout", "import_oaslam", "read_opencv_camera",
@@ -230,7 +231,6 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     ``GROUNDTRUTH_SIGMA`` unless it gives them. ``undistort=False`` keeps the measured boxes
     (to measure what the distortion does). With the odometry, the ground-truth trajectory and objects are
     expressed in the odometry's frame (rigid alignment over common timestamps)."""
-    from ._parse import MATCH_TOLERANCE
     from ._readers import read_priors
 
     folder = Path(folder)
@@ -252,18 +252,14 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     detections = []
     if raw:
         t = np.array([r[0] for r in raw])
-        idx = np.clip(np.searchsorted(timestamps, t), 1, len(timestamps) - 1) if len(timestamps) > 1 \
-            else np.zeros(len(t), int)
-        near = np.where(np.abs(timestamps[idx - 1] - t) < np.abs(timestamps[idx] - t), idx - 1, idx) \
-            if len(timestamps) > 1 else idx
-        ok = np.abs(timestamps[near] - t) <= MATCH_TOLERANCE
+        near, ok = _nearest(timestamps, t)
         boxes = undistort_boxes(np.stack([r[1] for r in raw]), camera, dist) if undistort and np.any(dist) \
             else np.stack([r[1] for r in raw])
         for k in np.flatnonzero(ok):
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
     objects = read_quadrics_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
     if trajectory == "odometry" and gt is not None:
-        gt, objects = _into_frame_of(traj, gt, objects)
+        gt, objects = _into_frame_of(traj, gt, objects, folder)
     priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
     if priors is None or priors.trajectory_sigma is None:
         ts = ODOMETRY_SIGMA if trajectory == "odometry" else GROUNDTRUTH_SIGMA
@@ -279,27 +275,32 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     return Sequence(folder.name, camera, timestamps, traj[:, 1:], detections, objects, gt, priors)
 
 
-def _into_frame_of(traj: np.ndarray, gt: np.ndarray, objects):
+def _nearest(sorted_t: np.ndarray, t: np.ndarray):
+    """(index of the nearest of ``sorted_t`` for each of ``t``, whether it is within the
+    0.02 s matching tolerance)."""
+    if len(sorted_t) == 1:
+        i = np.zeros(len(t), int)
+    else:
+        j = np.clip(np.searchsorted(sorted_t, t), 1, len(sorted_t) - 1)
+        i = np.where(np.abs(sorted_t[j - 1] - t) < np.abs(sorted_t[j] - t), j - 1, j)
+    return i, np.abs(sorted_t[i] - t) <= MATCH_TOLERANCE
+
+
+def _into_frame_of(traj: np.ndarray, gt: np.ndarray, objects, folder: Path):
     """The ground truth (TUM rows, objects) moved into the frame of ``traj`` by the rigid
     motion that best maps the ground-truth camera centres onto the trajectory's over
-    timestamps within 0.02 s of each other (Horn's method)."""
-    from ._parse import MATCH_TOLERANCE
-
-    i = np.clip(np.searchsorted(gt[:, 0], traj[:, 0]), 1, len(gt) - 1)
-    j = np.where(np.abs(gt[i - 1, 0] - traj[:, 0]) < np.abs(gt[i, 0] - traj[:, 0]), i - 1, i)
-    ok = np.abs(gt[j, 0] - traj[:, 0]) <= MATCH_TOLERANCE
-    if ok.sum() < 3:
-        return gt, objects
-    A, B = gt[j[ok], 1:4], traj[ok, 1:4]
-    ma, mb = A.mean(0), B.mean(0)
-    U, _, Vt = np.linalg.svd((B - mb).T @ (A - ma))
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ S @ Vt
-    t = mb - R @ ma
+    timestamps within 0.02 s of each other (``geometry.align_rigid``)."""
+    j, ok = _nearest(gt[:, 0], traj[:, 0])
+    try:
+        R, t, _ = align_rigid(gt[j[ok], 1:4], traj[ok, 1:4])
+    except ValueError as e:
+        raise SequenceFormatError(
+            folder / "groundtruth.txt", None,
+            "camera centres that fix its alignment to the odometry (or --trajectory "
+            "groundtruth)", str(e)) from None
     out = gt.copy()
     out[:, 1:4] = gt[:, 1:4] @ R.T + t
-    q = Rotation.from_matrix(R) * Rotation.from_quat(gt[:, 4:8])
-    out[:, 4:8] = q.as_quat()
+    out[:, 4:8] = (Rotation.from_matrix(R) * Rotation.from_quat(gt[:, 4:8])).as_quat()
     if objects is not None:
         objects = [GroundTruthObject(o.id, o.label, Cuboid(R @ o.cuboid.center + t,
                                                            R @ o.cuboid.rotation,

@@ -23,7 +23,7 @@ import numpy as np
 from ..geometry import OBJECT_SHAPES, Camera, Cuboid
 from ..geometry.se3 import quat_to_matrix
 from ._importers import import_fr3_cabinet, is_fr3_cabinet
-from ._oaslam import is_oaslam_layout
+from ._oaslam import import_oaslam, is_oaslam_layout
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
@@ -210,8 +210,6 @@ def read_sequence(folder) -> Sequence:
     if is_fr3_cabinet(folder) and not (folder / "trajectory.txt").exists():
         return import_fr3_cabinet(folder)
     if is_oaslam_layout(folder) and not (folder / "trajectory.txt").exists():
-        from ._oaslam import import_oaslam
-
         return import_oaslam(folder)
     camera = read_camera(required(folder, "camera.yaml"))
     traj = read_tum(required(folder, "trajectory.txt"), str(folder / "trajectory.txt"))

@@ -1,0 +1,62 @@
+"""Rigid alignment of two point sets (Horn / Umeyama), for the evaluation's trajectory
+metrics and the importers that bring a ground truth into a trajectory's frame."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["align_rigid"]
+
+#: Relative singular-value threshold below which a point set counts as collinear.
+_RANK_TOL = 1e-9
+
+
+def _points(x, name: str) -> np.ndarray:
+    p = np.asarray(x, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite")
+    return p
+
+
+def align_rigid(src, dst, with_scale: bool = False):
+    """(R, t, s) minimising Σᵢ ‖dstᵢ − (s R srcᵢ + t)‖², R ∈ SO(3) (Horn / Umeyama 1991).
+
+    With X = src − μ_src, Y = dst − μ_dst (centred, N×3) and the cross-covariance
+    Σ = YᵀX / N = U D Vᵀ (SVD): R = U S Vᵀ, S = diag(1, 1, sign det(U Vᵀ)) (a proper
+    rotation even for reflected data); s = tr(D S) / σ²_src, σ²_src = ‖X‖²_F / N
+    (s = 1 unless ``with_scale``); t = μ_dst − s R μ_src.
+
+    ``src``, ``dst``: N×3, N ≥ 3. Raises ``ValueError`` for fewer than 3 points, non-finite
+    input, or a degenerate configuration (either set collinear or coincident, or Σ of rank
+    < 2), for which the rotation is not unique.
+    """
+    X, Y = _points(src, "src"), _points(dst, "dst")
+    if X.shape != Y.shape:
+        raise ValueError(f"src and dst must have the same shape, got {X.shape} and {Y.shape}")
+    n = X.shape[0]
+    if n < 3:
+        raise ValueError(f"rigid alignment needs at least 3 point pairs, got {n}")
+    mu_x, mu_y = X.mean(axis=0), Y.mean(axis=0)
+    X, Y = X - mu_x, Y - mu_y
+    scale = max(np.abs(X).max(), np.abs(Y).max(), np.abs(mu_x).max(), np.abs(mu_y).max(), 1e-300)
+    for name, Z in (("src", X), ("dst", Y)):
+        sv = np.linalg.svd(Z, compute_uv=False)
+        if not sv[1] > _RANK_TOL * max(sv[0], scale):
+            raise ValueError(
+                f"degenerate {name}: the points are collinear or coincide "
+                f"(singular values {sv[0]:.3g}, {sv[1]:.3g}), the rotation is not unique"
+            )
+    U, D, Vt = np.linalg.svd(Y.T @ X / n)
+    if not D[1] > _RANK_TOL * D[0]:
+        raise ValueError(
+            f"degenerate cross-covariance (singular values {D.tolist()}): the rotation is not unique"
+        )
+    S = np.ones(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2] = -1.0
+    R = (U * S) @ Vt
+    s = float(D @ S / (np.sum(X * X) / n)) if with_scale else 1.0
+    t = mu_y - s * R @ mu_x
+    return R, t, s
