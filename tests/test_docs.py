@@ -25,3 +25,14 @@ def test_extending_md_blocks_run_in_order(capsys):
     # the factor type works like the built-in ones: the default noise, one group per type
     f = scope["CentrePriorFactor"](scope["L"](0), [1.0, 2.0, 3.0])
     np.testing.assert_allclose(np.diag(f.sqrt_info), [20.0, 20.0, 20.0])
+
+
+def test_formats_md_class_table_matches_the_code():
+    """docs/formats.md's built-in class table lists every entry of the code's, with the same
+    semi-axes, spread and source."""
+    from spdslam.io import BUILTIN_CLASSES, CLASS_SOURCES
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "formats.md").read_text(encoding="utf-8")
+    for label, cp in BUILTIN_CLASSES.items():
+        r = ", ".join(f"{x:.4g}" for x in cp.radii)
+        assert f"| `{label}` | {r} | {cp.sigma:g} | {CLASS_SOURCES[label]} |" in text, label

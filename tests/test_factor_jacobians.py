@@ -193,6 +193,17 @@ def _size(param):
     return Case((batched_landmarks(param, R, t, s),), (jnp.asarray(logv),), kind)
 
 
+@case("radius_floor")
+def _radius_floor(param):
+    """Floors above the smallest radius (the hinge active) and below it (zero residual);
+    the smallest eigenvalue has the tie rules of the shape case."""
+    R, t, s, kind, _ = configurations(23)
+    lo = np.sort(s, axis=1)[:, 0]
+    factor = np.where(np.arange(N) % 2 == 0, 1.5, 0.5)  # above / below
+    return Case((batched_landmarks(param, R, t, s),), (jnp.asarray(np.log(lo * factor)),), kind,
+                SYMMETRIC_AT_SPHERE[param], h=1e-8)
+
+
 @case("support_plane")
 def _support_plane(param):
     R, t, s, kind, _ = configurations(12)

@@ -132,7 +132,7 @@ def _tum(rows) -> str:
     return "".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows)
 
 
-def test_import_moves_the_ground_truth_into_the_odometrys_frame(tmp_path):
+def test_import_keeps_the_ground_truth_in_its_frame_for_the_evaluation_to_align(tmp_path):
     poses = _orbit()
     ts = 100.0 + 0.1 * np.arange(len(poses))
     G = Rotation.from_rotvec([0.0, 0.0, 0.7])  # the odometry frame = G · motion capture
@@ -153,11 +153,16 @@ def test_import_moves_the_ground_truth_into_the_odometrys_frame(tmp_path):
     seq = read_sequence(tmp_path)
     assert len(seq.detections) == 10 and {d.label for d in seq.detections} == {"cup"}
     assert all(d.instance is None for d in seq.detections)
-    np.testing.assert_allclose(seq.objects_gt[0].cuboid.center, 0.0, atol=1e-9)
-    np.testing.assert_allclose(seq.groundtruth_tum[:, 1:4], odo[:, 1:4], atol=1e-9)
+    np.testing.assert_allclose(seq.objects_gt[0].cuboid.center, c_mocap, atol=1e-12)
+    np.testing.assert_allclose(seq.groundtruth_tum, gt, atol=1e-12)  # the repeat left out
     np.testing.assert_allclose(seq.priors.up, [0, 0, 1], atol=1e-9)
+    from spdslam.evaluation import to_groundtruth
+
+    T, why = to_groundtruth(seq)  # the odometry's frame onto motion capture
+    assert why == ""
+    np.testing.assert_allclose(odo[:, 1:4] @ T[:3, :3].T + T[:3, 3], gt[:, 1:4], atol=1e-9)
     by_gt = import_oaslam(tmp_path, trajectory="groundtruth")
-    np.testing.assert_allclose(by_gt.poses_tum[:, :3], gt[:, 1:4], atol=1e-12)
+    np.testing.assert_allclose(by_gt.poses_tum[:, :3], gt[::4, 1:4], atol=1e-12)  # at the images
     np.testing.assert_allclose(by_gt.objects_gt[0].cuboid.center, c_mocap, atol=1e-12)
     (tmp_path / "odometry.txt").unlink()
     with pytest.raises(SequenceFormatError, match="exactly one odometry trajectory"):

@@ -24,11 +24,12 @@ from spdslam.factors import (
     InverseCuboidBoxFactor,
     OrientationFactor,
     PriorFactor,
+    RadiusFloorFactor,
     SemiInverseBoxFactor,
     SemiInverseCuboidBoxFactor,
     ShapeFactor,
-    SizeFactor,
     Sigma,
+    SizeFactor,
     SupportPlaneFactor,
     default_sigmas,
     factor_types,
@@ -54,6 +55,7 @@ EXAMPLES = {
     "classic_orientation": lambda **n: ClassicOrientationFactor(L(0), [0, 0, 1], 2, **n),
     "shape": lambda **n: ShapeFactor(L(0), [0.3, 0.2, 0.1], **n),
     "size": lambda **n: SizeFactor(L(0), [0.3, 0.2, 0.1], **n),
+    "radius_floor": lambda **n: RadiusFloorFactor(L(0), 0.01, **n),
     "support_plane": lambda **n: SupportPlaneFactor(L(0), [0, 0, 1, 0], **n),
     "prior": lambda **n: PriorFactor(X(0), T, **n),
     "between": lambda **n: BetweenFactor(X(0), X(1), T, **n),
@@ -175,7 +177,7 @@ def test_custom_factors_stay_possible():
 def test_the_mapping_noise_table_is_the_registry_plus_its_own():
     table = DEFAULT_MAPPING_SIGMAS  # made when spdslam.mapping was imported
     ours = {s.name or k: s for k, c in _library_types().items() for s in c.sigmas}
-    assert set(ours) <= set(default_sigmas()) and len(ours) == 12
+    assert set(ours) <= set(default_sigmas()) and len(ours) == 13
     for name, s in ours.items():
         assert name in table
         if name not in MAPPING_SIGMAS:

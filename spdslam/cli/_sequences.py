@@ -21,6 +21,8 @@ from ..mapping import (
     OBJECT_SHAPE_CHOICES,
     PARAMETERIZATIONS,
     ROBUST_KERNELS,
+    SUPPORT_PLANES,
+    parse_keyframes,
 )
 from ..mapping._methods import ZERO_ALLOWED
 from ._app import app, console, err_console, fail
@@ -117,15 +119,27 @@ def _progress(message: str) -> None:
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
 
 
+def without_class_table(seq):
+    """The sequence with the built-in class table turned off (``Priors.builtin_classes``)."""
+    import dataclasses
+
+    from ..io import Priors
+
+    priors = Priors(builtin_classes=False) if seq.priors is None else \
+        seq.priors.replace(builtin_classes=False)
+    return dataclasses.replace(seq, priors=priors)
+
+
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
-                   **overrides):
+                   keyframes="all", support_planes="priors", **overrides):
     from ..evaluation import write_run
     from ..mapping import run_sequence
 
     _check_out(out, overwrite)
     try:
         result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
-                              associate=associate, progress=_progress, **overrides)
+                              associate=associate, keyframes=keyframes,
+                              support_planes=support_planes, progress=_progress, **overrides)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     try:
@@ -162,6 +176,9 @@ def run(
     robust_k: float | None = typer.Option(None, help="Threshold of a plain --robust KERNEL (whitened units, default 1)."),
     sigma: list[str] | None = typer.Option(None, help=_SIGMA_HELP),
     max_iterations: int = typer.Option(100, min=1, help="LM iteration budget per stage."),
+    keyframes: str = typer.Option("all", help="Frames to use: all, motion (a keyframe per 5 cm or 5°) or K (every K-th)."),
+    support_planes: str = typer.Option("priors", help=f"Support planes: {', '.join(SUPPORT_PLANES)} (priors.yaml's only; else estimated from the initial objects; else from the objects optimised without planes)."),
+    class_table: bool = typer.Option(True, "--class-table/--no-class-table", help="Classes without a priors.yaml entry take the built-in size table (docs/formats.md)."),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
 ) -> None:
@@ -182,8 +199,17 @@ def run(
         fail(f"--object-shape: expected one of {', '.join(OBJECT_SHAPE_CHOICES)}, got {object_shape!r}")
     if truncation_margin is not None and not math.isfinite(truncation_margin):
         fail(f"--truncation-margin: expected a finite number of pixels, got {truncation_margin!r}")
+    try:
+        keyframes = parse_keyframes(keyframes)
+    except ValueError as e:
+        fail(f"--keyframes: {e}")
+    if support_planes not in SUPPORT_PLANES:
+        fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
     seq = _load_sequence(sequence)
+    if not class_table:
+        seq = without_class_table(seq)
     _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
+                   keyframes=keyframes, support_planes=support_planes,
                    parameterization=parameterization, box_model=box_model,
                    object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
 
@@ -245,8 +271,13 @@ def import_(
     undistort: bool = typer.Option(True, help="OA-SLAM layout: replace each box by the pinhole box of its undistorted outline (--no-undistort keeps the measured boxes)."),
 ) -> None:
     """Convert an fr3_cabinet- or OA-SLAM-style folder to the canonical sequence format."""
-    from ..io import SequenceFormatError, import_fr3_cabinet, import_oaslam, is_oaslam_layout
-    from ..io import write_sequence
+    from ..io import (
+        SequenceFormatError,
+        import_fr3_cabinet,
+        import_oaslam,
+        is_oaslam_layout,
+        write_sequence,
+    )
 
     if not source.is_dir():
         fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder, got no such folder")

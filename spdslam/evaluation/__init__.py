@@ -27,9 +27,12 @@ from ._report import FRONT_END_NAMES as FRONT_END_NAMES
 from ._report import ObjectMetrics as ObjectMetrics
 from ._report import evaluate_objects as evaluate_objects
 from ._report import evaluate_run as evaluate_run
+from ._report import ground_truth_in_map_frame as ground_truth_in_map_frame
 from ._report import match_objects as match_objects
+from ._report import moved as moved
 from ._report import report_markdown as report_markdown
 from ._report import table_iii as table_iii
+from ._report import to_groundtruth as to_groundtruth
 from ._report import write_run as write_run
 from ._stats import Interval as Interval
 from ._stats import PairedComparison as PairedComparison

@@ -160,35 +160,51 @@ def _axis_name(e: np.ndarray) -> str:
     return "(" + ", ".join(f"{x:.2f}" for x in e) + ")"
 
 
-def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None,
-                 gt_trajectory=None, up=(0.0, 0.0, 1.0), title=None, dpi: int = 110) -> Path:  # fmt: skip
-    """Top view of a map, saved as PNG at ``path``; returns ``Path(path)``.
+def _place_labels(fig, ax, anchors, texts, colors, fontsize: float = 7.0) -> None:
+    """Labels at ``anchors`` (data coordinates) that do not cover each other: each is put
+    at its anchor if that is free, else at the first free point of rings of growing
+    radius around it (joined to the anchor by a thin line), largest objects first."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
 
-    ``ellipsoids``: landmarks (``.P`` and ``.center``), drawn as their silhouettes
-    (``top_view_ellipse``) with ``labels`` (default: their indices) at the centres;
-    ``gt_cuboids``: ``Cuboid``s or objects with ``.cuboid`` (e.g. ``GroundTruthObject``),
-    drawn dashed as footprints; ``trajectory`` / ``gt_trajectory``: TUM rows (N, 7) or
-    (N, 8) of the estimated and ground-truth camera poses. ``up`` is the viewing direction
-    (the plot's axes are ``plane_basis(up)``).
-    """
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    ax.apply_aspect()
+    frame = ax.get_window_extent(renderer)
+    rings = [(0.0, 0.0)] + [(r * np.cos(a), r * np.sin(a)) for r in (11, 22, 34, 48, 64)
+                            for a in np.linspace(0, 2 * np.pi, 12, endpoint=False) + r]
+    placed = []
+    for xy, text, color in zip(anchors, texts, colors):
+        for k, (dx, dy) in enumerate(rings):
+            t = ax.annotate(
+                text, xy, xytext=(dx, dy), textcoords="offset points", ha="center",
+                va="center", fontsize=fontsize, color=color,
+                arrowprops=None if k == 0 else dict(arrowstyle="-", color=color, lw=0.6),
+            )
+            t.update_positions(renderer)
+            bb = Text.get_window_extent(t, renderer).expanded(1.08, 1.15)
+            free = all(not bb.overlaps(o) for o in placed)
+            inside = frame.contains(bb.x0, bb.y0) and frame.contains(bb.x1, bb.y1)
+            if (free and inside) or k == len(rings) - 1:
+                placed.append(bb)
+                break
+            t.remove()
+
+
+def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool):
+    """Ellipsoids, ground-truth footprints and trajectories of a top view on ``ax``;
+    returns each ellipsoid's (centre, colour, area)."""
     from scipy.spatial import ConvexHull, QhullError
 
-    B = plane_basis(up)
-    ellipsoids = list(ellipsoids)
-    if labels is not None and len(labels) != len(ellipsoids):
-        raise ValueError(f"need one label per ellipsoid, got {len(labels)} for {len(ellipsoids)}")
-    fig = _figure(figsize=(7.0, 6.0))
-    ax = fig.add_subplot()
+    out = []
     for i, e in enumerate(ellipsoids):
         P, t = _landmark(e)
         c, S = top_view_ellipse(P, t, B)
         xy = ellipse_points(c, S, 120)
         color = _COLORS[i % len(_COLORS)]
         ax.fill(xy[:, 0], xy[:, 1], color=color, alpha=0.15, lw=0)
-        ax.plot(xy[:, 0], xy[:, 1], "-", color=color, lw=1.5,
-                label="estimated ellipsoids" if i == 0 else None)  # fmt: skip
-        text = str(i) if labels is None else str(labels[i])
-        ax.annotate(text, c, ha="center", va="center", fontsize=8, color=color)
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=color, lw=1.2,
+                label="estimated ellipsoids" if i == 0 and legend else None)  # fmt: skip
+        out.append((c, color, float(np.sqrt(max(np.linalg.det(S), 0.0)))))
     for i, g in enumerate(gt_cuboids or []):
         cub = getattr(g, "cuboid", g)
         pts = np.asarray(cub.corners(), dtype=float) @ B.T
@@ -198,26 +214,77 @@ def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None
             hull = pts
         hull = np.vstack([hull, hull[:1]])
         ax.plot(hull[:, 0], hull[:, 1], "--", color="black", lw=1.0,
-                label="ground-truth cuboids" if i == 0 else None)  # fmt: skip
-    for traj, style, color, name in (
-        (gt_trajectory, "--", "0.45", "ground-truth trajectory"),
-        (trajectory, "-", "tab:red", "estimated trajectory"),
-    ):
+                label="ground-truth cuboids" if i == 0 and legend else None)  # fmt: skip
+    for traj, style, color, name in trajectories:
         if traj is None:
             continue
         xy = camera_centers(traj) @ B.T
         if len(xy) == 0:
             continue
-        ax.plot(xy[:, 0], xy[:, 1], style, color=color, lw=1.0, label=name)
+        ax.plot(xy[:, 0], xy[:, 1], style, color=color, lw=1.0, label=name if legend else None)
         ax.plot(xy[:1, 0], xy[:1, 1], "o", color=color, ms=4)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel(f"{_axis_name(B[0])} [m]")
     ax.set_ylabel(f"{_axis_name(B[1])} [m]")
     ax.grid(alpha=0.3)
+    return out
+
+
+#: Above this many objects, or when the trajectory spans more than ``ZOOM_RATIO`` times
+#: the objects' extent, the top view adds a zoomed panel on the objects.
+ZOOM_OBJECTS = 12
+ZOOM_RATIO = 2.5
+
+
+def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None,
+                 gt_trajectory=None, up=(0.0, 0.0, 1.0), title=None, dpi: int = 110) -> Path:  # fmt: skip
+    """Top view of a map, saved as PNG at ``path``; returns ``Path(path)``.
+
+    ``ellipsoids``: landmarks (``.P`` and ``.center``), drawn as their silhouettes
+    (``top_view_ellipse``) with ``labels`` (default: their indices) placed so that they do
+    not cover each other; ``gt_cuboids``: ``Cuboid``s or objects with ``.cuboid`` (e.g.
+    ``GroundTruthObject``), drawn dashed as footprints; ``trajectory`` / ``gt_trajectory``:
+    TUM rows (N, 7) or (N, 8) of the estimated and ground-truth camera poses. ``up`` is the
+    viewing direction (the plot's axes are ``plane_basis(up)``). With many objects, or a
+    trajectory much larger than the objects' extent, a second panel zooms on the objects
+    (the labels go there).
+    """
+    B = plane_basis(up)
+    ellipsoids = list(ellipsoids)
+    if labels is not None and len(labels) != len(ellipsoids):
+        raise ValueError(f"need one label per ellipsoid, got {len(labels)} for {len(ellipsoids)}")
+    texts = [str(i) if labels is None else str(labels[i]) for i in range(len(ellipsoids))]
+    trajectories = ((gt_trajectory, "--", "0.45", "ground-truth trajectory"),
+                    (trajectory, "-", "tab:red", "estimated trajectory"))
+    centres = np.array([top_view_ellipse(*_landmark(e), B)[0] for e in ellipsoids]).reshape(-1, 2)
+    zoom = False
+    if len(centres):
+        extent = np.ptp(centres, axis=0).max() + 0.5
+        span = max([np.ptp(camera_centers(t) @ B.T, axis=0).max()
+                    for t, *_ in trajectories if t is not None and len(t)] or [0.0])
+        zoom = len(ellipsoids) > ZOOM_OBJECTS or span > ZOOM_RATIO * extent
+    fig = _figure(figsize=(13.0, 6.2) if zoom else (7.0, 6.0))
+    ax = fig.add_subplot(1, 2, 1) if zoom else fig.add_subplot()
+    drawn = _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend=True)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8, loc="best")
-    ax.set_title(title if title is not None else f"top view (up = {_axis_name(np.cross(B[0], B[1]))})")
+    name = title if title is not None else f"top view (up = {_axis_name(np.cross(B[0], B[1]))})"
+    ax.set_title(name)
+    target = ax
+    if zoom:
+        target = fig.add_subplot(1, 2, 2)
+        drawn = _draw_map(target, B, ellipsoids, gt_cuboids, (), legend=False)
+        outline = np.concatenate([ellipse_points(*top_view_ellipse(*_landmark(e), B), 60)
+                                  for e in ellipsoids])
+        lo, hi = outline.min(axis=0) - 0.1, outline.max(axis=0) + 0.1
+        target.set_aspect("equal", adjustable="box")
+        target.set_xlim(lo[0], hi[0])
+        target.set_ylim(lo[1], hi[1])
+        target.set_title(f"the {len(ellipsoids)} objects")
     fig.tight_layout()
+    order = sorted(range(len(drawn)), key=lambda i: -drawn[i][2])
+    _place_labels(fig, target, [drawn[i][0] for i in order], [texts[i] for i in order],
+                  [drawn[i][1] for i in order])
     return _save(fig, path, dpi)
 
 

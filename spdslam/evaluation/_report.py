@@ -10,8 +10,15 @@ else by a Hungarian assignment on 3D IoU among objects of the same label):
 - centre error (m).
 
 Per sequence: the mean IoU over the ground-truth objects (an object the method did not
-map counts 0), the mean orientation and centre errors over the mapped ones, and the
-trajectory ATE (RMSE after SE(3) alignment) when ground-truth poses exist.
+map counts 0; the headline), the mean over the matched ones, the mean orientation and
+centre errors over the matched ones, and the trajectory ATE (RMSE after SE(3) alignment)
+when ground-truth poses exist.
+
+The frame: the map stays in its trajectory's frame. With ground-truth poses the objects
+are compared in the ground truth's frame, moved by ``to_groundtruth`` (4×4), the rigid
+motion that best maps the estimated (optimised) trajectory's camera centres onto the
+ground truth's over timestamps within 0.02 s (``geometry.align_rigid``, as the ATE and
+evo's ``--align``): the map is judged with the trajectory it was estimated with.
 """
 
 from __future__ import annotations
@@ -22,9 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import Cuboid
-from ..io import tum_text, write_folder_atomically, write_map
-from ._metrics import absolute_trajectory_error, cuboid_iou, orientation_error_deg
+from ..geometry import Cuboid, Ellipsoid, align_rigid
+from ..io import MapObject, tum_text, write_folder_atomically, write_map
+from ._metrics import (
+    absolute_trajectory_error,
+    associate_timestamps,
+    cuboid_iou,
+    orientation_error_deg,
+)
 from ._plots import plot_map_top, write_overlays
 
 __all__ = [
@@ -33,8 +45,10 @@ __all__ = [
     "evaluate_objects",
     "evaluate_run",
     "match_objects",
+    "moved",
     "report_markdown",
     "table_iii",
+    "to_groundtruth",
     "write_run",
 ]
 
@@ -98,15 +112,59 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
         "ground_truth_objects": n_gt,
         "matched": len(matched),
         "mean_iou": float(sum(r.iou for r in matched) / n_gt) if n_gt else float("nan"),
+        "mean_iou_matched": float(np.mean([r.iou for r in matched])) if matched else float("nan"),
         "mean_orientation_deg": float(np.mean([r.orientation_deg for r in matched])) if matched else float("nan"),
         "mean_center_error": float(np.mean([r.center_error for r in matched])) if matched else float("nan"),
     }
     return rows, summary
 
 
-def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq) -> dict:
-    """Metrics of a run against the sequence's ground truth (what exists of it)."""
+def to_groundtruth(seq, poses_tum=None) -> tuple[np.ndarray | None, str]:
+    """(4×4 rigid motion from the trajectory's frame to the ground truth's, or None; why
+    not): the alignment of the module docstring for the estimated trajectory ``poses_tum``
+    (TUM rows with timestamps; default the sequence's own); None without ground-truth
+    poses or when they do not fix it (fewer than 3 common timestamps, collinear centres)."""
+    if seq.groundtruth_tum is None:
+        return None, "no ground-truth poses"
+    gt = np.asarray(seq.groundtruth_tum)
+    est = np.column_stack([seq.timestamps, seq.poses_tum]) if poses_tum is None \
+        else np.asarray(poses_tum, float)
+    ia, ib = associate_timestamps(est[:, 0], gt[:, 0], 0.02)
+    if ia.size < 3:
+        return None, f"only {ia.size} trajectory timestamps within 0.02 s of the ground truth's"
+    try:
+        R, t, _ = align_rigid(est[ia, 1:4], gt[ib, 1:4])
+    except ValueError as e:
+        return None, str(e)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T, ""
+
+
+def moved(objects, T):
+    """``MapObject``s moved by the rigid motion T (4×4): P ← R P Rᵀ, t ← R t + p."""
+    if T is None:
+        return list(objects)
+    R, p = T[:3, :3], T[:3, 3]
+    return [MapObject(o.id, o.label, Ellipsoid(R @ np.asarray(o.ellipsoid.P) @ R.T,
+                                               R @ np.asarray(o.ellipsoid.center) + p),
+                      getattr(o, "uncertainty", None))
+            for o in objects]
+
+
+def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
+                 align: bool = True) -> dict:
+    """Metrics of a run against the sequence's ground truth (what exists of it), the
+    objects compared in the ground truth's frame (``to_groundtruth``; ``align=False``
+    compares them as mapped, for sequences whose trajectory is in that frame already)."""
     out = {"sequence": seq.name, "method": map_dict["method"]}
+    T, why = to_groundtruth(seq, poses_tum) if align else (None, "not asked")
+    if T is not None:
+        out["to_groundtruth"] = T.tolist()
+    elif seq.groundtruth_tum is not None and align:
+        out["not_aligned"] = why
+    objects = moved(objects, T)
+    initial_objects = None if initial_objects is None else moved(initial_objects, T)
     association = map_dict.get("association")
     if not isinstance(association, dict):  # maps written before automatic association
         association = {"mode": "instances"}
@@ -187,6 +245,25 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+def ground_truth_in_map_frame(seq, T):
+    """(ground-truth cuboids, ground-truth TUM rows) moved into the map's frame by T⁻¹
+    (``to_groundtruth``; unchanged when T is None)."""
+    cuboids = [g.cuboid for g in seq.objects_gt] if seq.objects_gt else None
+    traj = seq.groundtruth_tum
+    if T is None:
+        return cuboids, traj
+    from scipy.spatial.transform import Rotation
+
+    R, p = T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]
+    if cuboids is not None:
+        cuboids = [Cuboid(R @ c.center + p, R @ c.rotation, c.half_extents) for c in cuboids]
+    if traj is not None:
+        traj = np.array(traj, dtype=float)
+        traj[:, 1:4] = traj[:, 1:4] @ R.T + p
+        traj[:, 4:8] = (Rotation.from_matrix(R) * Rotation.from_quat(traj[:, 4:8])).as_quat()
+    return cuboids, traj
+
+
 def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
               overwrite: bool = False) -> dict:
     """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
@@ -195,18 +272,21 @@ def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None =
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
+        metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
+        if "to_groundtruth" in metrics:
+            m["to_groundtruth"] = metrics["to_groundtruth"]
         write_map(tmp / "map.json", m)
         (tmp / "trajectory.txt").write_text(tum_text(result.poses_tum), encoding="utf-8")
-        metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
         if "summary" in metrics or "ate" in metrics:
             (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
             (tmp / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
         up = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
+        T = np.asarray(metrics["to_groundtruth"]) if "to_groundtruth" in metrics else None
+        gt_cuboids, gt_traj = ground_truth_in_map_frame(seq, T)
         plot_map_top(
             tmp / "map_top.png", [o.ellipsoid for o in result.objects],
             labels=[f"{o.label} {o.id}" for o in result.objects],
-            gt_cuboids=[g.cuboid for g in seq.objects_gt] if seq.objects_gt else None,
-            trajectory=result.poses_tum, gt_trajectory=seq.groundtruth_tum, up=up,
+            gt_cuboids=gt_cuboids, trajectory=result.poses_tum, gt_trajectory=gt_traj, up=up,
             title=f"{result.method.name} on {seq.name}",
         )
         if overlay and seq.images:

@@ -29,17 +29,23 @@ from ._box import inverse_box_residual as inverse_box_residual
 from ._box import inverse_cuboid_box_residual as inverse_cuboid_box_residual
 from ._box import semi_inverse_box_residual as semi_inverse_box_residual
 from ._box import semi_inverse_cuboid_box_residual as semi_inverse_cuboid_box_residual
-from ._ellipsoid_measurement import EllipsoidMeasurementFactor as EllipsoidMeasurementFactor
-from ._ellipsoid_measurement import ellipsoid_measurement_residual as ellipsoid_measurement_residual
+from ._ellipsoid_measurement import (
+    EllipsoidMeasurementFactor as EllipsoidMeasurementFactor,
+)
+from ._ellipsoid_measurement import (
+    ellipsoid_measurement_residual as ellipsoid_measurement_residual,
+)
 from ._object import AxisOrientationFactor as AxisOrientationFactor
 from ._object import ClassicOrientationFactor as ClassicOrientationFactor
 from ._object import OrientationFactor as OrientationFactor
+from ._object import RadiusFloorFactor as RadiusFloorFactor
 from ._object import ShapeFactor as ShapeFactor
 from ._object import SizeFactor as SizeFactor
 from ._object import SupportPlaneFactor as SupportPlaneFactor
 from ._object import axis_orientation_residual as axis_orientation_residual
 from ._object import classic_orientation_residual as classic_orientation_residual
 from ._object import orientation_residual as orientation_residual
+from ._object import radius_floor_residual as radius_floor_residual
 from ._object import shape_residual as shape_residual
 from ._object import size_residual as size_residual
 from ._object import support_plane_residual as support_plane_residual

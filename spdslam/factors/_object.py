@@ -22,12 +22,14 @@ __all__ = [
     "ShapeFactor",
     "SizeFactor",
     "SupportPlaneFactor",
+    "RadiusFloorFactor",
     "orientation_residual",
     "classic_orientation_residual",
     "axis_orientation_residual",
     "shape_residual",
     "size_residual",
     "support_plane_residual",
+    "radius_floor_residual",
 ]
 
 
@@ -176,6 +178,16 @@ def size_residual(landmark, log_prior_volume):
     return jnp.atleast_1d((0.5 * logdet - log_prior_volume) / 3.0)
 
 
+def radius_floor_residual(landmark, log_floor):
+    """max(0, log ρ − log s₃): zero while the smallest radius s₃ is above the floor ρ, the
+    log of how far it is below otherwise. One-sided, so it biases no object whose extent
+    the data fix; it keeps one whose extent they do not (a flat start, boxes with little
+    parallax, a support plane satisfied by the flat solution) off the boundary of SPD(3),
+    for every parameterisation."""
+    w, _ = eigh(as_ellipsoid(landmark).P)
+    return jnp.atleast_1d(jnp.maximum(0.0, log_floor - 0.5 * jnp.log(jnp.maximum(w[0], 1e-300))))
+
+
 def support_plane_residual(landmark, plane):
     """πᵀQ*π for the plane the object stands on (unit normal): zero when it touches it."""
     return jnp.atleast_1d(plane @ dual_quadric(landmark) @ plane)
@@ -221,6 +233,22 @@ class SizeFactor(_ClassPriorFactor):
     @staticmethod
     def prior_data(r):
         return np.array(np.sum(np.log(r)))
+
+
+class RadiusFloorFactor(_LandmarkFactor):
+    """The smallest radius stays above a floor ρ (m): ``radius_floor_residual``."""
+
+    kind = "radius_floor"
+    residual = staticmethod(radius_floor_residual)
+    dim = 1
+    group = "radius_floor"
+    sigmas = (Sigma(0.1, "log of the smallest radius below the floor"),)
+
+    def __init__(self, landmark_key, floor, **noise):
+        f = float(floor)
+        if not (np.isfinite(f) and f > 0):
+            raise ValueError(f"floor must be a positive radius (m), got {floor!r}")
+        super().__init__((landmark_key,), (np.array(np.log(f)),), **noise)
 
 
 class SupportPlaneFactor(_LandmarkFactor):

@@ -1,5 +1,6 @@
 """The front end: detections grouped into tracks (data association) and each track's
-initial ellipsoid (Quadric-SVD, Quadric-Multi). Imports ``geometry`` and ``io``.
+initial ellipsoid (Quadric-SVD, Quadric-Multi), and the support planes the initial objects
+rest on. Imports ``geometry`` and ``io``.
 """
 
 from ._association import Association as Association
@@ -14,3 +15,6 @@ from ._initialization import InitializationError as InitializationError
 from ._initialization import multi_initialize as multi_initialize
 from ._initialization import svd_initialize as svd_initialize
 from ._initialization import triangulate_rays as triangulate_rays
+from ._scene import SupportPlanes as SupportPlanes
+from ._scene import estimate_support_planes as estimate_support_planes
+from ._scene import lowest_points as lowest_points

@@ -22,7 +22,7 @@ from scipy.optimize import linear_sum_assignment
 
 from ..geometry import Ellipsoid, in_front, project_box, spd, truncation_mask
 from ..geometry.se3 import quat_to_matrix
-from ..io import Sequence
+from ..io import Sequence, class_prior
 
 __all__ = [
     "Track",
@@ -235,9 +235,8 @@ class _Scene:
         self.ray = np.einsum("nij,nj->ni", self.R[self.frame], ray_c)
         self.origin = self.C[self.frame]
         radius = np.full(n, s.default_radius)
-        classes = {} if seq.priors is None else seq.priors.classes
         for lab, k in lab_idx.items():
-            cp = classes.get(lab)
+            cp = class_prior(seq.priors, lab)
             if cp is not None:
                 radius[self.label == k] = float(np.exp(np.mean(np.log(np.asarray(cp.radii)))))
         w, h = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]

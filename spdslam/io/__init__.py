@@ -6,6 +6,10 @@ Every malformed file gives a one-line ``file:line: expected …, got …`` error
 ``solver`` (g2o builds pose graphs).
 """
 
+from ._classes import BUILTIN_CLASSES as BUILTIN_CLASSES
+from ._classes import CLASS_SOURCES as CLASS_SOURCES
+from ._classes import builtin_class_prior as builtin_class_prior
+from ._classes import class_prior as class_prior
 from ._g2o import Edge as Edge
 from ._g2o import PoseGraph as PoseGraph
 from ._g2o import parse_g2o as parse_g2o
@@ -16,6 +20,10 @@ from ._importers import COCO_LABELS as COCO_LABELS
 from ._importers import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
 from ._importers import import_fr3_cabinet as import_fr3_cabinet
 from ._importers import is_fr3_cabinet as is_fr3_cabinet
+from ._map import MapFormatError as MapFormatError
+from ._map import MapObject as MapObject
+from ._map import read_map as read_map
+from ._map import write_map as write_map
 from ._oaslam import COCO80 as COCO80
 from ._oaslam import estimate_up as estimate_up
 from ._oaslam import import_oaslam as import_oaslam
@@ -23,10 +31,6 @@ from ._oaslam import is_oaslam_layout as is_oaslam_layout
 from ._oaslam import read_detections_json as read_detections_json
 from ._oaslam import read_opencv_camera as read_opencv_camera
 from ._oaslam import read_quadrics_gt as read_quadrics_gt
-from ._map import MapFormatError as MapFormatError
-from ._map import MapObject as MapObject
-from ._map import read_map as read_map
-from ._map import write_map as write_map
 from ._parse import MATCH_TOLERANCE as MATCH_TOLERANCE
 from ._parse import SequenceFormatError as SequenceFormatError
 from ._parse import read_images as read_images

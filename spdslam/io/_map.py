@@ -20,15 +20,17 @@ class MapFormatError(ValueError):
 
 @dataclass(frozen=True)
 class MapObject:
-    """An object of the map: id, label and ellipsoid (P, t)."""
+    """An object of the map: id, label and ellipsoid (P, t); ``uncertainty`` (optional):
+    marginal standard deviations of its centre (m) and log-radii (``mapping``)."""
 
     id: int
     label: str
     ellipsoid: Ellipsoid
+    uncertainty: dict | None = None
 
     def as_dict(self) -> dict:
         R, s = (np.asarray(a) for a in self.ellipsoid.axes())
-        return {
+        out = {
             "id": int(self.id),
             "label": self.label,
             "center": np.asarray(self.ellipsoid.center).tolist(),
@@ -36,6 +38,9 @@ class MapObject:
             "radii": s.tolist(),
             "P": np.asarray(self.ellipsoid.P).tolist(),
         }
+        if self.uncertainty is not None:
+            out["uncertainty"] = self.uncertainty
+        return out
 
 
 def write_map(path, map_dict: dict) -> None:
@@ -72,5 +77,6 @@ def read_map(path) -> tuple[dict, list]:
             ok = False
         if not ok:
             raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
-        objs.append(MapObject(oid, label, Ellipsoid(P, c)))
+        u = o.get("uncertainty")
+        objs.append(MapObject(oid, label, Ellipsoid(P, c), u if isinstance(u, dict) else None))
     return m, objs

@@ -13,9 +13,8 @@
   for none); evaluated as their circumscribed cuboids.
 
 Boxes are undistorted (``geometry.undistort_boxes``) so that the sequence is a pinhole one. The
-mapping never reads ground truth: with the odometry as the trajectory, the ground truth (its
-trajectory and objects) is moved into the odometry's frame by the rigid alignment of the two
-trajectories over their common timestamps, for the evaluation only.
+mapping never reads ground truth; it stays in its own (motion-capture) frame, and the
+evaluation aligns the trajectory to it (``evaluation.to_groundtruth``).
 """
 
 from __future__ import annotations
@@ -27,9 +26,17 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import Camera, Cuboid, align_rigid, undistort_boxes
-from ._parse import (CAMERA_KEYS, MATCH_TOLERANCE, SequenceFormatError, _number, _rows,
-                     camera_from, read_tum, required)
+from ..geometry import Camera, Cuboid, undistort_boxes
+from ._parse import (
+    CAMERA_KEYS,
+    MATCH_TOLERANCE,
+    SequenceFormatError,
+    _number,
+    _rows,
+    camera_from,
+    read_tum,
+    required,
+)
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
 __all__ = ["COCO80", "is_oaslam_layout", "import_oaslam", "read_opencv_camera",
@@ -224,13 +231,15 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
                   undistort: bool = True) -> Sequence:
     """The OA-SLAM-style layout (module docstring) as a :class:`Sequence`.
 
-    ``trajectory``: "odometry" (the visual SLAM's poses, as the paper) or "groundtruth".
+    ``trajectory``: "odometry" (the visual SLAM's poses, as the paper) or "groundtruth" (the
+    ground-truth poses nearest to the images with detections).
     Detections of frames without a pose within 0.02 s are left out; boxes are undistorted;
     ``priors.yaml`` is read when present; ``up`` is estimated from the cameras
     (``estimate_up``) and ``trajectory_sigma`` is ``ODOMETRY_SIGMA`` or
     ``GROUNDTRUTH_SIGMA`` unless it gives them. ``undistort=False`` keeps the measured boxes
-    (to measure what the distortion does). With the odometry, the ground-truth trajectory and objects are
-    expressed in the odometry's frame (rigid alignment over common timestamps)."""
+    (to measure what the distortion does). The ground truth (trajectory and objects) stays
+    in its own frame: the evaluation aligns the trajectory to it
+    (``evaluation.to_groundtruth``)."""
     from ._readers import read_priors
 
     folder = Path(folder)
@@ -247,8 +256,13 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     else:
         traj = read_tum(required(folder, "groundtruth.txt"), str(folder / "groundtruth.txt"),
                         skip_repeats=True)
-    timestamps = traj[:, 0]
     raw = read_detections_json(_one(_json_files(folder), folder, "detections*.json"), min_score)
+    if trajectory == "groundtruth" and raw:
+        # the motion capture runs at 100 Hz: the camera's frames are the poses nearest to
+        # the images (those with a detection), within the matching tolerance
+        near, ok = _nearest(traj[:, 0], np.array([r[0] for r in raw]))
+        traj = traj[np.unique(near[ok])]
+    timestamps = traj[:, 0]
     detections = []
     if raw:
         t = np.array([r[0] for r in raw])
@@ -258,20 +272,17 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
         for k in np.flatnonzero(ok):
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
     objects = read_quadrics_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
-    if trajectory == "odometry" and gt is not None:
-        gt, objects = _into_frame_of(traj, gt, objects, folder)
     priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
     if priors is None or priors.trajectory_sigma is None:
         ts = ODOMETRY_SIGMA if trajectory == "odometry" else GROUNDTRUTH_SIGMA
-        priors = Priors([], None, {}, ts) if priors is None else Priors(
-            priors.support_planes, priors.up, priors.classes, ts)
+        priors = Priors([], None, {}, ts) if priors is None else priors.replace(trajectory_sigma=ts)
     if priors.up is None:
         try:
             up = estimate_up(traj[:, 1:])
         except ValueError as e:
             raise SequenceFormatError(folder, None, "an up direction (priors.yaml) or cameras "
                                       "that turn about the vertical", str(e)) from None
-        priors = Priors(priors.support_planes, up, priors.classes, priors.trajectory_sigma)
+        priors = priors.replace(up=up)
     return Sequence(folder.name, camera, timestamps, traj[:, 1:], detections, objects, gt, priors)
 
 
@@ -284,26 +295,3 @@ def _nearest(sorted_t: np.ndarray, t: np.ndarray):
         j = np.clip(np.searchsorted(sorted_t, t), 1, len(sorted_t) - 1)
         i = np.where(np.abs(sorted_t[j - 1] - t) < np.abs(sorted_t[j] - t), j - 1, j)
     return i, np.abs(sorted_t[i] - t) <= MATCH_TOLERANCE
-
-
-def _into_frame_of(traj: np.ndarray, gt: np.ndarray, objects, folder: Path):
-    """The ground truth (TUM rows, objects) moved into the frame of ``traj`` by the rigid
-    motion that best maps the ground-truth camera centres onto the trajectory's over
-    timestamps within 0.02 s of each other (``geometry.align_rigid``)."""
-    j, ok = _nearest(gt[:, 0], traj[:, 0])
-    try:
-        R, t, _ = align_rigid(gt[j[ok], 1:4], traj[ok, 1:4])
-    except ValueError as e:
-        raise SequenceFormatError(
-            folder / "groundtruth.txt", None,
-            "camera centres that fix its alignment to the odometry (or --trajectory "
-            "groundtruth)", str(e)) from None
-    out = gt.copy()
-    out[:, 1:4] = gt[:, 1:4] @ R.T + t
-    out[:, 4:8] = (Rotation.from_matrix(R) * Rotation.from_quat(gt[:, 4:8])).as_quat()
-    if objects is not None:
-        objects = [GroundTruthObject(o.id, o.label, Cuboid(R @ o.cuboid.center + t,
-                                                           R @ o.cuboid.rotation,
-                                                           o.cuboid.half_extents))
-                   for o in objects]
-    return out, objects

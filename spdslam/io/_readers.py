@@ -30,6 +30,7 @@ from ._parse import (
     _box,
     _check_columns,
     _integer,
+    _kind,
     _line,
     _mapping,
     _match,
@@ -41,13 +42,19 @@ from ._parse import (
     _yaml_root,
     _ynumber,
     _yvector,
-    _kind,
     camera_from,
     read_images,
     read_tum,
     required,
 )
-from ._sequence import ClassPrior, Detection, EllipsoidDetection, GroundTruthObject, Priors, Sequence
+from ._sequence import (
+    ClassPrior,
+    Detection,
+    EllipsoidDetection,
+    GroundTruthObject,
+    Priors,
+    Sequence,
+)
 
 __all__ = [
     "read_sequence",
@@ -82,8 +89,8 @@ def read_priors(path, name: str | None = None) -> Priors:
     path = Path(path)
     name = name or str(path)
     root = _yaml_root(path, name)
-    planes, up, classes, tsig = [], None, {}, None
-    allowed = ("support_planes", "up", "classes", "trajectory_sigma")
+    planes, up, classes, tsig, builtin = [], None, {}, None, True
+    allowed = ("support_planes", "up", "classes", "builtin_classes", "trajectory_sigma")
     import yaml
 
     for key, knode, vnode in _mapping(name, root, "the priors"):
@@ -103,6 +110,10 @@ def read_priors(path, name: str | None = None) -> Priors:
             tsig = _yvector(name, vnode, 2, "trajectory_sigma [metres, radians]")
             if not np.all(tsig > 0):
                 raise SequenceFormatError(name, _line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
+        elif key == "builtin_classes":
+            builtin = _scalar(vnode)
+            if not isinstance(builtin, bool):
+                raise SequenceFormatError(name, _line(vnode), "builtin_classes: true or false", _kind(vnode))
         elif key == "classes":
             for label, lk, cnode in _mapping(name, vnode, "classes"):
                 radii = sigma = None
@@ -133,7 +144,7 @@ def read_priors(path, name: str | None = None) -> Priors:
                 classes[label] = ClassPrior(radii, sigma, shape)
         else:
             _unknown_key(name, knode, key, allowed, "priors.yaml")
-    return Priors(planes, up, classes, tsig)
+    return Priors(planes, up, classes, tsig, builtin)
 
 
 def read_detections(path, timestamps, name: str | None = None) -> list:

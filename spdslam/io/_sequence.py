@@ -181,12 +181,17 @@ class ClassPrior:
 class Priors:
     """Scene priors: support planes ``[a, b, c, d]`` (ax + by + cz + d = 0), the up
     direction, per-class size priors, and the accuracy of the trajectory's relative motion
-    per frame step ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: the back end's default)."""
+    per frame step ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: the back end's default).
+
+    ``builtin_classes``: classes without an entry in ``classes`` take the built-in table's
+    (``spdslam.io.BUILTIN_CLASSES``, typical sizes of the indoor COCO-80 classes); see
+    :meth:`class_prior`."""
 
     support_planes: list = field(default_factory=list)
     up: np.ndarray | None = None
     classes: dict = field(default_factory=dict)
     trajectory_sigma: np.ndarray | None = None
+    builtin_classes: bool = True
 
     def __post_init__(self):
         if self.trajectory_sigma is not None:
@@ -200,6 +205,23 @@ class Priors:
         if self.up is not None:
             object.__setattr__(self, "up", _frozen_array(self.up, (3,)))
         object.__setattr__(self, "classes", dict(self.classes))
+        object.__setattr__(self, "builtin_classes", bool(self.builtin_classes))
+
+    def class_prior(self, label):
+        """The ``ClassPrior`` of ``label``: its entry in ``classes``, else the built-in
+        table's when ``builtin_classes``, else None."""
+        cp = self.classes.get(label)
+        if cp is None and self.builtin_classes:
+            from ._classes import builtin_class_prior
+
+            cp = builtin_class_prior(label)
+        return cp
+
+    def replace(self, **changes) -> "Priors":
+        """A copy with the given fields replaced."""
+        import dataclasses
+
+        return dataclasses.replace(self, **changes)
 
     def up_and_planes(self):
         """(unit up or None, support planes (k, 4) with unit normals facing up, or None).
@@ -233,7 +255,7 @@ class Priors:
             return False
         if self.trajectory_sigma is not None and not _close(self.trajectory_sigma, other.trajectory_sigma):
             return False
-        return self.classes == other.classes
+        return self.classes == other.classes and self.builtin_classes == other.builtin_classes
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,6 +298,27 @@ class Sequence:
 
     def __len__(self) -> int:
         return int(self.timestamps.size)
+
+    def subset(self, frames) -> "Sequence":
+        """The sequence restricted to the trajectory indices ``frames`` (increasing): their
+        poses, detections and measured ellipsoids, renumbered; ground truth, priors and
+        images unchanged."""
+        import dataclasses
+
+        frames = np.asarray(frames, dtype=int)
+        if frames.ndim != 1 or np.any(np.diff(frames) <= 0) or (
+                frames.size and (frames[0] < 0 or frames[-1] >= len(self))):
+            raise ValueError(f"frames must be increasing indices in 0…{len(self) - 1}")
+        new = np.full(len(self), -1)
+        new[frames] = np.arange(frames.size)
+        dets = [dataclasses.replace(d, frame=int(new[d.frame])) for d in self.detections
+                if new[d.frame] >= 0]
+        ells = None if self.ellipsoids is None else [
+            dataclasses.replace(e, frame=int(new[e.frame])) for e in self.ellipsoids
+            if new[e.frame] >= 0]
+        return dataclasses.replace(self, timestamps=self.timestamps[frames],
+                                   poses_tum=self.poses_tum[frames], detections=dets,
+                                   ellipsoids=ells)
 
     def detections_at(self, frame: int) -> list:
         """The detections of trajectory index ``frame``."""

@@ -97,6 +97,8 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
         for label, cp in p.classes.items():
             shape = "" if cp.shape == "ellipsoid" else f", shape: {cp.shape}"
             text += f"  {json.dumps(str(label))}: {{radii: {_ylist(cp.radii)}, sigma: {_yf(cp.sigma)}{shape}}}\n"
+        if not p.builtin_classes:
+            text += "builtin_classes: false\n"
         if p.trajectory_sigma is not None:
             text += f"trajectory_sigma: {_ylist(p.trajectory_sigma)}\n"
         (out / "priors.yaml").write_text(text, encoding="utf-8")

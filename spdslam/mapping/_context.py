@@ -9,7 +9,7 @@ import jaxlie
 import numpy as np
 
 from ..geometry.se3 import from_tum
-from ..io import Sequence
+from ..io import Sequence, class_prior
 from ._methods import Method
 
 __all__ = ["SequenceContext", "as_context", "object_shape"]
@@ -51,7 +51,7 @@ class SequenceContext:
 
     def class_prior(self, label):
         """The ``ClassPrior`` of a label, or None."""
-        return None if self.priors is None else self.priors.classes.get(label)
+        return class_prior(self.priors, label)
 
     def support_planes(self) -> list:
         """The priors' support planes as given (rows [a, b, c, d]); [] without priors."""
@@ -68,5 +68,5 @@ def object_shape(method: Method, priors, label) -> str:
     ``object_shape="priors"`` its class prior's shape ("ellipsoid" without a prior)."""
     if method.object_shape != "priors":
         return method.object_shape
-    cp = None if priors is None else priors.classes.get(label)
+    cp = class_prior(priors, label)
     return "ellipsoid" if cp is None else getattr(cp, "shape", "ellipsoid")

@@ -21,7 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..factors import DEFAULT_TRUNCATION_MARGIN, Cauchy, Huber, default_sigmas, robust_groups
+from ..factors import (
+    DEFAULT_TRUNCATION_MARGIN,
+    Cauchy,
+    Huber,
+    default_sigmas,
+    robust_groups,
+)
 from ..geometry import OBJECT_SHAPES
 
 __all__ = [
@@ -35,6 +41,7 @@ __all__ = [
     "DEFAULT_MAPPING_SIGMAS",
     "Method",
     "METHODS",
+    "RADIUS_FLOOR",
     "robust_kernel",
 ]
 
@@ -64,6 +71,9 @@ MAPPING_SIGMAS = {
     "odometry_rotation": (0.003, "rad per frame step"),
     "first_pose": (1e-4, "m and rad (prior on the first pose)"),
 }
+#: The smallest floor of ``Method.radius_floor`` (m): twice the radius below which an object
+#: is reported degenerate (``mapping.MIN_RADIUS``).
+RADIUS_FLOOR = 2e-3
 #: Sigmas that may be 0 (an additive relative term).
 ZERO_ALLOWED = ("inverse_box_relative", "inverse_cuboid_box_relative")
 
@@ -104,6 +114,12 @@ class Method:
     #: Box edges within this many px of the image border carry no bound (truncated
     #: detections), in the initialisation and in every box factor; negative: keep all edges.
     truncation_margin: float = DEFAULT_TRUNCATION_MARGIN
+    #: A one-sided floor on each object's smallest radius (``RadiusFloorFactor``): a
+    #: quarter of its class prior's smallest radius, at least ``RADIUS_FLOOR`` m.
+    radius_floor: bool = True
+    #: The shape and size factors of a built-in class prior (``io.BUILTIN_CLASSES``) carry
+    #: a Cauchy kernel (k = ``BUILTIN_PRIOR_CAUCHY``); False: plain factors, as a stated prior.
+    robust_builtin_priors: bool = True
 
     def __post_init__(self):
         for name, allowed in (
@@ -147,7 +163,7 @@ class Method:
 
 METHODS = {
     "quadric-slam": Method(
-        "quadric-slam", "rts", "svd", "inverse", "none", False, False, False
+        "quadric-slam", "rts", "svd", "inverse", "none", False, False, False, radius_floor=False
     ),
     "multi-rts": Method("multi-rts", "rts", "multi", "inverse", "classic", True, True, True),
     "multi-spd": Method("multi-spd", "spd", "multi", "inverse", "improved", True, True, True),

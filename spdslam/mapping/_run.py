@@ -20,23 +20,36 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..frontend import (
     InitializationError,
+    SupportPlanes,
     Track,
     association_scores,
+    estimate_support_planes,
     multi_initialize,
     svd_initialize,
     tracks_from_instances,
 )
 from ..frontend import associate as auto_associate
-from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, as_ellipsoid, in_front
+from ..geometry import (
+    Ellipsoid,
+    EllipsoidFull,
+    EllipsoidRTS,
+    as_ellipsoid,
+    in_front,
+    manifold,
+    project_box,
+)
+from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
 from ..io import MapObject, Sequence
-from ..solver import L, LevenbergMarquardt, Values, X
+from ..solver import L, LevenbergMarquardt, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
 from ._graph import build_graph, measured_objects, support_plane
+from ._keyframes import parse_keyframes, select_keyframes
 from ._methods import METHODS, Method
 
 __all__ = [
@@ -52,6 +65,9 @@ __all__ = [
 ]
 
 ASSOCIATIONS = ("instances", "auto")
+#: Where support planes come from: the priors only; else estimated from the initial
+#: objects; else estimated from the objects optimised without planes (then optimised again).
+SUPPORT_PLANES = ("priors", "initial", "optimised")
 
 
 @dataclass
@@ -133,20 +149,25 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None) -> Associat
 class Initialization:
     """The front end's result: ``tracks`` (the views that see their initial ellipsoid, and
     objects seen only as measured ellipsoids), ``ellipsoids`` {id: initial Ellipsoid},
-    ``measured`` {id: measured ellipsoids}, ``failed`` {id: reason}, ``notes``."""
+    ``measured`` {id: measured ellipsoids}, ``failed`` {id: reason}, ``notes``, and the
+    support ``planes`` estimated from the initial objects (None: the priors' planes, or
+    none, are used)."""
 
     tracks: list
     ellipsoids: dict
     measured: dict
     failed: dict
     notes: list
+    planes: SupportPlanes | None = None
 
 
-def initialize_objects(ctx, tracks, method: Method, min_views: int = 3):
+def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
+                       planes: SupportPlanes | None = None):
     """Initial ellipsoids from the boxes: ({id: Ellipsoid}, failures {id: reason}, notes).
 
     An object with fewer than ``min_views`` views is a failure; so is one the initialiser
-    cannot fit (``InitializationError``).
+    cannot fit (``InitializationError``). The multi-constraint initialisation rests an
+    object on its plane of ``planes`` when given, else on the priors' plane nearest to it.
     """
     ctx = as_context(ctx)
     priors = ctx.priors
@@ -155,7 +176,7 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3):
     if use_multi and ctx.up is None:
         notes.append("no up direction or support plane in the priors: Quadric-SVD initialisation")
         use_multi = False
-    planes = ctx.support_planes()
+    prior_planes = ctx.support_planes()
     for tr in tracks:
         Ts = [ctx.poses[i] for i in tr.frames]
         if len(tr.frames) < min_views:
@@ -164,9 +185,11 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3):
         try:
             if use_multi:
                 plane = None
-                if planes:
-                    plane = planes[0]
-                    if len(planes) > 1:
+                if planes is not None:
+                    plane = planes.plane_of(tr.id)
+                elif prior_planes:
+                    plane = prior_planes[0]
+                    if len(prior_planes) > 1:
                         plane = support_plane(priors, svd_initialize(
                             tr.boxes, Ts, ctx.camera, truncation_margin=method.margin))
                 cp = ctx.class_prior(tr.label)
@@ -187,6 +210,66 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3):
             continue
         init[tr.id] = e
     return init, failed, notes
+
+
+#: An object is poorly observed when the marginal standard deviation of its centre along
+#: some direction exceeds this (m) …
+MAX_CENTER_SIGMA = 0.1
+#: … or that of one of its log-radii exceeds this (log 2: the radius is not known to within
+#: a factor of 2).
+MAX_LOG_RADIUS_SIGMA = float(np.log(2.0))
+
+
+def _summary(lm, delta):
+    """(centre, log radii, smallest first) of the landmark ``lm`` ⊞ δ."""
+    e = as_ellipsoid(manifold.retract(lm, delta))
+    w, _ = eigh(e.P)
+    return jnp.concatenate([e.center, 0.5 * jnp.log(jnp.maximum(w, 1e-300))])
+
+
+@jax.jit
+def _summary_jacobian(lm):
+    """∂(centre, log radii)/∂δ at δ = 0, in the landmark's chart (forward mode)."""
+    return jax.jacfwd(lambda d: _summary(lm, d))(jnp.zeros(manifold.tangent_dim(lm)))
+
+
+def object_uncertainty(graph, values, ids) -> dict:
+    """{id: {"center_sigma": [3] (m, along the world axes), "center_sigma_max" (m, along
+    the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first)}}
+    from the marginal covariance Σ of each landmark L(id) at ``values``
+    (``solver.marginal_covariances``), propagated as J Σ Jᵀ with J the Jacobian of
+    (centre, log sorted radii) in the landmark's chart. An object whose block
+    is not determined gets ``inf``."""
+    cov = marginal_covariances(graph, values, [L(k) for k in ids])
+    out = {}
+    for k in ids:
+        lm, S = values[L(k)], cov[L(k)]
+        if not np.all(np.isfinite(S)):
+            inf = [float("inf")] * 3
+            out[k] = {"center_sigma": inf, "center_sigma_max": float("inf"), "log_radius_sigma": inf}
+            continue
+        J = np.asarray(_summary_jacobian(lm))
+        C = J @ S @ J.T
+        Cc = C[:3, :3]
+        out[k] = {
+            "center_sigma": np.sqrt(np.maximum(np.diag(Cc), 0.0)).tolist(),
+            "center_sigma_max": float(np.sqrt(max(np.linalg.eigvalsh(Cc)[-1], 0.0))),
+            "log_radius_sigma": np.sqrt(np.maximum(np.diag(C)[3:], 0.0)).tolist(),
+        }
+    return out
+
+
+def poorly_observed(u: dict | None) -> str:
+    """Why an object's uncertainty (``object_uncertainty``) makes it poorly observed, or ""."""
+    if not u:
+        return ""
+    why = []
+    if not u["center_sigma_max"] <= MAX_CENTER_SIGMA:
+        why.append(f"centre σ {u['center_sigma_max']:.3g} m > {MAX_CENTER_SIGMA} m")
+    worst = max(u["log_radius_sigma"])
+    if not worst <= MAX_LOG_RADIUS_SIGMA:
+        why.append(f"a radius known only to a factor {np.exp(worst):.3g} > 2")
+    return "; ".join(why)
 
 
 #: An ellipsoid is degenerate when its smallest radius is below this (m) …
@@ -231,6 +314,40 @@ def initialize_from_measurements(ctx, measurements) -> Ellipsoid:
 
 
 _visible = jax.jit(jax.vmap(lambda e, T: in_front(e, T, 1e-3), in_axes=(None, 0)))
+_seen_whole = jax.jit(jax.vmap(lambda e, T, cam: (in_front(e, T, 1e-3), project_box(e, T, cam)),
+                               in_axes=(None, 0, None)), static_argnums=2)
+
+#: A track is spurious when its object, seen whole (in front, its box inside the image) in
+#: at least ``MIN_SEEN_FRAMES`` frames, is detected in fewer than this fraction of them: a
+#: detector's recall on a real, unoccluded object is far higher (a duplicate of another
+#: track, a recurring misclassification, a hallucinated box).
+MIN_DETECTION_RATE = 0.1
+MIN_SEEN_FRAMES = 30
+
+
+def detection_rate(ctx, track, e) -> tuple[int, int]:
+    """(views of the track, frames of the sequence that see the ellipsoid ``e`` whole)."""
+    ctx = as_context(ctx)
+    cam = ctx.camera
+    ok, b = _seen_whole(e, ctx.trajectory(), cam)
+    ok, b = np.asarray(ok), np.asarray(b)
+    whole = ok & (b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] <= cam.width) & (b[:, 3] <= cam.height)
+    return len(track.frames), int(whole.sum())
+
+
+def _drop_rarely_detected(ctx, tracks, init, keep=()):
+    """Tracks whose object is detected in too few of the frames that see it
+    (``MIN_DETECTION_RATE``): {id: reason}."""
+    failed = {}
+    for tr in tracks:
+        if tr.id not in init or tr.id in keep:
+            continue
+        views, seen = detection_rate(ctx, tr, init[tr.id])
+        if seen >= MIN_SEEN_FRAMES and views < MIN_DETECTION_RATE * seen:
+            failed[tr.id] = (f"detected in {views} of the {seen} frames that see it whole "
+                             f"({100 * views / seen:.1f}% < {100 * MIN_DETECTION_RATE:.0f}%): "
+                             "a spurious or duplicate track")
+    return failed
 
 
 def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=()):
@@ -254,8 +371,8 @@ def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=(
     return kept, failed
 
 
-def initialize(ctx, association: Association, method: Method, min_views: int = 3
-               ) -> Initialization:
+def initialize(ctx, association: Association, method: Method, min_views: int = 3,
+               support_planes: str = "priors") -> Initialization:
     """The front end of a run: initial ellipsoids from the boxes, or from an object's
     measured ellipsoids when its boxes do not give one (manual association only), then the
     views that see each initial ellipsoid wholly in front (others are dropped, with a note;
@@ -264,6 +381,21 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     seq = ctx.seq
     init, failed, notes = initialize_objects(ctx, association.tracks, method, min_views)
     measured = measured_objects(ctx)
+    rare = _drop_rarely_detected(ctx, association.tracks, init, keep=measured)
+    failed.update(rare)
+    for k in rare:
+        init.pop(k)
+    planes = None
+    if (support_planes == "initial" and method.support_plane and method.initialization == "multi"
+            and ctx.up is not None and not ctx.support_planes() and init):
+        planes = estimate_support_planes(init, ctx.up)
+        if len(planes.planes):
+            notes.append(_planes_note(planes, ctx.up))
+            rested = [tr for tr in association.tracks if tr.id in planes.assignment and tr.id in init]
+            again, _, _ = initialize_objects(ctx, rested, method, min_views, planes)
+            init.update(again)  # an object that no longer fits keeps its first start
+        else:
+            planes = None
     auto = association.record["mode"] == "auto"
     if auto and seq.ellipsoids:
         # automatic track ids are not instance ids: measurements cannot be attached by id
@@ -289,7 +421,15 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
             labels = [m.label for m in ms]
             label = max(sorted(set(labels)), key=labels.count)
             tracks.append(Track(k, label, np.zeros(0, dtype=int), np.zeros((0, 4))))
-    return Initialization(tracks, init, measured, failed, notes)
+    return Initialization(tracks, init, measured, failed, notes, planes)
+
+
+def _planes_note(planes: SupportPlanes, up) -> str:
+    counts = np.bincount(list(planes.assignment.values()), minlength=len(planes.planes))
+    tilt = np.degrees(np.arccos(np.clip(planes.up @ np.asarray(up), -1.0, 1.0)))
+    each = ", ".join(f"height {-p[3]:.3f} m ({n} objects)" for p, n in zip(planes.planes, counts))
+    return (f"support planes estimated from the initial objects: {each}; the first one's "
+            f"normal is {tilt:.2f}° from up")
 
 
 # --- the run ----------------------------------------------------------------------------------
@@ -313,6 +453,8 @@ def run_sequence(
     sigmas: dict | None = None,
     max_iterations: int = 100,
     min_views: int = 3,
+    keyframes: str | int = "all",
+    support_planes: str = "priors",
     verbose: bool = False,
     progress: Callable[[str], Any] | None = None,
     **overrides,
@@ -324,6 +466,12 @@ def run_sequence(
     instance ids), ``"auto"`` (:func:`spdslam.frontend.associate`, which ignores the ids),
     or None: the ids when every detection has one, automatic otherwise. With automatic
     association the result records precision and recall against the ids where they exist.
+    ``keyframes`` ("all", "motion" or every k-th frame, ``select_keyframes``): the frames
+    used; the result's trajectory has those frames only (the odometry's σ stays per step
+    between kept frames). ``support_planes`` (``SUPPORT_PLANES``): "priors" uses the
+    priors' planes only; "initial" / "optimised" estimate them, when the priors have none,
+    from the initial objects or from the objects optimised without planes
+    (``frontend.estimate_support_planes``; then optimised again with them).
     ``progress(message)`` is called at each stage and after each LM iteration.
     """
     say = progress or (lambda message: None)
@@ -332,11 +480,19 @@ def run_sequence(
             raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
         method = METHODS[method]
     method = method.replace(**overrides)
+    if parse_keyframes(keyframes) != "all":
+        if tracks is not None:
+            raise ValueError("keyframes other than 'all' need the run's own association (tracks index frames)")
+        kept = select_keyframes(seq.poses_tum, keyframes)
+        say(f"keyframes ({keyframes}): {kept.size} of {len(seq)} frames")
+        seq = seq.subset(kept)
     ctx = SequenceContext.of(seq)
     say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
     association = associate_tracks(ctx, tracks, associate)
     say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
-    front = initialize(ctx, association, method, min_views)
+    if support_planes not in SUPPORT_PLANES:
+        raise ValueError(f"support_planes must be one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
+    front = initialize(ctx, association, method, min_views, support_planes)
     say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
     landmarks = {k: _landmark(e, method) for k, e in front.ellipsoids.items()}
@@ -355,16 +511,32 @@ def run_sequence(
                                    callback=each_iteration if progress else None)
     total_it, first_cost, res = 0, None, None
     for stage in stages:
-        graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured)
+        graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
+                            front.planes)
         say(f"optimisation ({stage} boxes): {len(values)} variables, {len(graph)} factors")
         res = optimizer.optimize(graph, values)
         values = res.values
         total_it += res.iterations
         first_cost = res.initial_cost if first_cost is None else first_cost
         landmarks = {k: values[L(k)] for k in landmarks}
+    if (support_planes == "optimised" and method.support_plane and ctx.up is not None
+            and not ctx.support_planes() and landmarks):
+        planes = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
+        if len(planes.planes):
+            front.notes.append(_planes_note(planes, ctx.up).replace("initial", "optimised"))
+            graph = build_graph(ctx, front.tracks, landmarks, method, stages[-1], sigmas,
+                                front.measured, planes)
+            say(f"optimisation with the estimated support planes: {len(graph)} factors")
+            res = optimizer.optimize(graph, values)
+            values = res.values
+            total_it += res.iterations
+            landmarks = {k: values[L(k)] for k in landmarks}
 
     labels = {tr.id: tr.label for tr in front.tracks}
-    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)])) for k in sorted(landmarks)]
+    say("uncertainty: marginal covariances of the objects")
+    spread = object_uncertainty(graph, values, sorted(landmarks))
+    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread[k])
+               for k in sorted(landmarks)]
     initial = [MapObject(k, labels[k], front.ellipsoids[k]) for k in sorted(front.ellipsoids)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(seq))])
     poses_out = np.c_[np.asarray(seq.timestamps), rows]
@@ -374,6 +546,8 @@ def run_sequence(
         why = degenerate(o.ellipsoid)
         if why:
             failed[o.id] = f"degenerate after the optimisation ({why}): the boxes do not fix its extent"
+        elif poorly_observed(o.uncertainty):
+            failed[o.id] = f"poorly observed ({poorly_observed(o.uncertainty)})"
         else:
             kept.append(o)
     return MapResult(

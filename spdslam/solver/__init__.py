@@ -25,6 +25,7 @@ from ._lm import GaussNewtonParams as GaussNewtonParams
 from ._lm import IterationRecord as IterationRecord
 from ._lm import LevenbergMarquardtParams as LevenbergMarquardtParams
 from ._lm import OptimizerParams as OptimizerParams
+from ._marginals import marginal_covariances as marginal_covariances
 from ._optimizers import Dogleg as Dogleg
 from ._optimizers import GaussNewton as GaussNewton
 from ._optimizers import LevenbergMarquardt as LevenbergMarquardt
