@@ -285,3 +285,21 @@ def test_the_evaluation_aligns_the_trajectory_to_the_ground_truth(tmp_path):
     c = np.asarray(m["objects"][0]["center"])  # the map stays in the trajectory's frame
     gt = {g.id: g.cuboid.center for g in seq.objects_gt}
     assert min(np.linalg.norm(c - R.apply(np.array(x)) - p) for x in gt.values()) < 0.3
+
+
+def test_orientation_error_is_also_reported_over_clearly_oriented_objects():
+    from spdslam.evaluation import evaluate_objects
+    from spdslam.evaluation._report import clearly_oriented
+    from spdslam.io import MapObject
+
+    assert clearly_oriented([0.3, 0.2, 0.1]) and not clearly_oriented([0.06, 0.03, 0.03])
+    assert not clearly_oriented([0.2, 0.21, 0.1])
+    gts = [GroundTruthObject(0, "box", Cuboid(np.zeros(3), np.eye(3), np.array([0.3, 0.2, 0.1]))),
+           GroundTruthObject(1, "can", Cuboid(np.array([2.0, 0, 0]), np.eye(3), np.array([0.05, 0.05, 0.1])))]
+    tilt = Rotation.from_euler("z", 10, degrees=True).as_matrix()
+    objs = [MapObject(0, "box", Ellipsoid(tilt @ np.diag([0.3, 0.2, 0.1]) ** 2 @ tilt.T, np.zeros(3))),
+            MapObject(1, "can", Ellipsoid(tilt @ np.diag([0.05, 0.051, 0.1]) ** 2 @ tilt.T,
+                                          np.array([2.0, 0, 0])))]
+    _, s = evaluate_objects(objs, gts)
+    assert s["oriented_matched"] == 1 and s["matched"] == 2
+    assert s["mean_orientation_deg_oriented"] == pytest.approx(10.0, abs=1e-6)
