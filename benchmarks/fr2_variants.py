@@ -22,12 +22,11 @@ vertical offset from its ground truth (along the ground truth's +z).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
 from spdslam.evaluation import evaluate_run
-from spdslam.io import Priors, read_sequence
+from spdslam.io import read_sequence, without_class_table
 from spdslam.mapping import run_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -103,7 +102,7 @@ def main() -> None:
     if a.offsets:
         offsets(seq)
         return
-    no_table = dataclasses.replace(seq, priors=(seq.priors or Priors()).replace(builtin_classes=False))
+    no_table = without_class_table(seq)
     variants = [
         ("defaults", seq, {}),
         ("no class table", no_table, {}),

@@ -33,7 +33,6 @@ from spdslam.io import (
     CLASS_SOURCES,
     COCO80,
     GroundTruthObject,
-    Priors,
     SequenceFormatError,
     class_prior,
     read_priors,

@@ -119,17 +119,6 @@ def _progress(message: str) -> None:
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
 
 
-def without_class_table(seq):
-    """The sequence with the built-in class table turned off (``Priors.builtin_classes``)."""
-    import dataclasses
-
-    from ..io import Priors
-
-    priors = Priors(builtin_classes=False) if seq.priors is None else \
-        seq.priors.replace(builtin_classes=False)
-    return dataclasses.replace(seq, priors=priors)
-
-
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
                    keyframes="all", support_planes="priors", **overrides):
     from ..evaluation import write_run
@@ -207,6 +196,8 @@ def run(
         fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
     seq = _load_sequence(sequence)
     if not class_table:
+        from ..io import without_class_table
+
         seq = without_class_table(seq)
     _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
                    keyframes=keyframes, support_planes=support_planes,

@@ -13,6 +13,7 @@ from ._metrics import cuboid_iou_batch as cuboid_iou_batch
 from ._metrics import orientation_error_deg as orientation_error_deg
 from ._metrics import orientation_errors_deg as orientation_errors_deg
 from ._metrics import signed_permutations as signed_permutations
+from ._metrics import trajectory_alignment as trajectory_alignment
 from ._metrics import translation_error as translation_error
 from ._plots import camera_centers as camera_centers
 from ._plots import conic_ellipse as conic_ellipse

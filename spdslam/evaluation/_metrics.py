@@ -29,6 +29,7 @@ from ..geometry import checked_vector as _vector
 __all__ = [
     "cuboid_iou",
     "cuboid_iou_batch",
+    "trajectory_alignment",
     "orientation_error_deg",
     "translation_error",
     "signed_permutations",
@@ -285,6 +286,31 @@ def _tum_array(x, name: str) -> np.ndarray:
     return a
 
 
+def _paired_centres(est_tum, gt_tum, tolerance: float, align: bool = True):
+    """(estimated centres, ground-truth centres, 4×4 alignment of the first onto the
+    second or the identity) over the timestamp pairs within ``tolerance``; ``ValueError``
+    with fewer than 3 pairs or centres that do not fix the alignment."""
+    est = _tum_array(est_tum, "est_tum")
+    gt = _tum_array(gt_tum, "gt_tum")
+    ia, ib = associate_timestamps(est[:, 0], gt[:, 0], tolerance)
+    if ia.size < 3:
+        raise ValueError(
+            f"ATE needs at least 3 timestamp pairs within {tolerance} s, got {ia.size} "
+            f"({len(est)} estimated and {len(gt)} ground-truth poses)"
+        )
+    p, g = est[ia, 1:4], gt[ib, 1:4]
+    T = np.eye(4)
+    if align:
+        T[:3, :3], T[:3, 3], _ = align_rigid(p, g)
+    return p, g, T
+
+
+def trajectory_alignment(est_tum, gt_tum, tolerance: float = 0.02) -> np.ndarray:
+    """The 4×4 rigid motion of ``absolute_trajectory_error``'s alignment: the estimated
+    camera centres onto the ground truth's over timestamps within ``tolerance``."""
+    return _paired_centres(est_tum, gt_tum, tolerance)[2]
+
+
 def absolute_trajectory_error(est_tum, gt_tum, tolerance: float = 0.02, align: bool = True) -> dict:
     """Absolute trajectory error of camera centres (TUM RGB-D benchmark convention).
 
@@ -295,18 +321,8 @@ def absolute_trajectory_error(est_tum, gt_tum, tolerance: float = 0.02, align: b
     ``median``, ``max`` (metres) and ``pairs`` = n. Raises ``ValueError`` when fewer than
     3 pairs match.
     """
-    est = _tum_array(est_tum, "est_tum")
-    gt = _tum_array(gt_tum, "gt_tum")
-    ia, ib = associate_timestamps(est[:, 0], gt[:, 0], tolerance)
-    if ia.size < 3:
-        raise ValueError(
-            f"ATE needs at least 3 timestamp pairs within {tolerance} s, got {ia.size} "
-            f"({len(est)} estimated and {len(gt)} ground-truth poses)"
-        )
-    p, g = est[ia, 1:4], gt[ib, 1:4]
-    if align:
-        R, t, _ = align_rigid(p, g)
-        p = p @ R.T + t
+    p, g, T = _paired_centres(est_tum, gt_tum, tolerance, align)
+    p = p @ T[:3, :3].T + T[:3, 3]
     e = np.linalg.norm(g - p, axis=1)
     return {
         "rmse": float(np.sqrt(np.mean(e * e))),

@@ -280,7 +280,7 @@ def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None
         target.set_aspect("equal", adjustable="box")
         target.set_xlim(lo[0], hi[0])
         target.set_ylim(lo[1], hi[1])
-        target.set_title(f"the {len(ellipsoids)} objects")
+        target.set_title(f"objects ({len(ellipsoids)})")
     fig.tight_layout()
     order = sorted(range(len(drawn)), key=lambda i: -drawn[i][2])
     _place_labels(fig, target, [drawn[i][0] for i in order], [texts[i] for i in order],

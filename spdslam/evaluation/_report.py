@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import Cuboid, Ellipsoid, align_rigid
+from ..geometry import Cuboid, Ellipsoid
 from ..io import MapObject, tum_text, write_folder_atomically, write_map
 from ._metrics import (
     absolute_trajectory_error,
-    associate_timestamps,
     cuboid_iou,
     orientation_error_deg,
+    trajectory_alignment,
 )
 from ._plots import plot_map_top, write_overlays
 
@@ -139,23 +139,16 @@ def clearly_oriented(half_extents) -> bool:
 def to_groundtruth(seq, poses_tum=None) -> tuple[np.ndarray | None, str]:
     """(4×4 rigid motion from the trajectory's frame to the ground truth's, or None; why
     not): the alignment of the module docstring for the estimated trajectory ``poses_tum``
-    (TUM rows with timestamps; default the sequence's own); None without ground-truth
-    poses or when they do not fix it (fewer than 3 common timestamps, collinear centres)."""
+    (TUM rows with timestamps; default the sequence's own), the ATE's
+    (``trajectory_alignment``); None without ground-truth poses or when they do not fix it
+    (fewer than 3 common timestamps, collinear centres)."""
     if seq.groundtruth_tum is None:
         return None, "no ground-truth poses"
-    gt = np.asarray(seq.groundtruth_tum)
-    est = np.column_stack([seq.timestamps, seq.poses_tum]) if poses_tum is None \
-        else np.asarray(poses_tum, float)
-    ia, ib = associate_timestamps(est[:, 0], gt[:, 0], 0.02)
-    if ia.size < 3:
-        return None, f"only {ia.size} trajectory timestamps within 0.02 s of the ground truth's"
+    est = np.column_stack([seq.timestamps, seq.poses_tum]) if poses_tum is None else poses_tum
     try:
-        R, t, _ = align_rigid(est[ia, 1:4], gt[ib, 1:4])
+        return trajectory_alignment(np.asarray(est, float), seq.groundtruth_tum), ""
     except ValueError as e:
         return None, str(e)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T, ""
 
 
 def moved(objects, T):
@@ -175,7 +168,7 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
     objects compared in the ground truth's frame (``to_groundtruth``; ``align=False``
     compares them as mapped, for sequences whose trajectory is in that frame already)."""
     out = {"sequence": seq.name, "method": map_dict["method"]}
-    T, why = to_groundtruth(seq, poses_tum) if align else (None, "not asked")
+    T, why = to_groundtruth(seq, poses_tum) if align else (None, "")
     if T is not None:
         out["to_groundtruth"] = T.tolist()
     elif seq.groundtruth_tum is not None and align:

@@ -30,8 +30,14 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..geometry import Camera, EllipsoidFull, box_planes, conic_box, dual_quadric_of
-from ..geometry import project_dual_quadric
+from ..geometry import (
+    Camera,
+    EllipsoidFull,
+    box_planes,
+    conic_box,
+    dual_quadric_of,
+    project_dual_quadric,
+)
 
 __all__ = ["ReferenceResult", "reference_solve", "REFERENCE_PARAMS", "compare_with_reference",
            "reference_table"]

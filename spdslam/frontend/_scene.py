@@ -26,12 +26,10 @@ __all__ = ["SupportPlanes", "estimate_support_planes", "lowest_points"]
 @dataclass(frozen=True)
 class SupportPlanes:
     """``planes`` (k, 4): [n, d] with n·x + d = 0, unit normals facing up, the most
-    populated first; ``assignment`` {object id: plane index}; ``up``: the first plane's
-    normal (the up direction refined by the objects), or the given up without planes."""
+    populated first; ``assignment`` {object id: plane index}."""
 
     planes: np.ndarray
     assignment: dict
-    up: np.ndarray
 
     def plane_of(self, key):
         """The plane (4,) object ``key`` rests on, or None."""
@@ -70,7 +68,7 @@ def estimate_support_planes(ellipsoids: dict, up, min_objects: int = 3, toleranc
     u = np.asarray(up, float) / np.linalg.norm(up)
     ids = list(ellipsoids)
     if not ids:
-        return SupportPlanes(np.zeros((0, 4)), {}, u)
+        return SupportPlanes(np.zeros((0, 4)), {})
     h, pts = lowest_points([np.asarray(ellipsoids[k].center) for k in ids],
                            [np.asarray(ellipsoids[k].P) for k in ids], u)
     free = np.ones(len(ids), bool)
@@ -98,5 +96,4 @@ def estimate_support_planes(ellipsoids: dict, up, min_objects: int = 3, toleranc
         planes.append(plane)
         # no second plane within min_separation of this one: objects there rest on none
         free &= np.abs(pts @ plane[:3] + plane[3]) > min_separation
-    planes = np.array(planes).reshape(-1, 4)
-    return SupportPlanes(planes, assignment, planes[0, :3] if len(planes) else u)
+    return SupportPlanes(np.array(planes).reshape(-1, 4), assignment)

@@ -14,10 +14,10 @@ from . import manifold as manifold
 from . import matfun as matfun
 from . import se3 as se3
 from . import spd as spd
+from ._align import align_rigid as align_rigid
 from ._arrays import array_namespace as array_namespace
 from ._camera import Camera as Camera
 from ._camera import box_lines as box_lines
-from ._align import align_rigid as align_rigid
 from ._camera import box_planes as box_planes
 from ._camera import camera_inside as camera_inside
 from ._camera import conic_box as conic_box

@@ -10,6 +10,7 @@ from ._classes import BUILTIN_CLASSES as BUILTIN_CLASSES
 from ._classes import CLASS_SOURCES as CLASS_SOURCES
 from ._classes import builtin_class_prior as builtin_class_prior
 from ._classes import class_prior as class_prior
+from ._classes import without_class_table as without_class_table
 from ._g2o import Edge as Edge
 from ._g2o import PoseGraph as PoseGraph
 from ._g2o import parse_g2o as parse_g2o

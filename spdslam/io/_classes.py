@@ -10,16 +10,21 @@ The numbers are written down once from those sources, never fitted to a sequence
 Every built-in class has the ellipsoid silhouette, as in the paper (and as the ground truth
 of its real sequences): the ellipsoid with the product's half-dimensions as semi-axes is
 inscribed in its bounding box. The cuboid silhouette is for priors a user states
-(``priors.yaml``: ``shape: cuboid``); docs/sequences.md measures both on fr2_desk.
+(``priors.yaml``: ``shape: cuboid``); docs/sequences.md measures both silhouettes on
+fr2_desk.
 ``priors.yaml`` overrides any entry (``classes: {label: …}``), ``builtin_classes: false``
 turns the table off.
 """
 
 from __future__ import annotations
 
-from ._sequence import ClassPrior
+import dataclasses
 
-__all__ = ["BUILTIN_CLASSES", "CLASS_SOURCES", "builtin_class_prior", "class_prior"]
+from ._sequence import ClassPrior, Priors, Sequence
+
+__all__ = [
+    "BUILTIN_CLASSES", "CLASS_SOURCES", "builtin_class_prior", "class_prior", "without_class_table",
+]
 
 #: label → (full width, depth, height in metres, relative spread, source).
 _TABLE = {
@@ -98,3 +103,10 @@ def class_prior(priors, label: str) -> ClassPrior | None:
     its own entry, else the built-in table's unless ``builtin_classes`` is off); without
     priors, the built-in table's."""
     return builtin_class_prior(label) if priors is None else priors.class_prior(label)
+
+
+def without_class_table(seq: Sequence) -> Sequence:
+    """``seq`` with the built-in table turned off (``Priors.builtin_classes = False``)."""
+    priors = Priors(builtin_classes=False) if seq.priors is None else \
+        seq.priors.replace(builtin_classes=False)
+    return dataclasses.replace(seq, priors=priors)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import Cuboid
+from ._oaslam import read_opencv_camera
 from ._parse import (
     SequenceFormatError,
     _box,
@@ -20,7 +21,6 @@ from ._parse import (
     read_tum,
     required,
 )
-from ._oaslam import read_opencv_camera
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
 __all__ = ["import_fr3_cabinet", "is_fr3_cabinet", "COCO_LABELS", "FR3_TRAJECTORY_SIGMA"]

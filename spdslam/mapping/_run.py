@@ -390,7 +390,7 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
             and ctx.up is not None and not ctx.support_planes() and init):
         planes = estimate_support_planes(init, ctx.up)
         if len(planes.planes):
-            notes.append(_planes_note(planes, ctx.up))
+            notes.append(_planes_note(planes, ctx.up, "initial"))
             rested = [tr for tr in association.tracks if tr.id in planes.assignment and tr.id in init]
             again, _, _ = initialize_objects(ctx, rested, method, min_views, planes)
             init.update(again)  # an object that no longer fits keeps its first start
@@ -424,11 +424,11 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     return Initialization(tracks, init, measured, failed, notes, planes)
 
 
-def _planes_note(planes: SupportPlanes, up) -> str:
+def _planes_note(planes: SupportPlanes, up, source: str) -> str:
     counts = np.bincount(list(planes.assignment.values()), minlength=len(planes.planes))
-    tilt = np.degrees(np.arccos(np.clip(planes.up @ np.asarray(up), -1.0, 1.0)))
+    tilt = np.degrees(np.arccos(np.clip(planes.planes[0, :3] @ np.asarray(up), -1.0, 1.0)))
     each = ", ".join(f"height {-p[3]:.3f} m ({n} objects)" for p, n in zip(planes.planes, counts))
-    return (f"support planes estimated from the initial objects: {each}; the first one's "
+    return (f"support planes estimated from the {source} objects: {each}; the first one's "
             f"normal is {tilt:.2f}° from up")
 
 
@@ -523,7 +523,7 @@ def run_sequence(
             and not ctx.support_planes() and landmarks):
         planes = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
         if len(planes.planes):
-            front.notes.append(_planes_note(planes, ctx.up).replace("initial", "optimised"))
+            front.notes.append(_planes_note(planes, ctx.up, "optimised"))
             graph = build_graph(ctx, front.tracks, landmarks, method, stages[-1], sigmas,
                                 front.measured, planes)
             say(f"optimisation with the estimated support planes: {len(graph)} factors")

@@ -59,6 +59,7 @@ import numpy as np
 from jax.experimental import io_callback
 
 from ..geometry import manifold
+from ._linearize import finish, retract_rows, violates, whitened
 from ._lm import (
     CALLBACK,
     CONVERGED_REASONS,
@@ -74,7 +75,6 @@ from ._lm import (
     model_decrease,
     predicted_decrease,
 )
-from ._linearize import finish, retract_rows, violates, whitened
 from ._optimizers import LevenbergMarquardt, Optimizer
 from ._problem import Problem
 from ._values import Values

@@ -43,17 +43,14 @@ def marginal_covariances(graph: Iterable, values: Any, keys: Iterable[Hashable],
     sp = problem.sparse_pattern()
     kind = resolve_linear_solver(linear_solver, problem.n)
     solver = make_linear_solver(kind, sp, problem.n)
-    factor = solver._factorize(H) if finite else None
     idx = np.concatenate(cols)
-    X = None
-    if factor is not None:
-        E = np.zeros((problem.n, idx.size))
-        E[idx, np.arange(idx.size)] = 1.0
-        X = solver._backsolve(factor, E)
+    E = np.zeros((problem.n, idx.size))
+    E[idx, np.arange(idx.size)] = 1.0
+    X = solver.solve(H, E) if finite else None  # None: H not positive definite
     start = 0
     for k, c in zip(keys, cols):
         d = c.size
-        if X is None or not np.all(np.isfinite(X[:, start:start + d])):
+        if X is None:
             out[k] = np.full((d, d), np.inf)
         else:
             block = np.asarray(X[c, start:start + d])
