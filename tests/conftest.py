@@ -190,6 +190,18 @@ def _seed(nodeid: str) -> int:
     return zlib.crc32(nodeid.encode())
 
 
+@pytest.fixture(autouse=True)
+def _no_persistent_compilation_cache(monkeypatch):
+    """Every test runs with JAX's persistent compilation cache off (the CLI callback turns it
+    on from ``SPDSLAM_CACHE_DIR``): no test reads a program an earlier one compiled or writes
+    into the user's home, and the process's former setting comes back afterwards. The tests of
+    the cache itself set ``SPDSLAM_CACHE_DIR`` to a directory of their own."""
+    old = jax.config.jax_compilation_cache_dir
+    monkeypatch.setenv("SPDSLAM_CACHE_DIR", "off")
+    yield
+    jax.config.update("jax_compilation_cache_dir", old)
+
+
 @pytest.fixture
 def rng(request) -> np.random.Generator:
     return np.random.default_rng(_seed(request.node.nodeid))

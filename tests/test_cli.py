@@ -5,7 +5,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 
-import pytest
 import typer
 from conftest import cli_runner
 
@@ -13,12 +12,6 @@ import spdslam
 from spdslam import cli
 
 runner = cli_runner()
-
-
-@pytest.fixture(autouse=True)
-def _cache_in_tmp(tmp_path, monkeypatch):
-    # Keep the JAX compilation cache used by the CLI callback out of the user's home.
-    monkeypatch.setenv(cli.CACHE_ENV, str(tmp_path / "jax-cache"))
 
 
 def test_version_flag():
@@ -51,6 +44,18 @@ def test_callback_sets_compilation_cache(tmp_path, monkeypatch):
         assert jax.config.jax_compilation_cache_dir == str(target)
     finally:
         jax.config.update("jax_compilation_cache_dir", old)
+
+
+def test_cache_env_off_turns_the_cache_off(monkeypatch):
+    import jax
+
+    monkeypatch.setenv(cli.CACHE_ENV, "off")
+    old = jax.config.jax_compilation_cache_dir
+    assert cli.enable_compilation_cache() is None
+    assert jax.config.jax_compilation_cache_dir == old
+    result = runner.invoke(cli.app, ["info"])
+    assert result.exit_code == 0, result.output
+    assert "off" in result.output.split("compilation cache")[1].splitlines()[0]
 
 
 def test_unusable_cache_dir_is_not_fatal(tmp_path, monkeypatch):

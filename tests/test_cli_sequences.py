@@ -73,19 +73,6 @@ def snapshot(folder: Path) -> dict:
 # --------------------------------------------------------------------------- fixtures
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _cache_in_tmp(tmp_path_factory):
-    """The CLI callback enables JAX's persistent cache: keep it out of the user's home,
-    and give the process its former cache directory back afterwards."""
-    import jax
-
-    old = jax.config.jax_compilation_cache_dir
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv(cli.CACHE_ENV, str(tmp_path_factory.mktemp("jax-cache")))
-        yield
-    jax.config.update("jax_compilation_cache_dir", old)
-
-
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory) -> Path:
     """A small demo room written as a canonical sequence folder."""

@@ -489,8 +489,7 @@ def test_option_errors(kwargs, match):
 @pytest.fixture
 def demo_cli(monkeypatch, tmp_path):
     """(invoke, calls): run ``spdslam demo`` in-process with ``_run_and_write`` recorded
-    instead of run, and the JAX cache directory kept in tmp_path."""
-    import jax
+    instead of run."""
     from conftest import cli_runner
 
     from spdslam import cli
@@ -502,14 +501,11 @@ def demo_cli(monkeypatch, tmp_path):
         _sequences, "_run_and_write",
         lambda seq, method, out, *a, **k: calls.append((seq, method, out, a)),
     )
-    monkeypatch.setenv(cli.CACHE_ENV, str(tmp_path / "jax-cache"))
-    old = jax.config.jax_compilation_cache_dir
 
     def invoke(*args):
         return runner.invoke(cli.app, ["demo", *(str(a) for a in args)])
 
     yield invoke, calls
-    jax.config.update("jax_compilation_cache_dir", old)
 
 
 def test_cli_demo_flags(demo_cli, tmp_path):

@@ -29,8 +29,10 @@ from rich.table import Table
 
 from .._version import __version__
 
-#: Environment variable naming the JAX compilation-cache directory.
+#: Environment variable naming the JAX compilation-cache directory; ``off`` turns it off.
 CACHE_ENV = "SPDSLAM_CACHE_DIR"
+#: Values of :data:`CACHE_ENV` that turn the persistent cache off.
+CACHE_OFF = ("off", "0", "none", "false")
 #: Default JAX compilation-cache directory.
 DEFAULT_CACHE_DIR = Path("~/.cache/spdslam/jax")
 #: Only compilations that took at least this long are written to the persistent cache.
@@ -73,10 +75,14 @@ def cache_dir() -> Path:
 def enable_compilation_cache(path: Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`).
 
-    Returns the directory used, or ``None`` when it could not be created or configured;
-    never raises.
+    Returns the directory used, or ``None`` when it is turned off (``SPDSLAM_CACHE_DIR=off``)
+    or could not be created or configured; never raises.
     """
-    path = cache_dir() if path is None else Path(path).expanduser()
+    if path is None:
+        if os.environ.get(CACHE_ENV, "").strip().lower() in CACHE_OFF:
+            return None
+        path = cache_dir()
+    path = Path(path).expanduser()
     try:
         path.mkdir(parents=True, exist_ok=True)
         if not os.access(path, os.W_OK):
