@@ -26,6 +26,7 @@ from ._plots import top_view_ellipse as top_view_ellipse
 from ._plots import write_overlays as write_overlays
 from ._report import FRONT_END_NAMES as FRONT_END_NAMES
 from ._report import ObjectMetrics as ObjectMetrics
+from ._report import count_duplicates as count_duplicates
 from ._report import evaluate_objects as evaluate_objects
 from ._report import evaluate_run as evaluate_run
 from ._report import ground_truth_in_map_frame as ground_truth_in_map_frame

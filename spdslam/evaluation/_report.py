@@ -113,6 +113,9 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
         "objects": len(objects),
         "ground_truth_objects": n_gt,
         "matched": len(matched),
+        "precision": len(matched) / len(objects) if objects else float("nan"),
+        "recall": len(matched) / n_gt if n_gt else float("nan"),
+        "duplicates": count_duplicates(objects, gt_objects, match),
         "mean_iou": float(sum(r.iou for r in matched) / n_gt) if n_gt else float("nan"),
         "mean_iou_matched": float(np.mean([r.iou for r in matched])) if matched else float("nan"),
         "mean_orientation_deg": float(np.mean([r.orientation_deg for r in matched])) if matched else float("nan"),
@@ -122,6 +125,22 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
         if oriented else float("nan"),
     }
     return rows, summary
+
+
+def count_duplicates(objects, gt_objects, match: dict) -> int:
+    """The number of unmatched objects that overlap (cuboid IoU > 0) a ground-truth object
+    of their label which another object is matched to: a second map object of one real
+    object, as a split track leaves it."""
+    taken = set(match.values())
+    n = 0
+    for o in objects:
+        if int(o.id) in match:
+            continue
+        c = Cuboid.from_ellipsoid(o.ellipsoid)
+        if any(int(g.id) in taken and g.label == o.label and cuboid_iou(c, g.cuboid) > 0
+               for g in gt_objects):
+            n += 1
+    return n
 
 
 #: A ground-truth object has a clear orientation when every two of its half-extents differ
@@ -235,6 +254,12 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
                       f"{s['mean_iou_matched']:.3f}. Orientation error over the "
                       f"{s.get('oriented_matched', 0)} matched objects with a clear orientation "
                       f"(three distinct half-extents): {s.get('mean_orientation_deg_oriented', float('nan')):.2f}°.", ""]
+        if "precision" in s:
+            lines += [f"Objects: {s['objects']} mapped for {s['ground_truth_objects']} in the ground "
+                      f"truth; precision {s['precision']:.3f} (matched / mapped; objects the ground "
+                      f"truth does not list count as false), recall {s['recall']:.3f} (matched / "
+                      f"ground truth), {s['duplicates']} duplicates (an unmatched object overlapping "
+                      "a matched ground-truth object of its class).", ""]
         if "to_groundtruth" in metrics:
             lines += ["Objects compared in the ground truth's frame, after aligning the optimised "
                       "trajectory to it (`to_groundtruth` in map.json).", ""]

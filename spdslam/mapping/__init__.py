@@ -41,6 +41,8 @@ from ._run import detection_rate as detection_rate
 from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects
+from ._run import merged_track as merged_track
 from ._run import object_uncertainty as object_uncertainty
+from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import run_sequence as run_sequence

@@ -61,6 +61,8 @@ __all__ = [
     "initialize",
     "initialize_objects",
     "initialize_from_measurements",
+    "merged_track",
+    "overlapping_duplicates",
     "run_sequence",
 ]
 
@@ -424,6 +426,59 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     return Initialization(tracks, init, measured, failed, notes, planes)
 
 
+def overlapping_duplicates(ellipsoids: dict, tracks) -> list:
+    """Pairs (kept, merged) of objects that are one object mapped twice: the same label and
+    each centre inside the other's ellipsoid, (t_b − t_a)ᵀ P_a⁻¹ (t_b − t_a) < 1 and the
+    same with a, b swapped. Each object is in at most one pair; the most deeply nested pair
+    first; the object with more detections is kept."""
+    by_id = {tr.id: tr for tr in tracks}
+    ids = sorted(k for k in ellipsoids if k in by_id)
+    pairs = []
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            if by_id[a].label != by_id[b].label:
+                continue
+            ea, eb = ellipsoids[a], ellipsoids[b]
+            d = np.asarray(eb.center, float) - np.asarray(ea.center, float)
+            depth = max(float(d @ np.linalg.solve(np.asarray(ea.P, float), d)),
+                        float(d @ np.linalg.solve(np.asarray(eb.P, float), d)))
+            if depth < 1.0:
+                pairs.append((depth, a, b))
+    out, used = [], set()
+    for _, a, b in sorted(pairs):
+        if a in used or b in used:
+            continue
+        used |= {a, b}
+        keep, drop = (a, b) if len(by_id[a].frames) >= len(by_id[b].frames) else (b, a)
+        out.append((keep, drop))
+    return out
+
+
+def merged_track(keep: Track, drop: Track) -> Track:
+    """``keep``'s boxes and ``drop``'s boxes in the frames where ``keep`` has none."""
+    extra = ~np.isin(drop.frames, keep.frames)
+    frames = np.concatenate([keep.frames, drop.frames[extra]])
+    boxes = np.concatenate([keep.boxes, drop.boxes[extra]])
+    order = np.argsort(frames, kind="stable")
+    return Track(keep.id, keep.label, frames[order], boxes[order])
+
+
+def _merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initialization:
+    """``front`` with each pair's tracks joined (``merged_track``) and the merged object
+    dropped from ``landmarks`` (in place); a note per pair."""
+    by_id = {tr.id: tr for tr in front.tracks}
+    gone = {drop for _, drop in pairs}
+    for keep, drop in pairs:
+        by_id[keep] = merged_track(by_id[keep], by_id[drop])
+        landmarks.pop(drop)
+    notes = front.notes + [
+        f"objects {keep} and {drop} ({by_id[keep].label}) are one object: after the optimisation "
+        f"each centre lay inside the other ellipsoid; {drop}'s boxes joined to {keep}"
+        for keep, drop in pairs]
+    tracks = [by_id[tr.id] for tr in front.tracks if tr.id not in gone]
+    return dataclasses.replace(front, tracks=tracks, notes=notes)
+
+
 def _planes_note(planes: SupportPlanes, up, source: str) -> str:
     counts = np.bincount(list(planes.assignment.values()), minlength=len(planes.planes))
     tilt = np.degrees(np.arccos(np.clip(planes.planes[0, :3] @ np.asarray(up), -1.0, 1.0)))
@@ -509,30 +564,40 @@ def run_sequence(
 
     optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
                                    callback=each_iteration if progress else None)
-    total_it, first_cost, res = 0, None, None
-    for stage in stages:
+    total_it, first_cost, res, graph = 0, None, None, None
+    planes = front.planes
+
+    def optimise(stage: str, what: str) -> None:
+        """Build the graph of the current tracks, landmarks and planes; optimise ``values``."""
+        nonlocal graph, res, values, total_it, first_cost, landmarks
         graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                            front.planes)
-        say(f"optimisation ({stage} boxes): {len(values)} variables, {len(graph)} factors")
+                            planes)
+        say(f"optimisation ({what}): {len(values)} variables, {len(graph)} factors")
         res = optimizer.optimize(graph, values)
         values = res.values
         total_it += res.iterations
         first_cost = res.initial_cost if first_cost is None else first_cost
         landmarks = {k: values[L(k)] for k in landmarks}
+
+    for stage in stages:
+        optimise(stage, f"{stage} boxes")
     if (support_planes == "optimised" and method.support_plane and ctx.up is not None
             and not ctx.support_planes() and landmarks):
-        planes = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
-        if len(planes.planes):
+        estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
+        if len(estimated.planes):
+            planes = estimated
             front.notes.append(_planes_note(planes, ctx.up, "optimised"))
-            graph = build_graph(ctx, front.tracks, landmarks, method, stages[-1], sigmas,
-                                front.measured, planes)
-            say(f"optimisation with the estimated support planes: {len(graph)} factors")
-            res = optimizer.optimize(graph, values)
-            values = res.values
-            total_it += res.iterations
-            landmarks = {k: values[L(k)] for k in landmarks}
+            optimise(stages[-1], "with the estimated support planes")
 
-    labels = {tr.id: tr.label for tr in front.tracks}
+    labels = {tr.id: tr.label for tr in front.tracks}  # the front end's objects, merged or not
+    if association.record.get("mode") == "auto":  # instance ids are trusted as given
+        pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in landmarks.items()},
+                                       front.tracks)
+        if pairs:
+            front = _merge_duplicates(front, landmarks, pairs)
+            values = Values({k: values[k] for k in values if k not in {L(d) for _, d in pairs}})
+            optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
+
     say("uncertainty: marginal covariances of the objects")
     spread = object_uncertainty(graph, values, sorted(landmarks))
     objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread[k])
