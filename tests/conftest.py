@@ -26,6 +26,11 @@ import jaxlie
 from spdslam import Camera, Ellipsoid
 
 jax.config.update("jax_enable_x64", True)
+# No test reads or writes JAX's persistent compilation cache: whether JAX uses it is decided
+# once per process, at the first compilation, so pointing the cache directory elsewhere
+# later does not turn it off (the CLI callback sets the directory; see
+# _no_persistent_compilation_cache).
+jax.config.update("jax_enable_compilation_cache", False)
 
 #: The kinds of SPD matrix ``Gen.spd`` can draw.
 SPD_KINDS = ("general", "sphere", "spheroid_oblate", "spheroid_prolate", "identity")
@@ -188,6 +193,18 @@ class Gen:
 
 def _seed(nodeid: str) -> int:
     return zlib.crc32(nodeid.encode())
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """After each test module, drop the compiled solver programs (``solver.clear_caches``):
+    a whole-suite process otherwise keeps thousands of XLA executables, each mapped into
+    memory, and crashes inside XLA once it reaches the kernel's ``vm.max_map_count``
+    (65530 here; seen as segfaults and aborts in compilation and cache code)."""
+    yield
+    from spdslam.solver import clear_caches
+
+    clear_caches()
 
 
 @pytest.fixture(autouse=True)

@@ -237,7 +237,7 @@ def test_run_malformed_detections_names_file_and_line(seq_dir, tmp_path):
     before = snapshot(tmp_path)
     out = tmp_path / "out"
     result = invoke("run", bad, "--out", out)
-    assert_error(result, f"detections.txt:{n}:", "x2 >= x1")
+    assert_error(result, f"detections.txt:{n}:", "x2 > x1")
     assert not out.exists()
     assert snapshot(tmp_path) == before
 

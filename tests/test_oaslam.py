@@ -77,7 +77,7 @@ def test_opencv_camera_with_distortion(tmp_path):
     ([{"file_name": "1.5.png", "detections": [{"category_id": 80, "detection_score": 0.9,
                                                "bbox": [0, 0, 1, 1]}]}], "COCO-80 category_id"),
     ([{"file_name": "1.5.png", "detections": [{"category_id": 3, "detection_score": 0.9,
-                                               "bbox": [5, 0, 1, 1]}]}], r"detection 0: a finite bbox"),
+                                               "bbox": [5, 0, 1, 1]}]}], r"detection 0: a box with x2 > x1"),
     ([{"file_name": "1.5.png", "detections": [{"bbox": [0, 0, 1, 1]}]}], "category_id, detection_score"),
 ])
 def test_detection_json_errors_name_the_entry(tmp_path, payload, match):

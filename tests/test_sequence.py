@@ -151,8 +151,8 @@ BAD = [
     ("detections.txt", DETS + "2.0 1 2 3 chair 0.5\n", 6, "columns"),
     ("detections.txt", DETS + "2.0 1 2 abc 4 chair 0.5\n", 6, "a number for x2, got 'abc'"),
     ("detections.txt", DETS + "2.0 1 2 nan 4 chair 0.5\n", 6, "finite number"),
-    ("detections.txt", DETS + "2.0 10 2 5 4 chair 0.5\n", 6, "x2 >= x1"),
-    ("detections.txt", DETS + "2.0 1 20 5 4 chair 0.5\n", 6, "y2 >= y1"),
+    ("detections.txt", DETS + "2.0 10 2 5 4 chair 0.5\n", 6, "x2 > x1"),
+    ("detections.txt", DETS + "2.0 1 20 5 4 chair 0.5\n", 6, "y2 > y1"),
     ("detections.txt", DETS + "1.25 1 2 5 4 chair 0.5\n", 6, "within 0.02 s"),
     ("detections.txt", DETS + "2.0 1 2 5 4 chair 0.5 x\n", 6, "an integer for instance"),
     ("trajectory.txt", TRAJ + "3.0 0 0 1 0 0 0\n", 5, "8 columns"),
@@ -221,7 +221,7 @@ def synthetic() -> Sequence:
     dets = [
         Detection(0, 0.0, [1.5, 2.25, 100.125, 200.0], "chair", 0.9, 0),
         Detection(1, 0.11, [0, 0, 1e-5, 3e10], "class28", 1 / 3, None),
-        Detection(3, 1341841278.85, [5, 5, 5, 5], "suitcase", 0.42, 7),
+        Detection(3, 1341841278.85, [5, 5, 6, 7], "suitcase", 0.42, 7),
     ]
     objs = [
         GroundTruthObject(0, "chair", Cuboid.from_yaw([1, 2, 0.3], 0.7, [0.2, 0.3, 0.4])),
@@ -320,7 +320,7 @@ def test_fr3_layout_small(tmp_path):
     "where, text, expected",
     [
         ("bbox/11.5.txt", "0 1 2 3 4 28 0.5\n", "8 columns"),
-        ("bbox/11.5.txt", "0 9 2 3 4 28 0.5 0\n", "x2 >= x1"),
+        ("bbox/11.5.txt", "0 9 2 3 4 28 0.5 0\n", "x2 > x1"),
         ("bbox/11.5.txt", "0 1 2 3 4 suitcase 0.5 0\n", "COCO class index"),
         ("bbox/13.9.txt", "0 1 2 3 4 28 0.5 0\n", "within 0.02 s"),
         ("TUM3.yaml", "%YAML:1.0\nCamera.fx: 535.4\nCamera.fy: nan\n", "finite number"),

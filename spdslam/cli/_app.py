@@ -66,6 +66,35 @@ def fail(message: str, code: int = 2) -> NoReturn:
     raise typer.Exit(code)
 
 
+def check_output(out: Path, inputs=(), option: str = "--out") -> None:
+    """Refuse, before anything is read or written, an output folder that is one of the
+    ``inputs``, lies inside one or contains one (``--overwrite`` would delete it), or that
+    cannot be written: the nearest existing folder above it (and above its parent, where
+    atomic writes make their temporary folder) must let a folder be made (probed, then
+    removed)."""
+    import tempfile
+
+    o = Path(os.path.abspath(out)).resolve()
+    for src in inputs:
+        s = Path(os.path.abspath(src)).resolve()
+        if o == s:
+            fail(f"{option}: {out} is the input {src}: expected an output folder apart from it")
+        if s in o.parents:
+            fail(f"{option}: {out} lies inside the input {src}: expected an output folder apart from it")
+        if o in s.parents:
+            fail(f"{option}: {out} contains the input {src}: expected an output folder apart from it")
+    for start in {o, o.parent}:
+        anc = start
+        while not os.path.lexists(anc) and anc != anc.parent:
+            anc = anc.parent
+        if not anc.is_dir():
+            fail(f"{option}: {out}: expected a path under a folder, got {anc}, which is not a folder")
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".spdslam-probe-", dir=anc))
+        except OSError as e:
+            fail(f"{option}: cannot write {out}: {anc} does not let a folder be made ({e.strerror or e})")
+
+
 def cache_dir() -> Path:
     """The configured JAX compilation-cache directory (not necessarily existing)."""
     raw = os.environ.get(CACHE_ENV) or str(DEFAULT_CACHE_DIR)

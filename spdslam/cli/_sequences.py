@@ -25,7 +25,7 @@ from ..mapping import (
     parse_keyframes,
 )
 from ..mapping._methods import ZERO_ALLOWED
-from ._app import app, console, err_console, fail
+from ._app import app, check_output, console, err_console, fail
 from ._simulate import _split
 
 __all__ = ["run", "evaluate", "import_", "compare", "demo", "DEMO_MARKER"]
@@ -69,15 +69,16 @@ def _parse_sigmas(items) -> dict:
 
 
 def _print_metrics(metrics: dict) -> None:
+    from ..evaluation import ate_line, shown
+
     s = metrics.get("summary")
     if s:
         console.print(
-            f"mean IoU {s['mean_iou']:.3f}, orientation error {s['mean_orientation_deg']:.2f}°, "
-            f"centre error {s['mean_center_error']:.3f} m ({s['matched']}/{s['ground_truth_objects']} objects)"
+            f"mean IoU {shown(s['mean_iou'])}, orientation error {shown(s['mean_orientation_deg'], '.2f', '°')}, "
+            f"centre error {shown(s['mean_center_error'], '.3f', ' m')} ({s['matched']}/{s['ground_truth_objects']} objects)"
         )
     if "ate" in metrics:
-        a = metrics["ate"]
-        console.print(f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised {a['optimized']['rmse']:.4f} m")
+        console.print(ate_line(metrics["ate"]))
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -135,6 +136,8 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
         metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite)
     except FileExistsError as e:
         fail(f"--out: {e}")
+    except OSError as e:  # the folder became unwritable, the disk is full, …
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
     console.print(
         f"{result.method.name}: {len(result.objects)} objects, {result.iterations} iterations "
         f"({result.reason}), cost {result.initial_cost:.6g} -> {result.final_cost:.6g}"
@@ -194,6 +197,7 @@ def run(
         fail(f"--keyframes: {e}")
     if support_planes not in SUPPORT_PLANES:
         fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
+    check_output(out, [sequence])
     seq = _load_sequence(sequence)
     if not class_table:
         from ..io import without_class_table
@@ -212,12 +216,11 @@ def evaluate(
 ) -> None:
     """Evaluate a map against a sequence's ground truth; prints and writes
     OUT/metrics.json and OUT/report.md."""
-    import json
 
     import numpy as np
 
-    from ..evaluation import evaluate_run, report_markdown
-    from ..io import MapFormatError, SequenceFormatError, read_map, read_tum
+    from ..evaluation import evaluate_run, report_markdown, shown
+    from ..io import MapFormatError, SequenceFormatError, dumps_strict, read_map, read_tum
 
     seq = _load_sequence(sequence)
     try:
@@ -238,16 +241,20 @@ def evaluate(
         poses = np.column_stack([seq.timestamps, seq.poses_tum])
     try:
         metrics = evaluate_run(m, objects, None, poses, seq)
-        texts = {"metrics.json": json.dumps(metrics, indent=1) + "\n",
+        texts = {"metrics.json": dumps_strict(metrics) + "\n",
                  "report.md": report_markdown(metrics, m)}
     except (TypeError, ValueError, KeyError) as e:
         fail(f"{folder / 'map.json'}: expected a map written by spdslam run, got {type(e).__name__}: {e}")
-    for name, text in texts.items():
-        tmp = folder / f".{name}.tmp"
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, folder / name)
+    try:
+        for name, text in texts.items():
+            tmp = folder / f".{name}.tmp"
+            tmp.write_text(text, encoding="utf-8")
+            os.replace(tmp, folder / name)
+    except OSError as e:
+        fail(f"{folder}: cannot write {name}: {e.strerror or e}")
     for r in metrics.get("objects", []):
-        console.print(f"object {r['id']} ({r['label']}): IoU {r['iou']:.3f}, orientation {r['orientation_deg']:.2f}°")
+        console.print(f"object {r['id']} ({r['label']}): IoU {shown(r['iou'])}, "
+                      f"orientation {shown(r['orientation_deg'], '.2f', '°')}")
     _print_metrics(metrics)
     console.print(f"wrote {folder / 'metrics.json'} and {folder / 'report.md'}")
 
@@ -274,8 +281,7 @@ def import_(
         fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder, got no such folder")
     if trajectory not in ("odometry", "groundtruth"):
         fail(f"--trajectory: expected odometry or groundtruth, got {trajectory!r}")
-    if source.resolve() == dest.resolve() or source.resolve() in dest.resolve().parents:
-        fail(f"{dest}: expected a destination outside the source folder {source}")
+    check_output(dest, [source], "DEST")
     try:
         if is_oaslam_layout(source):
             seq = import_oaslam(source, trajectory, min_score, undistort)
@@ -286,6 +292,8 @@ def import_(
         fail(str(e))
     except FileExistsError as e:
         fail(f"{dest}: {e}")
+    except OSError as e:
+        fail(f"DEST: cannot write {dest}: {e.strerror or e}")
     console.print(f"imported {len(seq)} poses, {len(seq.detections)} detections into {dest}")
 
 
@@ -300,6 +308,7 @@ def compare(
     from ..evaluation import FRONT_END_NAMES, table_iii
 
     names = _split("methods", methods, tuple(METHODS))
+    check_output(out, [sequence])
     seq = _load_sequence(sequence)
     if not seq.objects_gt:
         fail(f"{sequence}: expected object ground truth (objects_gt.txt) to compare methods, got none")
@@ -356,6 +365,7 @@ def demo(
         fail(f"--out: {out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not (out / DEMO_MARKER).exists():
         fail(f"--out: {out} exists, is not empty and is not an earlier demo output")
+    check_output(out)
     try:
         seq = make_room_sequence(
             seed, frames, objects, truncation=truncation, outliers=outliers, missed=missed,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, console, fail
+from ._app import app, check_output, console, fail
 
 __all__ = ["simulate"]
 
@@ -66,6 +66,7 @@ def simulate(
         fail("--angles: each viewing range must be in (0, 360] degrees")
     if out.exists() and not out.is_dir():
         fail(f"--out: {out} exists and is not a folder")
+    check_output(out)
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -87,7 +88,10 @@ def simulate(
             bar.update(task, completed=done, description=f"solved {stage}" if done > 1 else stage)
 
         result = run_study(cfg, progress)
-    summary = write_outputs(result, out)
+    try:
+        summary = write_outputs(result, out)
+    except OSError as e:
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
     t = summary["timings"]
     console.print((out / "table.md").read_text())
     console.print(

@@ -3,6 +3,7 @@ axis order and sign, trajectory error, confidence intervals, the run's report an
 Imports ``geometry`` and ``io``; it evaluates any map, however it was made.
 """
 
+from ..io import dumps_strict as dumps_strict  # strict JSON, for the layers above io
 from ._metrics import MAX_ORIENTATION_ERROR_DEG as MAX_ORIENTATION_ERROR_DEG
 from ._metrics import absolute_trajectory_error as absolute_trajectory_error
 from ._metrics import align_rigid as align_rigid
@@ -26,6 +27,7 @@ from ._plots import top_view_ellipse as top_view_ellipse
 from ._plots import write_overlays as write_overlays
 from ._report import FRONT_END_NAMES as FRONT_END_NAMES
 from ._report import ObjectMetrics as ObjectMetrics
+from ._report import ate_line as ate_line
 from ._report import count_duplicates as count_duplicates
 from ._report import evaluate_objects as evaluate_objects
 from ._report import evaluate_run as evaluate_run
@@ -33,6 +35,7 @@ from ._report import ground_truth_in_map_frame as ground_truth_in_map_frame
 from ._report import match_objects as match_objects
 from ._report import moved as moved
 from ._report import report_markdown as report_markdown
+from ._report import shown as shown
 from ._report import table_iii as table_iii
 from ._report import to_groundtruth as to_groundtruth
 from ._report import write_run as write_run

@@ -24,14 +24,13 @@ evo's ``--align``): the map is judged with the trajectory it was estimated with.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..geometry import Cuboid, Ellipsoid
-from ..io import MapObject, tum_text, write_folder_atomically, write_map
+from ..io import MapObject, dumps_strict, tum_text, write_folder_atomically, write_map
 from ._metrics import (
     absolute_trajectory_error,
     cuboid_iou,
@@ -210,10 +209,14 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
             out["front_end"] = {"objects": [r.as_dict() for r in rows0], "summary": summary0}
     if seq.groundtruth_tum is not None:
         traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
-        out["ate"] = {
-            "input": absolute_trajectory_error(traj_in, seq.groundtruth_tum),
-            "optimized": absolute_trajectory_error(np.asarray(poses_tum), seq.groundtruth_tum),
-        }
+        out["ate"], why = {}, {}
+        for key, traj in (("input", traj_in), ("optimized", np.asarray(poses_tum))):
+            try:
+                out["ate"][key] = absolute_trajectory_error(traj, seq.groundtruth_tum)
+            except ValueError as e:  # too few common poses, a path that fixes no alignment
+                out["ate"][key], why[key] = None, str(e)
+        if why:
+            out["ate"]["not_computed"] = why
     return out
 
 
@@ -228,10 +231,30 @@ def table_iii(rows) -> str:
     ]
     for stage, name, s in rows:
         lines.append(
-            f"| {stage} | {name} | {s['mean_iou']:.3f} | {s['mean_orientation_deg']:.2f} | "
-            f"{s['mean_center_error']:.3f} | {s['matched']}/{s['ground_truth_objects']} |"
+            f"| {stage} | {name} | {shown(s['mean_iou'])} | {shown(s['mean_orientation_deg'], '.2f')} | "
+            f"{shown(s['mean_center_error'])} | {s['matched']}/{s['ground_truth_objects']} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def shown(v, spec: str = ".3f", unit: str = "") -> str:
+    """``v`` formatted, or "not computed" when it is None or not finite."""
+    if v is None or not np.isfinite(v):
+        return "not computed"
+    return f"{v:{spec}}{unit}"
+
+
+def ate_line(ate: dict) -> str:
+    """One line of the input and optimised ATE RMSE, each "not computed: reason" when so."""
+    why = ate.get("not_computed", {})
+
+    def one(key):
+        a = ate.get(key)
+        return f"{a['rmse']:.4f} m" if a else f"not computed ({why.get(key, 'no ground truth')})"
+
+    opt = ate.get("optimized")
+    pairs = f" ({opt['pairs']} poses)" if opt else ""
+    return f"ATE RMSE: input {one('input')}, optimised {one('optimized')}{pairs}."
 
 
 def report_markdown(metrics: dict, map_dict: dict) -> str:
@@ -250,14 +273,14 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
         s = metrics["summary"]
         if "mean_iou_matched" in s:
             lines += [f"Mean IoU over all {s['ground_truth_objects']} ground-truth objects (a missed one "
-                      f"counts 0): {s['mean_iou']:.3f}; over the {s['matched']} matched: "
-                      f"{s['mean_iou_matched']:.3f}. Orientation error over the "
+                      f"counts 0): {shown(s['mean_iou'])}; over the {s['matched']} matched: "
+                      f"{shown(s['mean_iou_matched'])}. Orientation error over the "
                       f"{s.get('oriented_matched', 0)} matched objects with a clear orientation "
-                      f"(three distinct half-extents): {s.get('mean_orientation_deg_oriented', float('nan')):.2f}°.", ""]
+                      f"(three distinct half-extents): {shown(s.get('mean_orientation_deg_oriented'), '.2f', '°')}.", ""]
         if "precision" in s:
             lines += [f"Objects: {s['objects']} mapped for {s['ground_truth_objects']} in the ground "
-                      f"truth; precision {s['precision']:.3f} (matched / mapped; objects the ground "
-                      f"truth does not list count as false), recall {s['recall']:.3f} (matched / "
+                      f"truth; precision {shown(s['precision'])} (matched / mapped; objects the ground "
+                      f"truth does not list count as false), recall {shown(s['recall'])} (matched / "
                       f"ground truth), {s['duplicates']} duplicates (an unmatched object overlapping "
                       "a matched ground-truth object of its class).", ""]
         if "to_groundtruth" in metrics:
@@ -267,8 +290,9 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
                   "| id | label | IoU | orientation error (°) | centre error (m) |",
                   "| --- | --- | --- | --- | --- |"]
         for r in metrics["objects"]:
-            lines.append(f"| {r['id']} | {r['label']} | {r['iou']:.3f} | {r['orientation_deg']:.2f} | "
-                         f"{r['center_error']:.3f} |")
+            lines.append(f"| {r['id']} | {r['label']} | {shown(r['iou'])} | "
+                         f"{shown(r['orientation_deg'], '.2f').replace('not computed', '–')} | "
+                         f"{shown(r['center_error']).replace('not computed', '–')} |")
         lines.append("")
     else:
         lines += ["No object ground truth (objects_gt.txt): no object metrics.", ""]
@@ -276,12 +300,12 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
         a = metrics["association"]
         lines += ["## Data association", "",
                   f"Automatic: {a['tracks']} tracks for {a['instances']} instances, precision "
-                  f"{a['precision']:.3f}, recall {a['recall']:.3f} (against the instance ids).", ""]
+                  f"{shown(a['precision'])}, recall {shown(a['recall'])} (against the instance ids).", ""]
     if "ate" in metrics:
-        a = metrics["ate"]
-        ate = (f"ATE RMSE: input {a['input']['rmse']:.4f} m, optimised "
-               f"{a['optimized']['rmse']:.4f} m ({a['optimized']['pairs']} poses).")
-        lines += ["## Trajectory", "", ate, ""]
+        lines += ["## Trajectory", "", ate_line(metrics["ate"]), ""]
+    if "not_aligned" in metrics:
+        lines += [f"Objects compared as mapped, not in the ground truth's frame: the alignment "
+                  f"was not computed ({metrics['not_aligned']}).", ""]
     failed = map_dict.get("failed") or {}
     if failed:
         lines += ["## Objects not mapped", ""] + [f"- {k}: {v}" for k, v in failed.items()] + [""]
@@ -323,7 +347,7 @@ def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None =
         write_map(tmp / "map.json", m)
         (tmp / "trajectory.txt").write_text(tum_text(result.poses_tum), encoding="utf-8")
         if "summary" in metrics or "ate" in metrics:
-            (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n", encoding="utf-8")
+            (tmp / "metrics.json").write_text(dumps_strict(metrics) + "\n", encoding="utf-8")
             (tmp / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
         up = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
         T = np.asarray(metrics["to_groundtruth"]) if "to_groundtruth" in metrics else None

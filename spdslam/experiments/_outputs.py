@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..evaluation import dumps_strict
 from ._study import StudyResult
 from ._summary import CSV_COLUMNS, summarize, table_markdown
 
@@ -74,7 +74,7 @@ def write_outputs(result: StudyResult, out: Path) -> dict:
     atomic("trials.csv", csv)
     atomic("table.md", lambda p: p.write_text(table_markdown(summary)))
     atomic("convergence.png", lambda p: plot_convergence(result, p))
-    atomic("summary.json", lambda p: p.write_text(json.dumps(summary, indent=1, default=_json_default)))
+    atomic("summary.json", lambda p: p.write_text(dumps_strict(summary)))
     return summary
 
 
@@ -82,13 +82,5 @@ def _fmt(v) -> str:
     if isinstance(v, bool):
         return "1" if v else "0"
     if isinstance(v, float):
-        return "nan" if not np.isfinite(v) else f"{v:.10g}"
+        return "" if not np.isfinite(v) else f"{v:.10g}"  # an empty field: not computed
     return str(v)
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)

@@ -222,8 +222,9 @@ def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid):
     """IoU of the circumscribed cuboids, orientation error (deg) and s₃/s₁ of the estimate,
     for a batch of estimates.
 
-    A collapsed estimate (smallest radius < 1 nm, or non-finite) has no cuboid: IoU 0,
-    orientation error NaN.
+    A collapsed estimate (smallest radius < 1 nm) has no cuboid: IoU 0; its axes, and so
+    its orientation error, still exist (the collapse is in s₃/s₁). Only a non-finite
+    estimate has neither: orientation error NaN (an empty field in trials.csv).
     """
     Re, se = (np.asarray(a) for a in _axes_batch(est.P))
     Rt, st = (np.asarray(a) for a in _axes_batch(truth.P))
@@ -233,7 +234,8 @@ def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid):
     iou = np.zeros(len(ok))
     if ok.any():
         iou[ok] = cuboid_iou_arrays(ce[ok], Re[ok], se[ok], ct[ok], Rt[ok], st[ok])
-    orient = orientation_errors_deg(np.where(ok[:, None, None], Re, np.nan), Rt)
+    axes = np.all(np.isfinite(Re), axis=(1, 2))
+    orient = orientation_errors_deg(np.where(axes[:, None, None], Re, np.nan), Rt)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(np.all(np.isfinite(se), axis=1), se[:, 2] / se[:, 0], np.nan)
     return iou, orient, ratio

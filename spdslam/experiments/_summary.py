@@ -126,7 +126,8 @@ def table_markdown(summary: dict) -> str:
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in summary["cells"]:
         sr, ia, isu, it = c["success_rate"], c["iou_all"], c["iou_success"], c["iterations_to_tol"]
-        f = lambda d, k=".2f": f"{d['estimate']:{k}} [{d['low']:{k}}, {d['high']:{k}}]"  # noqa: E731
+        f = lambda d, k=".2f": (f"{d['estimate']:{k}} [{d['low']:{k}}, {d['high']:{k}}]"  # noqa: E731
+                                if np.isfinite(d["estimate"]) else "– (none)")
         lines.append(
             f"| {c['angle']} | {c['noise']} | {c['model']} | {c['param']} | {f(sr)} | {f(ia)} | {f(isu)} | "
             f"{f(it, '.1f')} | {c['trials'] - c['successes']} ({c['failures_collapsed']}) |"

@@ -21,6 +21,7 @@ from ._importers import COCO_LABELS as COCO_LABELS
 from ._importers import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
 from ._importers import import_fr3_cabinet as import_fr3_cabinet
 from ._importers import is_fr3_cabinet as is_fr3_cabinet
+from ._json import dumps_strict as dumps_strict
 from ._map import MapFormatError as MapFormatError
 from ._map import MapObject as MapObject
 from ._map import read_map as read_map

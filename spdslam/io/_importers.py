@@ -17,6 +17,7 @@ from ._parse import (
     _match,
     _number,
     _rows,
+    optional,
     read_images,
     read_tum,
     required,
@@ -72,6 +73,7 @@ def import_fr3_cabinet(folder) -> Sequence:
     for f in (folder / "bbox").iterdir():
         if f.suffix != ".txt":
             continue
+        required(f.parent, f.name)  # a regular file (not a directory named 1.0.txt)
         try:
             t = float(f.stem)
         except ValueError:
@@ -88,7 +90,7 @@ def import_fr3_cabinet(folder) -> Sequence:
         for line, tok in _rows(f, name):
             _check_columns(name, line, tok, (8,), layout)
             _integer(name, line, tok[0], "id")
-            box = _box(name, line, tok[1:5])
+            box = _box(name, line, tok[1:5], camera=camera)
             cls = _integer(name, line, tok[5], "label (a COCO class index)")
             score = _number(name, line, tok[6], "score")
             inst = _integer(name, line, tok[7], "instance")
@@ -111,7 +113,7 @@ def import_fr3_cabinet(folder) -> Sequence:
         objects.append(GroundTruthObject(i, label, Cuboid.from_yaw(v[:3], v[3], v[4:])))
 
     images = None
-    if (folder / "rgb.txt").is_file():
+    if optional(folder, "rgb.txt"):
         images = read_images(folder / "rgb.txt", folder)
     priors = Priors(
         [np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {}, FR3_TRAJECTORY_SIGMA

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ._json import dumps_strict
+from ._parse import SequenceFormatError, read_text
+
 from ..geometry import Ellipsoid
 
 __all__ = ["MapObject", "MapFormatError", "read_map", "write_map"]
@@ -44,8 +47,8 @@ class MapObject:
 
 
 def write_map(path, map_dict: dict) -> None:
-    """Write a map dict (``MapResult.as_dict()``) as JSON."""
-    Path(path).write_text(json.dumps(map_dict, indent=1) + "\n", encoding="utf-8")
+    """Write a map dict (``MapResult.as_dict()``) as strict JSON (NaN as null)."""
+    Path(path).write_text(dumps_strict(map_dict) + "\n", encoding="utf-8")
 
 
 def read_map(path) -> tuple[dict, list]:
@@ -54,11 +57,11 @@ def read_map(path) -> tuple[dict, list]:
     if path.is_dir():
         path = path / "map.json"
     try:
-        m = json.loads(path.read_text(encoding="utf-8"))
-    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
-        raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got no such file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise MapFormatError(f"{path}:{getattr(e, 'lineno', 1)}: expected JSON, got {e}") from None
+        m = json.loads(read_text(path))
+    except SequenceFormatError as e:  # not a readable UTF-8 file: say what is there
+        raise MapFormatError(f"{path}: expected a map.json written by spdslam run, got {e.got}") from None
+    except json.JSONDecodeError as e:
+        raise MapFormatError(f"{path}:{e.lineno}: expected JSON, got {e.msg}") from None
     if not isinstance(m, dict):
         raise MapFormatError(f"{path}: expected a JSON object, got {type(m).__name__}")
     for k, types in (("method", str), ("parameterization", str), ("iterations", int),

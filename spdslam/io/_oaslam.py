@@ -34,6 +34,9 @@ from ._parse import (
     _number,
     _rows,
     camera_from,
+    check_box,
+    optional,
+    read_text,
     read_tum,
     required,
 )
@@ -132,14 +135,14 @@ def read_opencv_camera(path: Path) -> tuple[Camera, np.ndarray]:
     return camera_from(name, values, lines), dist
 
 
-def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE):
+def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE,
+                         camera: Camera | None = None):
     """[(timestamp, box (4,), label, score)] of an OA-SLAM detection file, scores ≥
-    ``min_score``; errors name the entry (``<file>: entry <i>``)."""
+    ``min_score``; errors name the entry (``<file>: entry <i>``); every box of positive
+    area and, with ``camera``, overlapping its (distorted) image (``check_box``)."""
     name = str(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as e:
-        raise SequenceFormatError(name, None, "a UTF-8 JSON file", f"undecodable bytes ({e.reason})") from None
+        data = json.loads(read_text(path, name))
     except json.JSONDecodeError as e:
         raise SequenceFormatError(name, e.lineno, "valid JSON", e.msg) from None
     if not isinstance(data, list):
@@ -170,10 +173,10 @@ def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE):
                                           repr(d)[:80]) from None
             if not (isinstance(k, int) and 0 <= k < len(COCO80)):
                 raise SequenceFormatError(w, None, "a COCO-80 category_id in 0…79", repr(k))
-            if b.shape != (4,) or not np.all(np.isfinite(b)) or b[2] < b[0] or b[3] < b[1] \
-                    or not math.isfinite(s):
-                raise SequenceFormatError(w, None, "a finite bbox [x1, y1, x2, y2] with x2 ≥ x1, y2 ≥ y1",
+            if b.shape != (4,) or not np.all(np.isfinite(b)) or not math.isfinite(s):
+                raise SequenceFormatError(w, None, "a finite bbox [x1, y1, x2, y2] and score",
                                           repr(d.get("bbox")))
+            check_box(w, None, b, camera)
             if s >= min_score:
                 out.append((t, b, COCO80[k], s))
     return out
@@ -217,8 +220,8 @@ def estimate_up(poses_tum: np.ndarray) -> np.ndarray:
     turns about the vertical); raises ``ValueError`` otherwise."""
     R = Rotation.from_quat(np.asarray(poses_tum)[:, 3:7]).as_matrix()
     x = R[:, :, 0]
-    _, sv, Vt = np.linalg.svd(x, full_matrices=False)
-    if not sv[1] > 0.05 * sv[0]:
+    _, sv, Vt = np.linalg.svd(x, full_matrices=True)  # Vt 3×3 for any number of poses
+    if sv.size < 2 or not sv[1] > 0.05 * sv[0]:
         raise ValueError("the cameras' x axes do not span a plane: the up direction is not "
                          "determined (give up in priors.yaml)")
     up = Vt[2]
@@ -248,7 +251,7 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     camera, dist = read_opencv_camera(_one(_camera_files(folder), folder,
                                            "camera YAML with Camera.fx lines"))
     gt = None
-    if (folder / "groundtruth.txt").is_file():
+    if optional(folder, "groundtruth.txt"):
         gt = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt"), skip_repeats=True)
     if trajectory == "odometry":
         path = _one(_odometry_files(folder), folder, "odometry trajectory (odometry.txt or *orb*.txt)")
@@ -256,7 +259,8 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     else:
         traj = read_tum(required(folder, "groundtruth.txt"), str(folder / "groundtruth.txt"),
                         skip_repeats=True)
-    raw = read_detections_json(_one(_json_files(folder), folder, "detections*.json"), min_score)
+    json_path = _one(_json_files(folder), folder, "detections*.json")
+    raw = read_detections_json(json_path, min_score, camera)
     if trajectory == "groundtruth" and raw:
         # the motion capture runs at 100 Hz: the camera's frames are the poses nearest to
         # the images (those with a detection), within the matching tolerance
@@ -269,10 +273,16 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
         near, ok = _nearest(timestamps, t)
         boxes = undistort_boxes(np.stack([r[1] for r in raw]), camera, dist) if undistort and np.any(dist) \
             else np.stack([r[1] for r in raw])
+        bad = ~np.all(np.isfinite(boxes), axis=1) | ~(boxes[:, 2] > boxes[:, 0]) | ~(boxes[:, 3] > boxes[:, 1])
+        if bad.any():  # a corner far outside the image, where the lens model diverges
+            k = int(np.flatnonzero(bad)[0])
+            raise SequenceFormatError(
+                json_path, None, "boxes whose undistorted outline is a finite box of positive area",
+                f"bbox {[float(v) for v in raw[k][1]]} of the image at {raw[k][0]!r}")
         for k in np.flatnonzero(ok):
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
-    objects = read_quadrics_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
-    priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
+    objects = read_quadrics_gt(folder / "objects_gt.txt") if optional(folder, "objects_gt.txt") else None
+    priors = read_priors(folder / "priors.yaml") if optional(folder, "priors.yaml") else None
     if priors is None or priors.trajectory_sigma is None:
         ts = ODOMETRY_SIGMA if trajectory == "odometry" else GROUNDTRUTH_SIGMA
         priors = Priors([], None, {}, ts) if priors is None else priors.replace(trajectory_sigma=ts)

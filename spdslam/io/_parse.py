@@ -15,7 +15,7 @@ import numpy as np
 
 from ..geometry import Camera
 
-__all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images"]
+__all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images", "read_text"]
 
 #: A detection timestamp matches the nearest trajectory pose within this many seconds.
 MATCH_TOLERANCE = 0.02
@@ -37,14 +37,66 @@ class SequenceFormatError(ValueError):
 
 # --- low-level parsing ----------------------------------------------------------------------
 
+#: The byte-order mark some editors write at the start of a UTF-8 file.
+BOM = "\ufeff"
+
+
+def _not_a_file(path: Path) -> str | None:
+    """Why ``path`` is not a regular file that can be read ("no such file", "a directory",
+    "a FIFO", "a symbolic-link loop", …), or None when it is one."""
+    import errno
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a symbolic-link loop"
+        if e.errno in (errno.ENOENT, errno.ENOTDIR):
+            return "a broken symbolic link" if os.path.islink(path) else "no such file"
+        return e.strerror or type(e).__name__
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if not os.access(path, os.R_OK):
+        return "a file without read permission"
+    return None
+
+
+def present(path) -> bool:
+    """Whether anything is at ``path`` (a file, a directory, a FIFO, a link, even a broken
+    one): an optional file that is present must then be a readable regular file."""
+    return os.path.lexists(path)
+
+
+def read_text(path: Path, name: str | None = None) -> str:
+    """The text of a UTF-8 file. One rule for every text and YAML file: a leading byte-order
+    mark is dropped, CRLF and CR line ends read as LF; anything but a readable regular file
+    is a ``SequenceFormatError`` that says what is there instead."""
+    name = name or str(path)
+    why = _not_a_file(Path(path))
+    if why:
+        raise SequenceFormatError(name, None, "a readable file", why)
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise SequenceFormatError(name, None, "a UTF-8 text file", f"undecodable bytes ({e.reason})") from None
+    except OSError as e:
+        raise SequenceFormatError(name, None, "a readable file", e.strerror or type(e).__name__) from None
+    if text.startswith(BOM):
+        text = text[1:]
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
 
 def _rows(path: Path, label: str | None = None):
     """(line number, tokens) of the non-empty lines of a text file, ``#`` comments removed."""
     name = label or str(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise SequenceFormatError(name, None, "a UTF-8 text file", f"undecodable bytes ({e.reason})") from None
+    text = read_text(path, name)
     for i, line in enumerate(text.splitlines(), start=1):
         body = line.split("#", 1)[0].strip()
         if body:
@@ -66,6 +118,8 @@ def _check_columns(file, line, tokens, counts, layout):
 
 def _number(file, line, token: str, what: str) -> float:
     try:
+        if "_" in token:  # Python's float() reads 1_000; no text format here does
+            raise ValueError(token)
         v = float(token)
     except ValueError:
         raise SequenceFormatError(file, line, f"a number for {what}", repr(token)) from None
@@ -83,13 +137,16 @@ def _integer(file, line, token: str, what: str) -> int:
 
 def _unit_quaternion(file, line, q) -> np.ndarray:
     q = np.asarray(q, dtype=float)
-    n = float(np.linalg.norm(q))
+    m = float(np.max(np.abs(q)))
+    if m > 0:
+        q = q / m  # scaled first: the norm of huge entries does not overflow
+    n = m * float(np.linalg.norm(q))
     if not (n > 1e-6):
         raise SequenceFormatError(
             file, line, "a quaternion 'qx qy qz qw' that normalises to unit length",
             f"norm {n:.3g}",
         )
-    return q / n
+    return q / np.linalg.norm(q)
 
 
 def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
@@ -128,13 +185,28 @@ def _match(file, line, t: float, timestamps: np.ndarray) -> int:
     return i
 
 
-def _box(file, line, tok, what="x1 y1 x2 y2") -> np.ndarray:
-    b = [_number(file, line, t, f) for t, f in zip(tok, what.split())]
-    if b[2] < b[0]:
-        raise SequenceFormatError(file, line, "x2 >= x1", f"x1={tok[0]} x2={tok[2]}")
-    if b[3] < b[1]:
-        raise SequenceFormatError(file, line, "y2 >= y1", f"y1={tok[1]} y2={tok[3]}")
-    return np.array(b)
+def _box(file, line, tok, what="x1 y1 x2 y2", camera: Camera | None = None) -> np.ndarray:
+    """A box ``x1 y1 x2 y2`` of positive area, overlapping ``camera``'s image when given
+    (``check_box``)."""
+    b = np.array([_number(file, line, t, f) for t, f in zip(tok, what.split())])
+    check_box(file, line, b, camera)
+    return b
+
+
+def check_box(file, line, b, camera: Camera | None = None) -> None:
+    """The rule for impossible boxes, the same in every reader: a box must have x2 > x1 and
+    y2 > y1 (a zero-area box fixes no silhouette edge) and, when the image size is known,
+    overlap the image (0, 0)–(width, height) (a box wholly outside it is no view of an
+    object); else ``SequenceFormatError`` at the box's line."""
+    x1, y1, x2, y2 = (float(v) for v in b)
+    if not x2 > x1:
+        raise SequenceFormatError(file, line, "a box with x2 > x1 (positive width)", f"x1={x1:g} x2={x2:g}")
+    if not y2 > y1:
+        raise SequenceFormatError(file, line, "a box with y2 > y1 (positive height)", f"y1={y1:g} y2={y2:g}")
+    if camera is not None and not (x1 < camera.width and x2 > 0 and y1 < camera.height and y2 > 0):
+        raise SequenceFormatError(
+            file, line, f"a box that overlaps the {camera.width:g}x{camera.height:g} image",
+            f"[{x1:g}, {y1:g}, {x2:g}, {y2:g}]")
 
 
 # --- YAML with line numbers -----------------------------------------------------------------
@@ -143,17 +215,41 @@ def _box(file, line, tok, what="x1 y1 x2 y2") -> np.ndarray:
 def _yaml_root(path: Path, name: str):
     import yaml
 
+    text = read_text(path, name)
     try:
-        node = yaml.compose(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader)
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         raise SequenceFormatError(name, line, "valid YAML", str(getattr(e, "problem", None) or e)) from None
-    except UnicodeDecodeError as e:
-        raise SequenceFormatError(name, None, "a UTF-8 text file", f"undecodable bytes ({e.reason})") from None
     if node is None:
         raise SequenceFormatError(name, None, "a YAML mapping", "an empty file")
+    _check_plain(name, node)
     return node
+
+
+def _check_plain(name, node) -> None:
+    """Every scalar of the document is a plain YAML value: a tag that safe loading cannot
+    construct (``!!python/object:…``) is an error at its line, found before any value is read."""
+    import yaml
+
+    todo, seen = [node], set()
+    while todo:
+        n = todo.pop()
+        if id(n) in seen:  # aliases make the node graph a DAG, or a cycle (&a [*a])
+            continue
+        seen.add(id(n))
+        if isinstance(n, yaml.ScalarNode):
+            try:
+                yaml.SafeLoader("").construct_object(n, deep=True)
+            except yaml.YAMLError as e:
+                raise SequenceFormatError(name, _line(n), "a plain YAML value",
+                                          f"the tag {n.tag!r} ({getattr(e, 'problem', None) or e})") from None
+        elif isinstance(n, yaml.SequenceNode):
+            todo.extend(n.value)
+        elif isinstance(n, yaml.MappingNode):
+            for k, v in n.value:
+                todo += [k, v]
 
 
 def _line(node) -> int:
@@ -199,8 +295,11 @@ def _scalar(node):
 def _ynumber(name, node, what: str) -> float:
     import yaml
 
+    if isinstance(node, yaml.ScalarNode) and node.style in ("'", '"'):
+        raise SequenceFormatError(name, _line(node), f"a number for {what} (not quoted)",
+                                  f"the string {node.value!r}")
     v = _scalar(node) if isinstance(node, yaml.ScalarNode) else None
-    if isinstance(v, str):  # PyYAML reads '1e3' (no dot) as a string
+    if isinstance(v, str):  # PyYAML reads an unquoted 1e3 (no dot) as a string
         try:
             v = float(v)
         except ValueError:
@@ -253,7 +352,17 @@ def read_images(path, folder, name: str | None = None) -> dict:
 
 
 def required(folder: Path, fname: str) -> Path:
+    """``folder / fname``, which must be a readable regular file."""
     p = folder / fname
-    if not p.is_file():
-        raise SequenceFormatError(p, None, f"a required file {fname}", "no such file")
+    why = _not_a_file(p)
+    if why:
+        raise SequenceFormatError(p, None, f"a required file {fname}", why)
     return p
+
+
+def optional(folder: Path, fname: str) -> Path | None:
+    """``folder / fname`` when anything is there (then the reader checks that it is a
+    readable regular file: a directory named priors.yaml is an error, not an absent file),
+    else None."""
+    p = folder / fname
+    return p if present(p) else None

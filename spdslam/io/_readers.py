@@ -44,6 +44,7 @@ from ._parse import (
     _yvector,
     camera_from,
     read_images,
+    optional,
     read_tum,
     required,
 )
@@ -147,8 +148,9 @@ def read_priors(path, name: str | None = None) -> Priors:
     return Priors(planes, up, classes, tsig, builtin)
 
 
-def read_detections(path, timestamps, name: str | None = None) -> list:
-    """``detections.txt`` rows ``timestamp x1 y1 x2 y2 label score [instance]``."""
+def read_detections(path, timestamps, name: str | None = None, camera: Camera | None = None) -> list:
+    """``detections.txt`` rows ``timestamp x1 y1 x2 y2 label score [instance]``; every box
+    of positive area and, with ``camera``, overlapping its image (``check_box``)."""
     path = Path(path)
     name = name or str(path)
     timestamps = np.asarray(timestamps, dtype=float)
@@ -157,7 +159,7 @@ def read_detections(path, timestamps, name: str | None = None) -> list:
     for line, tok in _rows(path, name):
         _check_columns(name, line, tok, (7, 8), layout)
         t = _number(name, line, tok[0], "timestamp")
-        box = _box(name, line, tok[1:5])
+        box = _box(name, line, tok[1:5], camera=camera)
         score = _number(name, line, tok[6], "score")
         inst = _integer(name, line, tok[7], "instance") if len(tok) == 8 else None
         frame = _match(name, line, t, timestamps)
@@ -224,10 +226,15 @@ def read_sequence(folder) -> Sequence:
         return import_oaslam(folder)
     camera = read_camera(required(folder, "camera.yaml"))
     traj = read_tum(required(folder, "trajectory.txt"), str(folder / "trajectory.txt"))
-    det = read_detections(required(folder, "detections.txt"), traj[:, 0])
-    objs = read_objects_gt(folder / "objects_gt.txt") if (folder / "objects_gt.txt").is_file() else None
-    gt = read_tum(folder / "groundtruth.txt", str(folder / "groundtruth.txt")) if (folder / "groundtruth.txt").is_file() else None
-    priors = read_priors(folder / "priors.yaml") if (folder / "priors.yaml").is_file() else None
-    images = read_images(folder / "rgb.txt", folder) if (folder / "rgb.txt").is_file() else None
-    ell = read_ellipsoids(folder / "ellipsoids.txt", traj[:, 0]) if (folder / "ellipsoids.txt").is_file() else None
+    det = read_detections(required(folder, "detections.txt"), traj[:, 0], camera=camera)
+
+    def read_optional(fname, reader, *args):
+        p = optional(folder, fname)
+        return None if p is None else reader(p, *args)
+
+    objs = read_optional("objects_gt.txt", read_objects_gt)
+    gt = read_optional("groundtruth.txt", read_tum, str(folder / "groundtruth.txt"))
+    priors = read_optional("priors.yaml", read_priors)
+    images = read_optional("rgb.txt", read_images, folder)
+    ell = read_optional("ellipsoids.txt", read_ellipsoids, traj[:, 0])
     return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images, ell)

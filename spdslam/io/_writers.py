@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.se3 import matrix_to_quat
-from ._parse import CAMERA_KEYS
+from ._parse import CAMERA_KEYS, check_box
 from ._sequence import Sequence
 
 __all__ = ["write_sequence", "write_folder_atomically", "tum_text"]
@@ -62,7 +62,8 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
     (out / "trajectory.txt").write_text(
         tum_text(np.column_stack([seq.timestamps, seq.poses_tum])), encoding="utf-8")
     lines = ["# timestamp x1 y1 x2 y2 label score [instance]\n"]
-    for d in seq.detections:
+    for i, d in enumerate(seq.detections):  # never a file that the reader would refuse
+        check_box(f"detection {i} of {seq.name!r}", None, d.box, cam)
         cols = [_f(d.timestamp), *(_f(x) for x in d.box), _token(d.label, "a label"), _f(d.score)]
         if d.instance is not None:
             cols.append(str(int(d.instance)))

@@ -464,6 +464,23 @@ _EXECUTABLES: dict[Any, Any] = {}
 _BUILT: dict[Any, Any] = {}
 
 
+def clear_caches() -> None:
+    """Drop every compiled solver program: the sparse solver's kernels per structure, the
+    batched solver's programs and executables, and JAX's own caches (``jax.clear_caches``).
+
+    Each new graph structure compiles programs that are kept for reuse; a process that maps
+    many different structures (a sweep over sequences, a test suite) can call this between
+    them, so that their machine code is released (XLA maps each compiled program into
+    memory, and a process may hold only ``vm.max_map_count`` mappings)."""
+    from . import _problem
+
+    _problem._KERNELS.clear()
+    _CACHE.clear()
+    _EXECUTABLES.clear()
+    _BUILT.clear()
+    jax.clear_caches()
+
+
 def _shapes(tree):
     leaves, td = jax.tree.flatten(tree)
     return td, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a))

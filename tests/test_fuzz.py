@@ -1,0 +1,218 @@
+"""Fuzzing the readers (issue 15): a valid sequence folder corrupted at random, and a fixed
+corpus of corruptions; each read either parses or raises the documented one-line
+``SequenceFormatError`` — never another exception.
+
+The corpus (``corpus()``: every mutation of every file of a canonical folder and of an
+OA-SLAM layout, with fixed seeds: 216 and 180 cases) runs in the default suite, with a
+short hypothesis run; ``-m slow`` adds a longer one.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from spdslam.io import SequenceFormatError, read_sequence, write_sequence
+from spdslam.synthetic import make_room_sequence
+
+FILES = ("camera.yaml", "trajectory.txt", "detections.txt", "objects_gt.txt", "groundtruth.txt",
+         "priors.yaml")
+#: Tokens that a corrupted file may hold where a number belongs.
+BAD_TOKENS = ("nan", "inf", "-inf", "1e400", "-1e300", "1e-320", "0", "-0", "", "x", "1_0",
+              "0x10", "'5'", "\"5\"", "[]", "{}", "~", "null", "true", "1e3", "-", "١٢")
+
+
+def _lines(text: str) -> list[str]:
+    return text.split("\n")
+
+
+def mutate(data: bytes, kind: str, rng: random.Random) -> bytes:
+    """One corruption of a file's bytes (``kind`` among ``MUTATIONS``)."""
+    text = data.decode("utf-8", errors="replace")
+    lines = _lines(text)
+    i = rng.randrange(len(lines)) if lines else 0
+    if kind == "truncate":
+        return data[: rng.randrange(len(data) + 1)]
+    if kind == "delete_line":
+        del lines[i]
+    elif kind == "duplicate_line":
+        lines.insert(i, lines[i])
+    elif kind == "delete_column":
+        tok = lines[i].split()
+        if tok:
+            del tok[rng.randrange(len(tok))]
+        lines[i] = " ".join(tok)
+    elif kind == "duplicate_column":
+        tok = lines[i].split()
+        if tok:
+            tok.insert(rng.randrange(len(tok)), rng.choice(tok))
+        lines[i] = " ".join(tok)
+    elif kind == "swap_tokens":
+        tok = lines[i].split()
+        if len(tok) > 1:
+            a, b = rng.sample(range(len(tok)), 2)
+            tok[a], tok[b] = tok[b], tok[a]
+        lines[i] = " ".join(tok)
+    elif kind == "bad_token":
+        tok = lines[i].split()
+        if tok:
+            tok[rng.randrange(len(tok))] = rng.choice(BAD_TOKENS)
+        lines[i] = " ".join(tok)
+    elif kind == "huge_number":
+        tok = lines[i].split()
+        if tok:
+            tok[rng.randrange(len(tok))] = rng.choice(("1e300", "-1e300", "1e308", "5e-324", "-1"))
+        lines[i] = " ".join(tok)
+    elif kind == "bytes":
+        k = rng.randrange(len(data) + 1)
+        return data[:k] + bytes(rng.randrange(256) for _ in range(rng.randint(1, 8))) + data[k:]
+    elif kind == "bom":
+        return b"\xef\xbb\xbf" + data.replace(b"\n", b"\r\n")
+    elif kind == "empty":
+        return b""
+    elif kind == "yaml_junk":
+        lines.insert(i, rng.choice(("- a", "key: [1, 2", "{", "&a [*a]", "!!python/object:os.system x",
+                                    "fx: 1\nfx: 2", "\t- tab")))
+    else:
+        raise ValueError(kind)
+    return "\n".join(lines).encode("utf-8")
+
+
+MUTATIONS = ("truncate", "delete_line", "duplicate_line", "delete_column", "duplicate_column",
+             "swap_tokens", "bad_token", "huge_number", "bytes", "bom", "empty", "yaml_junk")
+
+
+@pytest.fixture(scope="module")
+def valid(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("fuzz") / "seq"
+    write_sequence(make_room_sequence(0, frames=6, objects=1), folder)
+    priors = folder / "priors.yaml"
+    if not priors.exists():
+        priors.write_text("up: [0, 0, 1]\nsupport_planes:\n  - [0, 0, 1, 0]\n", encoding="utf-8")
+    return folder
+
+
+#: The files of the OA-SLAM layout (real recordings: ``import_oaslam``).
+OASLAM_FILES = ("cam.yaml", "odometry.txt", "groundtruth.txt", "detections_yolo.json", "objects_gt.txt")
+
+
+@pytest.fixture(scope="module")
+def valid_oaslam(tmp_path_factory) -> Path:
+    """A small OA-SLAM layout: an orbit of 12 poses, one cup seen in each frame."""
+    folder = tmp_path_factory.mktemp("fuzz") / "oaslam"
+    folder.mkdir()
+    n = 12
+    ts = 100.0 + 0.1 * np.arange(n)
+    a = np.linspace(0, np.pi / 3, n)
+    rows = []
+    for t, ang in zip(ts, a):
+        c = [2 * np.cos(ang), 2 * np.sin(ang), 0.0]
+        z = -np.array(c) / 2.0  # optical axis towards the origin, x horizontal, y down
+        x = np.array([-np.sin(ang), np.cos(ang), 0.0])
+        R = np.column_stack([x, np.cross(z, x), z])
+        from scipy.spatial.transform import Rotation
+
+        rows.append([t, *c, *Rotation.from_matrix(R).as_quat()])
+    tum = "".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows)
+    (folder / "odometry.txt").write_text(tum)
+    (folder / "groundtruth.txt").write_text(tum)
+    (folder / "cam.yaml").write_text("%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n"
+                                     "Camera.cy: 240\nCamera.k1: 0.1\nCamera.k2: -0.05\n")
+    dets = [{"file_name": f"{float(t)!r}.png", "detections": [
+        {"category_id": 41, "detection_score": 0.9, "bbox": [290.0, 210.0, 350.0, 270.0]}]} for t in ts]
+    (folder / "detections_yolo.json").write_text(json.dumps(dets, indent=1))
+    (folder / "objects_gt.txt").write_text("cup 0 0 0 0 0 0 0.05 0.05 0.1 41:cup\n")
+    read_sequence(folder)  # valid before it is corrupted
+    return folder
+
+
+def corpus(n_seeds: int = 3) -> list[tuple[str, str, str, int]]:
+    """(layout, file, mutation, seed): every mutation of every file of both layouts (the
+    canonical folder and the OA-SLAM one), ``n_seeds`` seeds each."""
+    return ([("canonical", f, m, s) for f in FILES for m in MUTATIONS for s in range(n_seeds)]
+            + [("oaslam", f, m, s) for f in OASLAM_FILES for m in MUTATIONS for s in range(n_seeds)])
+
+
+def check_read(folder: Path) -> str:
+    """"ok" or "error": ``read_sequence`` parses, or raises a one-line ``SequenceFormatError``
+    that names a file; any other exception fails the test."""
+    try:
+        seq = read_sequence(folder)
+    except SequenceFormatError as e:
+        msg = str(e)
+        assert "\n" not in msg and msg.strip(), repr(msg)
+        assert str(folder) in msg, msg
+        return "error"
+    assert np.all(np.isfinite(seq.poses_tum)) and np.all(np.isfinite(seq.timestamps))
+    assert np.allclose(np.linalg.norm(seq.poses_tum[:, 3:7], axis=1), 1.0)
+    for d in seq.detections:
+        assert d.box[2] > d.box[0] and d.box[3] > d.box[1]
+    return "ok"
+
+
+def _corrupted(valid: Path, tmp: Path, fname: str, kind: str, seed: int) -> Path:
+    folder = tmp / f"{fname}-{kind}-{seed}"
+    shutil.copytree(valid, folder)
+    p = folder / fname
+    p.write_bytes(mutate(p.read_bytes(), kind, random.Random(f"{fname}{kind}{seed}")))
+    return folder
+
+
+def test_corpus_has_at_least_150_cases_per_layout():
+    layouts = [c[0] for c in corpus()]
+    assert layouts.count("canonical") >= 150 and layouts.count("oaslam") >= 150
+
+
+def test_every_corrupted_file_parses_or_gives_the_one_line_error(valid, valid_oaslam, tmp_path):
+    outcomes = {}
+    for layout, fname, kind, seed in corpus():
+        src = valid if layout == "canonical" else valid_oaslam
+        folder = _corrupted(src, tmp_path, fname, kind, seed)
+        outcomes[(layout, fname, kind, seed)] = check_read(folder)
+        shutil.rmtree(folder)
+    for layout in ("canonical", "oaslam"):
+        mine = {k: v for k, v in outcomes.items() if k[0] == layout}
+        errors = sum(v == "error" for v in mine.values())
+        # the corruptions bite: most are errors, and the harmless ones (a BOM, CRLF) parse
+        assert errors >= len(mine) // 2, (layout, errors)
+    assert all(v == "ok" for k, v in outcomes.items() if k[2] == "bom"), \
+        [k for k, v in outcomes.items() if k[2] == "bom" and v != "ok"]
+
+
+def _fuzz(valid: Path, tmp: Path, fname: str, kinds: list, seed: int) -> None:
+    folder = tmp / "case"
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(valid, folder)
+    p = folder / fname
+    rng = random.Random(seed)
+    data = p.read_bytes()
+    for kind in kinds:
+        data = mutate(data, kind, rng)
+    p.write_bytes(data)
+    check_read(folder)
+
+
+_CASES = st.sampled_from([("canonical", f) for f in FILES] + [("oaslam", f) for f in OASLAM_FILES])
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=_CASES, kinds=st.lists(st.sampled_from(MUTATIONS), min_size=1, max_size=3),
+       seed=st.integers(0, 2**32 - 1))
+def test_random_corruptions(valid, valid_oaslam, tmp_path, case, kinds, seed):
+    _fuzz(valid if case[0] == "canonical" else valid_oaslam, tmp_path, case[1], kinds, seed)
+
+
+@pytest.mark.slow
+@settings(max_examples=2000, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=_CASES, kinds=st.lists(st.sampled_from(MUTATIONS), min_size=1, max_size=5),
+       seed=st.integers(0, 2**32 - 1))
+def test_random_corruptions_long(valid, valid_oaslam, tmp_path, case, kinds, seed):
+    _fuzz(valid if case[0] == "canonical" else valid_oaslam, tmp_path, case[1], kinds, seed)
