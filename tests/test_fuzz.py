@@ -4,7 +4,8 @@ corpus of corruptions; each read either parses or raises the documented one-line
 
 The corpus (``corpus()``: every mutation of every file of a canonical folder and of an
 OA-SLAM layout, with fixed seeds: 216 and 180 cases) runs in the default suite, with a
-short hypothesis run; ``-m slow`` adds a longer one.
+short hypothesis run; ``-m slow`` adds a longer one. Every corruption the readers refuse is
+also given to ``spdslam run``: one line, exit 2, nothing written, the input untouched.
 """
 
 from __future__ import annotations
@@ -158,7 +159,7 @@ def check_read(folder: Path) -> str:
 
 
 def _corrupted(valid: Path, tmp: Path, fname: str, kind: str, seed: int) -> Path:
-    folder = tmp / f"{fname}-{kind}-{seed}"
+    folder = tmp / f"{valid.name}-{fname}-{kind}-{seed}"
     shutil.copytree(valid, folder)
     p = folder / fname
     p.write_bytes(mutate(p.read_bytes(), kind, random.Random(f"{fname}{kind}{seed}")))
@@ -216,3 +217,34 @@ def test_random_corruptions(valid, valid_oaslam, tmp_path, case, kinds, seed):
        seed=st.integers(0, 2**32 - 1))
 def test_random_corruptions_long(valid, valid_oaslam, tmp_path, case, kinds, seed):
     _fuzz(valid if case[0] == "canonical" else valid_oaslam, tmp_path, case[1], kinds, seed)
+
+
+def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(valid, valid_oaslam, tmp_path):
+    """``spdslam run`` on each corrupted folder that the readers refuse: exit 2, one line
+    ``spdslam: error: …`` on stderr, no traceback, no output folder, the input untouched."""
+    from conftest import cli_runner
+
+    from spdslam import cli
+
+    runner = cli_runner()
+    refused = 0
+    for layout, fname, kind, seed in corpus():
+        folder = _corrupted(valid if layout == "canonical" else valid_oaslam, tmp_path, fname, kind, seed)
+        try:
+            read_sequence(folder)
+            shutil.rmtree(folder)
+            continue  # parses: mapping it is the other tests' work
+        except SequenceFormatError:
+            pass
+        before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+        out = tmp_path / "out"
+        res = runner.invoke(cli.app, ["run", str(folder), "--out", str(out)])
+        assert res.exit_code == 2 and isinstance(res.exception, SystemExit), (layout, fname, kind, res.exception)
+        lines = res.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), res.stderr
+        assert not out.exists()
+        assert {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()} == before
+        shutil.rmtree(folder)
+        refused += 1
+    print(f"spdslam run: {refused} refused corruptions, each one line and exit 2, nothing written")
+    assert refused >= 150, refused
