@@ -220,8 +220,9 @@ def test_random_corruptions_long(valid, valid_oaslam, tmp_path, case, kinds, see
 
 
 def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(valid, valid_oaslam, tmp_path):
-    """``spdslam run`` on each corrupted folder that the readers refuse: exit 2, one line
-    ``spdslam: error: …`` on stderr, no traceback, no output folder, the input untouched."""
+    """``spdslam run`` (and ``spdslam import`` for the OA-SLAM layout) on each corrupted
+    folder that the readers refuse: exit 2, one line ``spdslam: error: …`` on stderr, no
+    traceback, no output folder, the input untouched."""
     from conftest import cli_runner
 
     from spdslam import cli
@@ -238,11 +239,15 @@ def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(
             pass
         before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
         out = tmp_path / "out"
-        res = runner.invoke(cli.app, ["run", str(folder), "--out", str(out)])
-        assert res.exit_code == 2 and isinstance(res.exception, SystemExit), (layout, fname, kind, res.exception)
-        lines = res.stderr.splitlines()
-        assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), res.stderr
-        assert not out.exists()
+        commands = [["run", str(folder), "--out", str(out)]]
+        if layout == "oaslam":  # the importer of real recordings reads the same files
+            commands.append(["import", str(folder), str(out)])
+        for args in commands:
+            res = runner.invoke(cli.app, args)
+            assert res.exit_code == 2 and isinstance(res.exception, SystemExit), (args, fname, kind, res.exception)
+            lines = res.stderr.splitlines()
+            assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), res.stderr
+            assert not out.exists()
         assert {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()} == before
         shutil.rmtree(folder)
         refused += 1
