@@ -10,6 +10,7 @@ trials where only one succeeds, median iterations and evaluations, and the colla
     python3 benchmarks/reference.py --quick                 # 8 trials, H only
     python3 benchmarks/reference.py --trials 1000           # the full grid (≈ 10 min, 2 cores)
     python3 benchmarks/reference.py --trials 1000 --noise H --params S,O
+    python3 benchmarks/reference.py --trials 1000 --protocol v1   # the protocol until issue 16
 
 Writes ``benchmarks/results/reference.json`` and ``reference.md``.
 """
@@ -38,6 +39,7 @@ def main() -> int:
                     help="our LM's budget (default: the study's)")
     ap.add_argument("--max-nfev", type=int, default=100, help="TRF's budget of evaluations")
     ap.add_argument("--workers", type=int, default=None, help="TRF processes (default ≤ 2)")
+    ap.add_argument("--protocol", default="paper", help="the scenes' protocol (synthetic.PROTOCOLS)")
     ap.add_argument("--quick", action="store_true", help="8 trials at H")
     ap.add_argument("--out", default=str(HERE / "results" / "reference.json"))
     args = ap.parse_args()
@@ -49,7 +51,7 @@ def main() -> int:
     cfg = StudyConfig(trials=args.trials, seed=args.seed, params=tuple(args.params.split(",")),
                       models=tuple(args.models.split(",")),
                       angles=tuple(float(a) for a in args.angles.split(",")),
-                      noise=tuple(args.noise.split(",")),
+                      noise=tuple(args.noise.split(",")), protocol=args.protocol,
                       **({} if args.max_iters is None else {"max_iters": args.max_iters}))
     t0 = time.perf_counter()
     out = compare_with_reference(cfg, args.max_nfev, args.workers,

@@ -33,6 +33,7 @@ from spdslam.solver import (
     LevenbergMarquardt,
     NonlinearFactorGraph,
     Values,
+    clear_caches,
 )
 
 B = 5
@@ -145,6 +146,32 @@ def test_cost_matches_graph_error():
     np.testing.assert_allclose(bp.cost(fa, bv), expected_init, rtol=1e-12)
     # and at the solution: the final costs
     np.testing.assert_allclose(bp.cost(fa, res.values_batched), res.final_cost, rtol=1e-12)
+
+
+def test_compile_ahead_then_solve_reuses_the_program():
+    """``compile`` builds the solver for the inputs' shapes without running it (from threads
+    at once, as the study does); ``solve`` then compiles nothing and gives the result of a
+    problem solved without it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    runs = []
+    for cls, factor in ((Ellipsoid, InverseBoxFactor), (EllipsoidRTS, SemiInverseBoxFactor)):
+        _, graphs, values, fa, bv, fixed = box_problems(6, cls, factor)
+        runs.append((LevenbergMarquardt(max_iterations=7, lambda_initial=1.0), graphs, values, fa, bv, fixed))
+    clear_caches()
+    problems = [lm.batched(g[0], v[0], fixed=fx) for lm, g, v, _, _, fx in runs]
+    with ThreadPoolExecutor(2) as ex:
+        built = list(ex.map(lambda k: problems[k].compile(runs[k][3], runs[k][4]), range(2)))
+    assert all(t["compile"] > 0 for t in built)
+    assert problems[0].compile(runs[0][3], runs[0][4]) == {"trace": 0.0, "compile": 0.0}
+    results = [bp.solve(run[3], run[4]) for run, bp in zip(runs, problems)]
+    assert all(r.timings["trace"] == r.timings["compile"] == 0.0 for r in results)
+    clear_caches()
+    for (lm, g, v, fa, bv, fx), res in zip(runs, results):
+        again = lm.batched(g[0], v[0], fixed=fx).solve(fa, bv)
+        assert again.timings["compile"] > 0
+        np.testing.assert_array_equal(res.final_cost, again.final_cost)
+        np.testing.assert_array_equal(res.iterations, again.iterations)
 
 
 def test_template_arguments_and_values_broadcast():

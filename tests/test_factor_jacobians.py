@@ -154,6 +154,14 @@ def _classic_orientation(param):
     return Case((batched_landmarks(param, R, t, s),), (jnp.asarray(m), jnp.asarray(axis)), kind)
 
 
+@case("classic_shape", params=("rts",))
+def _classic_shape(param):
+    """The stored scales' ratios: smooth wherever no scale is zero, ties included."""
+    R, t, s, kind, _ = configurations(25)
+    prior = np.random.default_rng(26).uniform(0.2, 1.0, size=(N, 3))
+    return Case((batched_landmarks(param, R, t, s),), (jnp.asarray(prior[:, :2] / prior[:, 2:]),), kind)
+
+
 @case("axis_orientation")
 def _axis_orientation(param):
     """Per-axis (cuboid) orientation: like the cuboid, defined by the axes, so SPD/Full are

@@ -156,6 +156,31 @@ def test_classic_orientation_depends_on_axis_order():
         classic_orientation_residual(swapped.to_ellipsoid(), up, z)
 
 
+def test_classic_shape_depends_on_axis_order():
+    """The classic shape prior reads the stored scales in order: the same object with its axes
+    listed in another order misses the prior, the sorted form does not."""
+    from spdslam.factors import ClassicShapeFactor, classic_shape_residual
+
+    radii = np.array([0.6, 0.4, 0.25])
+    prior = radii / radii[2]
+    upright = EllipsoidRTS.from_axes(np.eye(3), np.zeros(3), radii)
+    perm = [2, 0, 1]
+    swapped = EllipsoidRTS.from_axes(np.eye(3)[:, perm], np.zeros(3), radii[perm])
+    assert np.linalg.norm(classic_shape_residual(upright, prior[:2])) < 1e-12
+    np.testing.assert_allclose(classic_shape_residual(swapped, prior[:2]),
+                               [0.25 / 0.4 - 2.4, 0.6 / 0.4 - 1.6], atol=1e-12)
+    assert np.linalg.norm(shape_residual(swapped, np.array([2.4, 1.6]))) < 1e-12
+    # the factor keeps the class's stated order (x, y, z) and takes the signs' absolute value
+    f = ClassicShapeFactor("l", [0.6, 0.4, 0.25])
+    np.testing.assert_allclose(f.args[0], [2.4, 1.6])
+    flipped = EllipsoidRTS.from_axes(np.eye(3), np.zeros(3), -radii)
+    assert np.linalg.norm(classic_shape_residual(flipped, prior[:2])) < 1e-12
+    with pytest.raises(TypeError, match="RTS"):
+        classic_shape_residual(swapped.to_ellipsoid(), prior[:2])
+    with pytest.raises(ValueError, match="positive"):
+        ClassicShapeFactor("l", [0.6, 0.0, 0.25])
+
+
 def test_shape_and_size_priors():
     prior = np.array([0.5, 0.3, 0.2])
     rng = np.random.default_rng(2)

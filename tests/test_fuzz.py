@@ -253,3 +253,41 @@ def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(
         refused += 1
     print(f"spdslam run: {refused} refused corruptions, each one line and exit 2, nothing written")
     assert refused >= 150, refused
+
+
+def test_evaluate_on_every_corrupted_ground_truth(valid, valid_oaslam, tmp_path):
+    """``spdslam evaluate`` of a good map against each corrupted ground-truth file of the
+    corpus (``groundtruth.txt``, ``objects_gt.txt``; both layouts): strict JSON metrics and
+    exit 0, or one line and exit 2 with the run's files untouched — never a traceback."""
+    from conftest import cli_runner
+
+    from spdslam import cli
+
+    runner = cli_runner()
+    bases = {}
+    for layout, src in (("canonical", valid), ("oaslam", valid_oaslam)):
+        bases[layout] = tmp_path / f"map-{layout}"
+        res = runner.invoke(cli.app, ["run", str(src), "--out", str(bases[layout])])
+        assert res.exit_code == 0, res.output
+    counts = {"evaluated": 0, "refused": 0}
+    for layout, fname, kind, seed in corpus():
+        if fname not in ("groundtruth.txt", "objects_gt.txt"):
+            continue
+        folder = _corrupted(valid if layout == "canonical" else valid_oaslam, tmp_path, fname, kind, seed)
+        out = bases[layout]
+        before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+        res = runner.invoke(cli.app, ["evaluate", str(out), str(folder)])
+        assert res.exit_code in (0, 2) and isinstance(res.exception, (SystemExit, type(None))), \
+            (layout, fname, kind, seed, res.exception)
+        if res.exit_code == 2:
+            lines = res.stderr.splitlines()
+            assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), res.stderr
+            assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+            counts["refused"] += 1
+        else:
+            json.loads((out / "metrics.json").read_text(encoding="utf-8"),
+                       parse_constant=lambda c: pytest.fail(f"non-strict JSON token {c}"))
+            counts["evaluated"] += 1
+        shutil.rmtree(folder)
+    print(f"spdslam evaluate: {counts}")
+    assert counts["refused"] >= 40 and counts["evaluated"] >= 10, counts

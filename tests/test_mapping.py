@@ -54,17 +54,53 @@ def test_methods_mirror_table_iii_and_validate():
     assert METHODS["quadric-slam"].initialization == "svd"
     assert METHODS["quadric-slam"].parameterization == "rts"
     assert METHODS["multi-rts"].orientation == "classic"
+    assert METHODS["multi-rts"].shape_form == "classic"
+    assert METHODS["multi-rts-nearest"].orientation == "classic-nearest"
     assert METHODS["multi-spd"].parameterization == "spd"
     with pytest.raises(ValueError, match="parameterization must be one of"):
         Method("x", parameterization="quat")
     with pytest.raises(ValueError, match="classic orientation"):
         Method("x", parameterization="spd", orientation="classic")
+    with pytest.raises(ValueError, match="classic shape"):
+        Method("x", parameterization="spd", orientation="improved", shape_form="classic")
     seq = make_room_sequence(0, frames=30, objects=1)
     with pytest.raises(ValueError, match="unknown method"):
         run_sequence(seq, "orb-slam")
     with pytest.raises(ValueError, match="unknown sigma"):
         mapping_sigmas(seq, {"inverse_boxx": 1.0})
     assert mapping_sigmas(seq)["odometry_translation"] == seq.priors.trajectory_sigma[0]
+
+
+def test_faithful_rts_baseline_constrains_the_third_axis_and_the_stored_scales():
+    """multi-rts (the paper's baseline): classic orientation on the landmark's third axis,
+    classic shape prior in its own axis order; multi-rts-nearest: the axis nearest up and
+    the sorted ratios."""
+    from spdslam.factors import ClassicOrientationFactor, ClassicShapeFactor, ShapeFactor
+    from spdslam.frontend import tracks_from_instances
+    from spdslam.mapping import build_graph, initialize_objects
+    from spdslam.mapping._run import _landmark
+    from spdslam.solver import L
+
+    seq = make_room_sequence(0, frames=30, objects=2)
+    tracks = tracks_from_instances(seq)
+    built = {}
+    for name in ("multi-rts", "multi-rts-nearest"):
+        init, _, _ = initialize_objects(seq, tracks, METHODS[name])
+        landmarks = {k: _landmark(e, METHODS[name]) for k, e in init.items()}
+        graph = build_graph(seq, [t for t in tracks if t.id in landmarks], landmarks, METHODS[name], "inverse")
+        built[name] = (graph, landmarks)
+    g, lms = built["multi-rts"]
+    orient = [f for f in g if isinstance(f, ClassicOrientationFactor)]
+    assert orient and all(np.array_equal(f.args[1], [0.0, 0.0, 1.0]) for f in orient)
+    assert any(isinstance(f, ClassicShapeFactor) for f in g.factors)
+    assert not any(isinstance(f, ShapeFactor) for f in g.factors)
+    g, lms = built["multi-rts-nearest"]
+    nearest = [f for f in g if isinstance(f, ClassicOrientationFactor)]
+    assert len(nearest) == len(orient)
+    for f in nearest:
+        R = np.asarray(next(v for k, v in lms.items() if L(k) == f.keys[0]).orientation.as_matrix())
+        assert np.argmax(f.args[1]) == np.argmax(np.abs(R.T @ f.args[0]))
+    assert any(isinstance(f, ShapeFactor) for f in g.factors)
 
 
 def test_manual_association_needs_instances():

@@ -187,6 +187,39 @@ def test_mapped_objects_carry_their_uncertainty():
     assert "centre σ 0.5 m" in poorly_observed(
         {"center_sigma_max": 0.5, "log_radius_sigma": [0.1, 0.1, 0.1]})
     assert "factor" in poorly_observed({"center_sigma_max": 0.01, "log_radius_sigma": [0.1, 2.0, 0.1]})
+    assert poorly_observed({"center_sigma_max": 0.01, "log_radius_sigma": [0.1, float("inf"), 0.1]}) \
+        == "a radius not determined"
+
+
+def test_a_degenerate_object_does_not_leave_the_others_undetermined():
+    """A flat landmark (a zero radius: its information is singular) beside well-observed
+    ones: the joint marginals are undetermined for every object, the mapped ones
+    (``mapped_uncertainty``, what ``run_sequence`` reports) are those of the graph without
+    it — quadric-slam on fr2_desk lost all its 17 objects to this."""
+    from spdslam.geometry import EllipsoidRTS
+    from spdslam.mapping import METHODS, build_graph, initialize_objects, mapped_uncertainty, object_uncertainty
+    from spdslam.frontend import tracks_from_instances
+
+    seq = make_room_sequence(0, frames=40, objects=3)
+    method = METHODS["quadric-slam"]
+    tracks = tracks_from_instances(seq)
+    init, _, _ = initialize_objects(seq, tracks, method)
+    ids = sorted(init)
+    lms = {k: EllipsoidRTS.from_axes(np.asarray(init[k].axes()[0]), np.asarray(init[k].center),
+                                     np.asarray(init[k].axes()[1])) for k in ids}
+    flat_id = ids[0]
+    R, c = np.asarray(init[flat_id].axes()[0]), np.asarray(init[flat_id].center)
+    lms[flat_id] = EllipsoidRTS.from_axes(R, c, [0.3, 0.2, 0.0])
+    graph = build_graph(seq, [t for t in tracks if t.id in lms], lms, method, "inverse")
+    from spdslam.mapping._context import as_context
+
+    values = Values({X(i): p for i, p in enumerate(as_context(seq).poses)} | {L(k): v for k, v in lms.items()})
+    joint = object_uncertainty(graph, values, ids)
+    assert all(joint[k]["center_sigma_max"] == float("inf") for k in ids)
+    mapped = mapped_uncertainty(graph, values, ids)
+    assert flat_id not in mapped and set(mapped) == set(ids[1:])
+    for k in ids[1:]:
+        assert np.isfinite(mapped[k]["center_sigma_max"]) and 0 < mapped[k]["center_sigma_max"] < 1
 
 
 # --- spurious tracks ---------------------------------------------------------------------------

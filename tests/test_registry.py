@@ -15,6 +15,7 @@ from spdslam.factors import (
     AxisOrientationFactor,
     BetweenFactor,
     ClassicOrientationFactor,
+    ClassicShapeFactor,
     CustomFactor,
     EllipsoidMeasurementFactor,
     Factor,
@@ -54,6 +55,7 @@ EXAMPLES = {
     "axis_orientation": lambda **n: AxisOrientationFactor(L(0), [0, 0, 1], **n),
     "classic_orientation": lambda **n: ClassicOrientationFactor(L(0), [0, 0, 1], 2, **n),
     "shape": lambda **n: ShapeFactor(L(0), [0.3, 0.2, 0.1], **n),
+    "classic_shape": lambda **n: ClassicShapeFactor(L(0), [0.3, 0.2, 0.1], **n),
     "size": lambda **n: SizeFactor(L(0), [0.3, 0.2, 0.1], **n),
     "radius_floor": lambda **n: RadiusFloorFactor(L(0), 0.01, **n),
     "support_plane": lambda **n: SupportPlaneFactor(L(0), [0, 0, 1, 0], **n),
@@ -177,7 +179,7 @@ def test_custom_factors_stay_possible():
 def test_the_mapping_noise_table_is_the_registry_plus_its_own():
     table = DEFAULT_MAPPING_SIGMAS  # made when spdslam.mapping was imported
     ours = {s.name or k: s for k, c in _library_types().items() for s in c.sigmas}
-    assert set(ours) <= set(default_sigmas()) and len(ours) == 13
+    assert set(ours) <= set(default_sigmas()) and len(ours) == 14
     for name, s in ours.items():
         assert name in table
         if name not in MAPPING_SIGMAS:

@@ -109,3 +109,60 @@ def test_default_run_reproduces_the_committed_table(tmp_path, monkeypatch):
     committed = Path(__file__).resolve().parents[1] / "docs" / "simulation" / "table.md"
     assert _without_timing((tmp_path / "table.md").read_text()) == _without_timing(committed.read_text())
     assert set(CSV_COLUMNS) >= set(REQUIRED)
+
+
+def test_protocols_are_named_validated_and_shape_the_views():
+    """The protocol's free choices: the focal length scales the boxes about the principal
+    point (same scenes otherwise), the cone keeps every pair of viewing directions within the
+    viewing range, the arc keeps every view's elevation within the spread, and bad values
+    are refused."""
+    from spdslam.synthetic import PROTOCOLS, Protocol, get_protocol, make_scenes
+
+    assert {"paper", "v1"} <= set(PROTOCOLS) and get_protocol("v1") is PROTOCOLS["v1"]
+    assert StudyConfig().protocol == PROTOCOLS["paper"]
+    assert StudyConfig(protocol="v1", n_views=6).protocol.n_views == 6
+    narrow, wide = (make_scenes(3, 20, "L", 60.0, protocol=Protocol(focal=f)) for f in (500.0, 2000.0))
+    c0, c1 = np.array([320.0, 240.0, 320.0, 240.0]), np.array([1280.0, 960.0, 1280.0, 960.0])
+    np.testing.assert_allclose(wide.boxes - c1, 4.0 * (narrow.boxes - c0), rtol=1e-9, atol=1e-6)
+    for pattern, angle in (("cone", 60.0), ("arc", 120.0)):
+        pr = Protocol(pattern=pattern, elevation_deg=10.0)
+        sc = make_scenes(5, 30, "L", angle, protocol=pr)
+        eyes = np.asarray(sc.poses.translation())
+        d = eyes - np.asarray(sc.truth.center)[:, None]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        if pattern == "cone":
+            cos = np.einsum("bvi,bwi->bvw", d, d)
+            assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) <= angle + 1e-6
+        else:
+            assert np.degrees(np.abs(np.arcsin(d[..., 2]))).max() <= 10.0 + 1e-6
+            az = np.unwrap(np.arctan2(d[..., 1], d[..., 0]), axis=1)
+            assert np.degrees(np.ptp(az, axis=1)).max() <= angle + 1e-6
+    for bad in (dict(focal=0.0), dict(distance=(6.0, 4.0)), dict(pattern="fan"),
+                dict(elevation_deg=90.0), dict(n_views=2), dict(aim_jitter=-1.0)):
+        with pytest.raises(ValueError):
+            Protocol(**bad)
+    with pytest.raises(ValueError, match="unknown protocol"):
+        StudyConfig(protocol="v2")
+
+
+def test_simulate_protocol_options(tmp_path):
+    """--protocol and its overrides reach the scenes and are written down; bad ones exit 2
+    with one line naming the option."""
+    runner = cli_runner()
+    out = tmp_path / "sim"
+    res = runner.invoke(app, ["simulate", "--trials", "2", "--angles", "120", "--noise", "L", "--models", "inv",
+                              "--params", "O", "--protocol", "v1", "--focal", "800", "--pattern", "arc",
+                              "--distance", "3-4", "--views", "6", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    pr = json.loads((out / "summary.json").read_text())["config"]["protocol"]
+    assert pr == {"name": "custom", "focal": 800.0, "distance": [3.0, 4.0], "pattern": "arc",
+                  "elevation_deg": 15.0, "n_views": 6, "aim_jitter": 0.05}
+    assert "Protocol custom: f = 800 px, cameras 3–4 m" in (out / "table.md").read_text()
+    for args, option in ((["--distance", "4"], "--distance"), (["--pattern", "fan"], "--pattern"),
+                         (["--views", "2"], "--views"), (["--protocol", "v2"], "--protocol"),
+                         (["--elevation", "95"], "--elevation"), (["--focal", "-1"], "--focal")):
+        res = runner.invoke(app, ["simulate", "--out", str(tmp_path / "x"), *args])
+        assert res.exit_code == 2, (args, res.output)
+        lines = res.stderr.splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"spdslam: error: {option}:"), res.stderr
+    assert not (tmp_path / "x").exists()

@@ -26,6 +26,31 @@ def _split(option: str, value: str, allowed=None, cast=str) -> tuple:
     return tuple(out)
 
 
+def _protocol(name, focal, distance, pattern, elevation, views):
+    """The named protocol with the options' overrides, or a one-line error."""
+    from ..synthetic import PROTOCOLS, get_protocol
+
+    if name not in PROTOCOLS:
+        fail(f"--protocol: expected one of {', '.join(PROTOCOLS)}, got {name!r}")
+    rng = None
+    if distance is not None:
+        parts = distance.split("-")
+        try:
+            rng = tuple(float(x) for x in parts)
+        except ValueError:
+            rng = ()
+        if len(rng) != 2:
+            fail(f"--distance: expected LO-HI in metres (e.g. 4-6), got {distance!r}")
+    try:
+        return get_protocol(name).replace(focal=focal, distance=rng, pattern=pattern,
+                                          elevation_deg=elevation, n_views=views)
+    except ValueError as e:
+        field = str(e).split(" ", 1)[0]
+        option = {"focal": "focal", "distance": "distance", "pattern": "pattern",
+                  "elevation_deg": "elevation", "n_views": "views"}.get(field, "protocol")
+        fail(f"--{option}: {e}")
+
+
 @app.command()
 def simulate(
     trials: int = typer.Option(24, min=1, help="Trials per (viewing range, noise) cell."),
@@ -36,6 +61,15 @@ def simulate(
     angles: str = typer.Option("60,120", help="Viewing ranges in degrees."),
     noise: str = typer.Option("L,M,H", help="Noise levels (the paper's L, M, H)."),
     max_iters: int = typer.Option(200, "--max-iters", min=1, help="Iteration budget."),
+    protocol: str = typer.Option(
+        "paper", help="The scenes' protocol: paper (calibrated to the paper's method-independent "
+        "figures, docs/simulation.md) or v1 (the study until issue 16: f = 500 px)."),
+    focal: float = typer.Option(None, help="Override the protocol's focal length (px; the image "
+                                "keeps the 640 x 480 / f = 500 field of view)."),
+    distance: str = typer.Option(None, help="Override the camera distance range, LO-HI metres."),
+    pattern: str = typer.Option(None, help="Override the viewing pattern: cone or arc."),
+    elevation: float = typer.Option(None, help="Override the elevation spread (± degrees)."),
+    views: int = typer.Option(None, help="Override the number of views (≥ 3; the paper: 10)."),
     optimizer: str = typer.Option(
         "lm", help="The solver: lm (Levenberg-Marquardt) or dogleg (Powell's dogleg)."),
     optimize: str = typer.Option(
@@ -62,6 +96,7 @@ def simulate(
     if optimize not in ("auto", "yes", "no"):
         fail(f"--optimize: expected auto, yes or no, got {optimize!r}")
     cfg_kwargs["optimize"] = {"auto": None, "yes": True, "no": False}[optimize]
+    cfg_kwargs["protocol"] = _protocol(protocol, focal, distance, pattern, elevation, views)
     if any(not 0 < a <= 360 for a in cfg_kwargs["angles"]):
         fail("--angles: each viewing range must be in (0, 360] degrees")
     if out.exists() and not out.is_dir():

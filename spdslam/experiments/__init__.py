@@ -9,6 +9,7 @@ from ._outputs import write_outputs as write_outputs
 from ._paper import MODEL_NAMES as MODEL_NAMES
 from ._paper import PAPER_IOU_H as PAPER_IOU_H
 from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
+from ._paper import PAPER_SUCCESS_IOU as PAPER_SUCCESS_IOU
 from ._paper import PARAM_NAMES as PARAM_NAMES
 from ._reference import compare_with_reference as compare_with_reference
 from ._reference import reference_solve as reference_solve
@@ -18,5 +19,6 @@ from ._study import StudyResult as StudyResult
 from ._study import run_study as run_study
 from ._summary import COLLAPSED_RATIO as COLLAPSED_RATIO
 from ._summary import CSV_COLUMNS as CSV_COLUMNS
+from ._summary import pooled_success_iou as pooled_success_iou
 from ._summary import summarize as summarize
 from ._summary import table_markdown as table_markdown

@@ -18,7 +18,9 @@ Summaries, tables and figures: ``_summary``, ``_outputs``; the paper's numbers: 
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -31,7 +33,7 @@ from ..evaluation import cuboid_iou_arrays, orientation_errors_deg
 from ..factors import InverseBoxFactor, SemiInverseBoxFactor
 from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, sorted_axes
 from ..solver import Dogleg, L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
-from ..synthetic import NOISE_LEVELS, Scenes, make_scenes
+from ..synthetic import NOISE_LEVELS, Protocol, Scenes, get_protocol, make_scenes
 
 __all__ = ["StudyConfig", "StudyResult", "run_study"]
 
@@ -52,7 +54,12 @@ class StudyConfig:
     #: LM budget: at H a third of the optima have a collapsed axis, which the SPD chart
     #: approaches geometrically (docs/simulation.md, "Budget").
     max_iters: int = 200
-    n_views: int = 10
+    #: The scenes' free choices (``synthetic.Protocol`` or a name of ``synthetic.PROTOCOLS``):
+    #: "paper", calibrated to the paper's method-independent figures; "v1", the study
+    #: until issue 16 (docs/simulation.md).
+    protocol: Protocol | str = "paper"
+    #: Views per scene; None: the protocol's (10, as in the paper).
+    n_views: int | None = None
     #: The solver: "lm" (Levenberg-Marquardt) or "dogleg" (Powell's dogleg, trust region).
     optimizer: str = "lm"
     #: LM initial damping, relative to the damping matrix (see docs/simulation.md).
@@ -74,6 +81,11 @@ class StudyConfig:
     optimize: bool | None = None
 
     def __post_init__(self):
+        pr = get_protocol(self.protocol)
+        if self.n_views is not None and self.n_views != pr.n_views:
+            pr = pr.replace(n_views=self.n_views)
+        object.__setattr__(self, "protocol", pr)
+        object.__setattr__(self, "n_views", pr.n_views)
         for p in self.params:
             if p not in _PARAM_TYPES:
                 raise ValueError(f"unknown parameterisation {p!r}: expected F, S or O")
@@ -114,7 +126,7 @@ def _all_scenes(cfg: StudyConfig) -> tuple[Scenes, np.ndarray, np.ndarray]:
     for ia, a in enumerate(cfg.angles):
         for n in cfg.noise:
             s = make_scenes(
-                (cfg.seed, ia, "LMH".index(n)), cfg.trials, n, a, n_views=cfg.n_views
+                (cfg.seed, ia, "LMH".index(n)), cfg.trials, n, a, protocol=cfg.protocol
             )
             parts.append(s)
             angle += [a] * cfg.trials
@@ -168,8 +180,9 @@ def _batched_args(scenes: Scenes, cfg: StudyConfig):
     return {i: (jnp.asarray(scenes.boxes[:, i]), cam) for i in range(cfg.n_views)}
 
 
-def _solve_structure(model, param, scenes, cfg):
-    """One vmapped solve of every trial of every cell for one (model, param)."""
+def _build_structure(model, param, scenes, cfg):
+    """The batched problem of every trial of every cell for one (model, param), with its
+    inputs: (problem, factor args, initial values, values at the truth)."""
     init = _convert(param, scenes.initial)
     truth = _convert(param, scenes.truth)
     first = jax.tree.map(lambda a: a[0], init)
@@ -186,10 +199,20 @@ def _solve_structure(model, param, scenes, cfg):
     pose_values = {
         X(i): jax.tree.map(lambda a, i=i: a[:, i], scenes.poses) for i in range(cfg.n_views)
     }
+    return problem, args, {**pose_values, OBJECT: init}, {**pose_values, OBJECT: truth}
+
+
+def _solve_structure(built, compiled: dict | None = None):
+    """One vmapped solve of a built structure (``_build_structure``); ``compiled``: the
+    trace/compile seconds when it was compiled ahead (``BatchedProblem.compile``)."""
+    problem, args, init, truth = built
     t0 = time.perf_counter()
-    result = problem.solve(factor_args=args, values={**pose_values, OBJECT: init})
+    result = problem.solve(factor_args=args, values=init)
     t1 = time.perf_counter()
-    truth_cost = problem.cost(factor_args=args, values={**pose_values, OBJECT: truth})
+    truth_cost = problem.cost(factor_args=args, values=truth)
+    timings = dict(result.timings)
+    if compiled:
+        timings.update(compiled)
     return {
         "estimate": _to_ellipsoid(result.values_batched[OBJECT]),
         "initial_cost": np.asarray(result.initial_cost),
@@ -199,7 +222,7 @@ def _solve_structure(model, param, scenes, cfg):
         "iterations": np.asarray(result.iterations),
         "reason": list(result.reason),
         "seconds": t1 - t0,
-        "timings": dict(result.timings),
+        "timings": timings,
     }
 
 
@@ -257,8 +280,16 @@ def run_study(
     histories: dict = {}
     timings = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0}
     B = len(scenes)
+    # every structure compiled first, two at a time (XLA compiles in parallel threads),
+    # then solved one after the other
+    t_compile = time.perf_counter()
+    built = [_build_structure(m, p, scenes, cfg) for m, p in structures]
+    with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:
+        compiled = list(pool.map(lambda b: b[0].compile(b[1], b[2]), built))
+    timings["compile_phase"] = time.perf_counter() - t_compile
+    timings["solve"] += timings["compile_phase"]
     for k, (model, param) in enumerate(structures):
-        out = _solve_structure(model, param, scenes, cfg)
+        out = _solve_structure(built[k], compiled[k])
         t_eval = time.perf_counter()
         thr = (1 + cfg.success_rtol) * out["truth_cost"] + cfg.success_atol
         hist = _forward_fill(out["cost_history"], out["initial_cost"])
@@ -300,7 +331,8 @@ def run_study(
     timings["wall"] = time.perf_counter() - t_start
     iters = sum(r["iterations"] for r in rows)
     st = timings.get("structures", {}).values()
-    timings["compile"] = sum(v.get("trace", 0.0) + v.get("compile", 0.0) for v in st)
+    # wall time of tracing and compiling (in parallel: less than the structures' sum)
+    timings["compile"] = timings["compile_phase"]
     timings["solve_loops"] = sum(v.get("solve", 0.0) for v in st)
     timings["problem_iterations"] = iters
     # the batched LM loops alone (compile excluded), per iteration of each problem

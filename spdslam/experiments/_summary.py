@@ -12,10 +12,10 @@ import numpy as np
 
 from .._version import __version__
 from ..evaluation import bootstrap, paired_comparison, wilson
-from ._paper import PAPER_IOU_H, PAPER_SUCCESS
+from ._paper import PAPER_IOU_H, PAPER_SUCCESS, PAPER_SUCCESS_IOU
 from ._study import StudyResult
 
-__all__ = ["COLLAPSED_RATIO", "CSV_COLUMNS", "summarize", "table_markdown"]
+__all__ = ["COLLAPSED_RATIO", "CSV_COLUMNS", "pooled_success_iou", "summarize", "table_markdown"]
 
 #: An estimate whose smallest radius is below this fraction of its largest has collapsed.
 COLLAPSED_RATIO = 1e-3
@@ -29,6 +29,23 @@ CSV_COLUMNS = [
 
 def _select(rows, **kw):
     return [r for r in rows if all(r[k] == v for k, v in kw.items())]
+
+
+def pooled_success_iou(rows, cells, models) -> list[dict]:
+    """The paper's "Average Success IoU": per (range, noise, model) the mean IoU of the
+    successful trials of every parameterisation pooled (bootstrap interval), beside the
+    paper's figure and the difference."""
+    out = []
+    for a, n in cells:
+        for m in models:
+            ious = [r["iou"] for r in _select(rows, angle=int(a), noise=n, model=m) if r["success"]]
+            paper = PAPER_SUCCESS_IOU.get((n, m, int(a)))
+            est = bootstrap(ious).as_dict()
+            out.append({"angle": int(a), "noise": n, "model": m, "successes": len(ious), "iou": est,
+                        "paper": paper,
+                        "difference": None if paper is None or not np.isfinite(est["estimate"])
+                        else est["estimate"] - paper})
+    return out
 
 
 def summarize(result: StudyResult) -> dict:
@@ -74,6 +91,7 @@ def summarize(result: StudyResult) -> dict:
         "config": asdict(result.config),
         "cells": cells,
         "paired_iterations_O_vs_S": paired,
+        "pooled_success_iou": pooled_success_iou(rows, cfg.cells, cfg.models),
         "timings": result.timings,
         "versions": {"spdslam": __version__, "jax": jax.__version__, "python": platform.python_version()},
         "machine": {"platform": platform.platform(), "processor": platform.processor()},
@@ -87,6 +105,13 @@ def _cell(summary, a, n, m, p):
     raise KeyError((a, n, m, p))
 
 
+def protocol_line(pr: dict) -> str:
+    """One line naming the scenes' protocol (``synthetic.Protocol`` as a dict)."""
+    lo, hi = pr["distance"]
+    return (f"Protocol {pr['name']}: f = {pr['focal']:g} px, cameras {lo:g}–{hi:g} m from the centre, "
+            f"{pr['pattern']} of views (elevation ±{pr['elevation_deg']:g}°), {pr['n_views']} views.")
+
+
 def table_markdown(summary: dict) -> str:
     cfg = summary["config"]
     params, models, angles = cfg["params"], cfg["models"], [int(a) for a in cfg["angles"]]
@@ -97,28 +122,39 @@ def table_markdown(summary: dict) -> str:
         "",
         f"Success: final cost ≤ (1 + {cfg['success_rtol']})·C̄ + {cfg['success_atol']}, C̄ = cost at the ground truth.",
         "",
-        "| noise | " + " | ".join(f"{m}-{a}" for m, a in cols) + " |",
-        "| --- | " + " | ".join("---" for _ in cols) + " |",
+        *([protocol_line(cfg["protocol"]), ""] if isinstance(cfg.get("protocol"), dict) else []),
     ]
-    for n in cfg["noise"]:
-        cells = []
-        for m, a in cols:
-            ours = "+".join(str(_cell(summary, a, n, m, p)["successes"]) for p in params)
-            paper = PAPER_SUCCESS.get((n, m, a))
-            ref = "+".join(str(paper["FSO".index(p)]) for p in params) if paper else "–"
-            cells.append(f"{ours} (paper {ref})")
-        lines.append(f"| {n} | " + " | ".join(cells) + " |")
-    lines += ["", f"## Average IoU {'/'.join(params)} over all trials (paper at H)", ""]
-    lines += ["| noise | " + " | ".join(f"{m}-{a}" for m, a in cols) + " |"]
-    lines += ["| --- | " + " | ".join("---" for _ in cols) + " |"]
-    for n in cfg["noise"]:
-        cells = []
-        for m, a in cols:
-            ours = "/".join(f"{_cell(summary, a, n, m, p)['iou_all']['estimate']:.2f}" for p in params)
-            paper = PAPER_IOU_H.get((m, a)) if n == "H" else None
-            ref = " (paper " + "/".join(f"{paper['FSO'.index(p)]:.2f}" for p in params) + ")" if paper else ""
-            cells.append(ours + ref)
-        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+
+    def grid(title: str, text) -> list[str]:
+        """A noise × (model, range) table whose cells are ``text(noise, model, range)``."""
+        out = ["", title, ""] if title else []
+        out += ["| noise | " + " | ".join(f"{m}-{a}" for m, a in cols) + " |",
+                "| --- | " + " | ".join("---" for _ in cols) + " |"]
+        return out + [f"| {n} | " + " | ".join(text(n, m, a) for m, a in cols) + " |" for n in cfg["noise"]]
+
+    def successes(n, m, a):
+        ours = "+".join(str(_cell(summary, a, n, m, p)["successes"]) for p in params)
+        paper = PAPER_SUCCESS.get((n, m, a))
+        return f"{ours} (paper {'+'.join(str(paper['FSO'.index(p)]) for p in params) if paper else '–'})"
+
+    def iou_all(n, m, a):
+        ours = "/".join(f"{_cell(summary, a, n, m, p)['iou_all']['estimate']:.2f}" for p in params)
+        paper = PAPER_IOU_H.get((m, a)) if n == "H" else None
+        return ours + (" (paper " + "/".join(f"{paper['FSO'.index(p)]:.2f}" for p in params) + ")" if paper else "")
+
+    pooled = {(c["angle"], c["noise"], c["model"]): c for c in summary.get("pooled_success_iou", [])}
+
+    def pooled_iou(n, m, a):
+        c = pooled[(a, n, m)]
+        est = c["iou"]["estimate"]
+        return (f"{est:.2f}" if np.isfinite(est) else "– (none)") + \
+            (f" (paper {c['paper']:.2f})" if c["paper"] is not None else "")
+
+    lines += grid("", successes)
+    lines += grid(f"## Average IoU {'/'.join(params)} over all trials (paper at H)", iou_all)
+    if pooled:
+        lines += grid(f"## Average success IoU, {'+'.join(params)} pooled (paper's row, all three pooled)",
+                      pooled_iou)
     lines += ["", "## 95 % confidence intervals", ""]
     lines += [f"Collapsed: the estimate's smallest radius is below {COLLAPSED_RATIO:g} of its largest (a flat disc or a needle)."]
     lines += [""]

@@ -37,6 +37,7 @@ from ._ellipsoid_measurement import (
 )
 from ._object import AxisOrientationFactor as AxisOrientationFactor
 from ._object import ClassicOrientationFactor as ClassicOrientationFactor
+from ._object import ClassicShapeFactor as ClassicShapeFactor
 from ._object import OrientationFactor as OrientationFactor
 from ._object import RadiusFloorFactor as RadiusFloorFactor
 from ._object import ShapeFactor as ShapeFactor
@@ -44,6 +45,7 @@ from ._object import SizeFactor as SizeFactor
 from ._object import SupportPlaneFactor as SupportPlaneFactor
 from ._object import axis_orientation_residual as axis_orientation_residual
 from ._object import classic_orientation_residual as classic_orientation_residual
+from ._object import classic_shape_residual as classic_shape_residual
 from ._object import orientation_residual as orientation_residual
 from ._object import radius_floor_residual as radius_floor_residual
 from ._object import shape_residual as shape_residual

@@ -20,6 +20,7 @@ __all__ = [
     "ClassicOrientationFactor",
     "AxisOrientationFactor",
     "ShapeFactor",
+    "ClassicShapeFactor",
     "SizeFactor",
     "SupportPlaneFactor",
     "RadiusFloorFactor",
@@ -27,6 +28,7 @@ __all__ = [
     "classic_orientation_residual",
     "axis_orientation_residual",
     "shape_residual",
+    "classic_shape_residual",
     "size_residual",
     "support_plane_residual",
     "radius_floor_residual",
@@ -169,6 +171,22 @@ def shape_residual(landmark, prior_ratios):
     return s[:2] / s[2] - prior_ratios
 
 
+def classic_shape_residual(landmark, prior_ratios):
+    """Classic form, in the landmark's own axis order: [|s₁|/|s₃|, |s₂|/|s₃|] − [a/c, b/c]
+    with s the scales of an RTS landmark as stored (columns 1, 2, 3 of its rotation) and
+    (a, b, c) the class's semi-axes in their stated order (x, y horizontal, z up). Not blind
+    to the axis order: a landmark whose axes the front end labelled otherwise than the
+    class is pulled towards a wrong shape (the conflict the sorted ratios remove).
+    """
+    if not isinstance(landmark, EllipsoidRTS):
+        raise TypeError(
+            "the classic shape factor constrains the stored scales of an RTS landmark "
+            f"(EllipsoidRTS), got {type(landmark).__name__}; use ShapeFactor for SPD/Full"
+        )
+    s = jnp.abs(landmark.scale)
+    return s[:2] / s[2] - prior_ratios
+
+
 def size_residual(landmark, log_prior_volume):
     """⅓ log(V / V̄) = log of the ratio of geometric-mean radii (s₁s₂s₃)^⅓ / (abc)^⅓.
 
@@ -193,11 +211,12 @@ def support_plane_residual(landmark, plane):
     return jnp.atleast_1d(plane @ dual_quadric(landmark) @ plane)
 
 
-def _prior_radii(radii):
+def _prior_radii(radii, sort: bool = True):
+    """The class's semi-axes, validated; sorted descending unless ``sort`` is False."""
     r = np.asarray(radii, dtype=float)
     if r.shape != (3,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
         raise ValueError(f"prior radii must be 3 positive numbers, got {r.tolist()}")
-    return np.sort(r)[::-1]
+    return np.sort(r)[::-1] if sort else r
 
 
 class _ClassPriorFactor(_LandmarkFactor):
@@ -219,6 +238,21 @@ class ShapeFactor(_ClassPriorFactor):
     @staticmethod
     def prior_data(r):
         return np.array([r[0] / r[2], r[1] / r[2]])
+
+
+class ClassicShapeFactor(_LandmarkFactor):
+    """Classic class shape prior on an RTS landmark: its stored ratios [s₁/s₃, s₂/s₃] against
+    [a/c, b/c] of the class's semi-axes in their stated order (not sorted)."""
+
+    kind = "classic_shape"
+    residual = staticmethod(classic_shape_residual)
+    dim = 2
+    group = "shape"
+    sigmas = (Sigma(0.1, "per axis ratio, in the landmark's own axis order"),)
+
+    def __init__(self, landmark_key, prior_radii, **noise):
+        r = _prior_radii(prior_radii, sort=False)
+        super().__init__((landmark_key,), (r[:2] / r[2],), **noise)
 
 
 class SizeFactor(_ClassPriorFactor):

@@ -22,6 +22,7 @@ from ._methods import OBJECT_SHAPE_CHOICES as OBJECT_SHAPE_CHOICES
 from ._methods import ORIENTATIONS as ORIENTATIONS
 from ._methods import PARAMETERIZATIONS as PARAMETERIZATIONS
 from ._methods import ROBUST_KERNELS as ROBUST_KERNELS
+from ._methods import SHAPE_FORMS as SHAPE_FORMS
 from ._methods import Method as Method
 from ._methods import robust_kernel as robust_kernel
 from ._methods import sigma_units as sigma_units
@@ -41,6 +42,7 @@ from ._run import detection_rate as detection_rate
 from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects
+from ._run import mapped_uncertainty as mapped_uncertainty
 from ._run import merged_track as merged_track
 from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates

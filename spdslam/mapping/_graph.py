@@ -13,9 +13,10 @@ key ``L(id)``. Factors, in this order:
   the box's width (u edges) or height (v edges); box edges within ``Method.truncation_margin``
   px of the image border carry no bound;
 - per object, when the method uses them and the priors allow: orientation against ``up``
-  (improved (Log P m) × m, per axis for cuboid objects, or classic: the initial axis
-  nearest ``up`` kept parallel to it), the support plane it stands on (the priors' plane
-  nearest to it, or its estimated plane), the shape and size priors of its class, and the
+  (improved (Log P m) × m, per axis for cuboid objects; classic: the landmark's third
+  axis parallel to ``up``; classic-nearest: the initial axis nearest ``up``), the support
+  plane it stands on (the priors' plane nearest to it, or its estimated plane), the shape
+  (sorted ratios, or classic: in the landmark's axis order) and size priors of its class, and the
   floor on its smallest radius (``Method.radius_floor``);
 - per measured ellipsoid of an object: an ``EllipsoidMeasurementFactor``.
 
@@ -32,6 +33,7 @@ from ..factors import (
     AxisOrientationFactor,
     BetweenFactor,
     ClassicOrientationFactor,
+    ClassicShapeFactor,
     EllipsoidMeasurementFactor,
     InverseBoxFactor,
     InverseCuboidBoxFactor,
@@ -145,7 +147,9 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
             out.append(AxisOrientationFactor(key, up, sigma=s["axis_orientation"]))
         else:
             out.append(OrientationFactor(key, up, sigma=s["orientation"]))
-    elif up is not None and method.orientation == "classic":
+    elif up is not None and method.orientation == "classic":  # the landmark's third axis
+        out.append(ClassicOrientationFactor(key, up, 2, sigma=s["classic_orientation"]))
+    elif up is not None and method.orientation == "classic-nearest":
         axis = int(np.argmax(np.abs(np.asarray(landmark.orientation.as_matrix()).T @ up)))
         out.append(ClassicOrientationFactor(key, up, axis, sigma=s["classic_orientation"]))
     if method.support_plane:
@@ -158,7 +162,9 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
         stated = ctx.priors is not None and track.label in ctx.priors.classes
         kernel = robust_kernel("cauchy", BUILTIN_PRIOR_CAUCHY) \
             if method.robust_builtin_priors and not stated else None
-        if method.shape:
+        if method.shape and method.shape_form == "classic":
+            out.append(ClassicShapeFactor(key, cp.radii, sigma=s["classic_shape"], robust=kernel))
+        elif method.shape:
             out.append(ShapeFactor(key, cp.radii, sigma=s["shape"], robust=kernel))
         if method.size:
             out.append(SizeFactor(key, cp.radii, sigma=s["size"], robust=kernel))

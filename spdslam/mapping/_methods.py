@@ -2,7 +2,9 @@
 
 Methods (:data:`METHODS`) mirror Table III: ``quadric-slam`` (Quadric-SVD initialisation,
 inverse boxes, Rot-Trans-Scale), ``multi-rts`` (multi-constraint initialisation, every
-constraint in its classic form, RTS) and ``multi-spd`` (the paper's: SPD(3), improved
+constraint in its classic form on the axes as the front end labels them, RTS: the paper's
+baseline; ``multi-rts-nearest`` keeps the axis nearest up instead and sorts the shape
+ratios, the variant used until issue 16) and ``multi-spd`` (the paper's: SPD(3), improved
 orientation, sorted shape prior; inverse boxes, because semi-inverse-then-inverse ended in
 worse local minima on the demo rooms, see docs/sequences.md). Each field of a method can be
 overridden.
@@ -35,6 +37,7 @@ __all__ = [
     "BOX_MODELS",
     "INITIALIZATIONS",
     "ORIENTATIONS",
+    "SHAPE_FORMS",
     "ROBUST_KERNELS",
     "OBJECT_SHAPE_CHOICES",
     "MAPPING_SIGMAS",
@@ -48,7 +51,12 @@ __all__ = [
 PARAMETERIZATIONS = ("spd", "rts", "full")
 BOX_MODELS = ("inverse", "semi", "semi-then-inverse")
 INITIALIZATIONS = ("svd", "multi")
-ORIENTATIONS = ("improved", "classic", "none")
+#: "classic": the paper's classic constraint, the landmark's fixed third axis ∥ up;
+#: "classic-nearest": the initial axis nearest up kept ∥ up (multi-rts until issue 16).
+ORIENTATIONS = ("improved", "classic", "classic-nearest", "none")
+#: Shape prior: "sorted" ratios (the paper's improved, order-blind) or "classic" (an RTS
+#: landmark's stored scales against the class's radii in their stated order).
+SHAPE_FORMS = ("sorted", "classic")
 ROBUST_KERNELS = ("none", "huber", "cauchy")
 #: The silhouette model of every object, or "priors": per class from priors.yaml.
 OBJECT_SHAPE_CHOICES = ("priors", *OBJECT_SHAPES)
@@ -103,6 +111,8 @@ class Method:
     support_plane: bool = True
     shape: bool = True
     size: bool = True
+    #: The form of the shape prior (``SHAPE_FORMS``).
+    shape_form: str = "sorted"
     robust: str = "none"
     robust_k: float = 1.0
     #: Kernels per factor group, overriding ``robust`` (which covers box and measured-ellipsoid
@@ -129,13 +139,16 @@ class Method:
             ("orientation", ORIENTATIONS),
             ("robust", ROBUST_KERNELS),
             ("object_shape", OBJECT_SHAPE_CHOICES),
+            ("shape_form", SHAPE_FORMS),
         ):
             if getattr(self, name) not in allowed:
                 raise ValueError(
                     f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
                 )
-        if self.orientation == "classic" and self.parameterization != "rts":
+        if self.orientation.startswith("classic") and self.parameterization != "rts":
             raise ValueError("the classic orientation constraint needs the rts parameterization")
+        if self.shape_form == "classic" and self.parameterization != "rts":
+            raise ValueError("the classic shape prior needs the rts parameterization")
         if not self.robust_k > 0:
             raise ValueError(f"robust_k must be > 0, got {self.robust_k}")
         groups = robust_groups()
@@ -165,7 +178,10 @@ METHODS = {
     "quadric-slam": Method(
         "quadric-slam", "rts", "svd", "inverse", "none", False, False, False, radius_floor=False
     ),
-    "multi-rts": Method("multi-rts", "rts", "multi", "inverse", "classic", True, True, True),
+    "multi-rts": Method("multi-rts", "rts", "multi", "inverse", "classic", True, True, True,
+                        shape_form="classic"),
+    "multi-rts-nearest": Method("multi-rts-nearest", "rts", "multi", "inverse", "classic-nearest",
+                                True, True, True),
     "multi-spd": Method("multi-spd", "spd", "multi", "inverse", "improved", True, True, True),
 }
 

@@ -46,7 +46,7 @@ from ..geometry import (
 from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
 from ..io import MapObject, Sequence
-from ..solver import L, LevenbergMarquardt, Values, X, marginal_covariances
+from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
 from ._graph import build_graph, measured_objects, support_plane
 from ._keyframes import parse_keyframes, select_keyframes
@@ -261,6 +261,18 @@ def object_uncertainty(graph, values, ids) -> dict:
     return out
 
 
+def mapped_uncertainty(graph, values, ids) -> dict:
+    """``object_uncertainty`` of the objects that are not degenerate (``degenerate``), from
+    the graph without the degenerate ones and their factors: a degenerate object (reported,
+    not mapped) can make the joint information singular, which would leave every object's
+    marginal undetermined."""
+    flat = {L(k) for k in ids if degenerate(as_ellipsoid(values[L(k)]))}
+    return object_uncertainty(
+        NonlinearFactorGraph([f for f in graph if not flat.intersection(f.keys)]),
+        Values({k: values[k] for k in values if k not in flat}),
+        [k for k in ids if L(k) not in flat])
+
+
 def poorly_observed(u: dict | None) -> str:
     """Why an object's uncertainty (``object_uncertainty``) makes it poorly observed, or ""."""
     if not u:
@@ -270,7 +282,9 @@ def poorly_observed(u: dict | None) -> str:
         why.append(f"centre σ {u['center_sigma_max']:.3g} m > {MAX_CENTER_SIGMA} m")
     worst = max(u["log_radius_sigma"])
     if not worst <= MAX_LOG_RADIUS_SIGMA:
-        why.append(f"a radius known only to a factor {np.exp(worst):.3g} > 2")
+        factor = np.exp(min(worst, 700.0))  # e^700 ≈ 1e304: no overflow warning for inf
+        why.append(f"a radius known only to a factor {factor:.3g} > 2" if worst < 700
+                   else "a radius not determined")
     return "; ".join(why)
 
 
@@ -599,8 +613,8 @@ def run_sequence(
             optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
 
     say("uncertainty: marginal covariances of the objects")
-    spread = object_uncertainty(graph, values, sorted(landmarks))
-    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread[k])
+    spread = mapped_uncertainty(graph, values, sorted(landmarks))
+    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k))
                for k in sorted(landmarks)]
     initial = [MapObject(k, labels[k], front.ellipsoids[k]) for k in sorted(front.ellipsoids)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(seq))])

@@ -491,10 +491,10 @@ def _jit(f):
     return jax.jit(f)
 
 
-def _call(key, fn, args, timings: dict | None = None, optimize: bool = True):
-    """Call the jitted ``fn`` through an explicitly lowered and compiled executable (cached
-    on ``key``, ``optimize`` and the argument shapes), recording "trace" (tracing and
-    lowering) and "compile" (XLA) seconds in ``timings`` when it is built."""
+def _executable(key, fn, args, timings: dict | None = None, optimize: bool = True):
+    """The explicitly lowered and compiled executable of the jitted ``fn`` for ``args``
+    (cached on ``key``, ``optimize`` and the argument shapes), recording "trace" (tracing
+    and lowering) and "compile" (XLA) seconds in ``timings`` when it is built."""
     sig = (key, optimize, _shapes(args))
     ex = _EXECUTABLES.get(sig)
     if ex is None:
@@ -510,7 +510,12 @@ def _call(key, fn, args, timings: dict | None = None, optimize: bool = True):
             timings["compile"] = time.perf_counter() - t1
     elif timings is not None:
         timings["trace"] = timings["compile"] = 0.0
-    return ex(*args)
+    return ex
+
+
+def _call(key, fn, args, timings: dict | None = None, optimize: bool = True):
+    """Call the jitted ``fn`` through its compiled executable (``_executable``)."""
+    return _executable(key, fn, args, timings, optimize)(*args)
 
 
 def _solver_fn(kern: _Kernel, sig, axes, lanes: int, max_iter: int, rule, report: bool):
@@ -986,7 +991,19 @@ class BatchedProblem:
         res = self._run(b, batch_size, t0)
         return res
 
-    def _run(self, b: _Batch, batch_size, t0, make_values=None) -> BatchedResult:
+    def compile(self, factor_args=None, values=None, batch_size: int | None = None) -> dict:
+        """Trace and compile the solver for these inputs (as ``solve`` takes them) without
+        running it; a later ``solve`` of inputs of the same shapes reuses the program.
+        Returns {"trace": s, "compile": s} (zeros when it was already built). Safe to call
+        from several threads for different problems: XLA compiles them in parallel."""
+        b = self._prepare(factor_args, values)
+        key, fn, args, optimize, _ = self._plan(b, batch_size)
+        timings: dict = {}
+        _executable(key, fn, args, timings, optimize)
+        return timings
+
+    def _plan(self, b: _Batch, batch_size):
+        """(key, jitted solver, its arguments, optimize, report) for the batch ``b``."""
         p = self.params
         max_iter = int(p.max_iterations)
         lanes = int(batch_size) if batch_size is not None else DEFAULT_LANES
@@ -996,7 +1013,6 @@ class BatchedProblem:
         report = p.callback is not None or bool(p.verbose)
         key, fn = _solver_fn(self._kernel, self.layout.signature, _hashable_axes(b.axes),
                              lanes, max_iter, self.rule, report)
-        hyper_arr = _hyper(p)
         optimize = self.optimize
         if optimize is None:
             optimize = b.B * max_iter > AUTO_OPTIMIZE_WORK
@@ -1006,12 +1022,16 @@ class BatchedProblem:
                               (key, fn, lanes, max_iter, optimize))
         res0 = np.full((b.B, 4), np.nan)
         hist0 = np.full((b.B, max_iter, 6), np.nan)
+        return key, fn, (b.x0, b.xfix, b.gdata, _hyper(p), res0, hist0), optimize, report
+
+    def _run(self, b: _Batch, batch_size, t0, make_values=None) -> BatchedResult:
+        p = self.params
+        key, fn, args, optimize, report = self._plan(b, batch_size)
         t1 = time.perf_counter()
         timings = {"setup": t1 - t0}
         _Reporter.current = _Reporter(p) if report else None
         try:
-            xout, res, hist, steps = _call(
-                key, fn, (b.x0, b.xfix, b.gdata, hyper_arr, res0, hist0), timings, optimize)
+            xout, res, hist, steps = _call(key, fn, args, timings, optimize)
             xout, res, hist = jax.tree.map(np.asarray, (xout, res, hist))
         finally:
             _Reporter.current = None

@@ -1,8 +1,9 @@
 """Synthetic single-object scenes in the spirit of the paper's simulation (Sec. IV-A).
 
 One ellipsoid, ``n_views`` cameras looking at it from viewing directions spread over an
-``angle_range`` (a cone of directions of that angular diameter), noise-free or noisy boxes,
-and an initial landmark perturbed from the truth:
+``angle_range`` (a cone of directions of that angular diameter, or a horizontal arc: the
+``Protocol``'s free choices, named in ``PROTOCOLS``), noise-free or noisy boxes, and an
+initial landmark perturbed from the truth:
 
     R = Exp(θ) R̄,  t = t̄ + δt,  θ ~ N(0, σθ² I),  δt ~ N(0, σt² I),  sᵢ = s̄ᵢ + N(0, (s̄ᵢ σ%)²),
 
@@ -12,6 +13,7 @@ noise is σt whatever the object's distance from the world origin).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -21,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import Camera, Ellipsoid, conic_box
 
-__all__ = ["NOISE_LEVELS", "DEFAULT_CAMERA", "Scene", "Scenes", "make_scene", "make_scenes", "random_rotations"]
+__all__ = ["NOISE_LEVELS", "DEFAULT_CAMERA", "PATTERNS", "PROTOCOLS", "Protocol", "Scene", "Scenes",
+           "get_protocol", "make_scene", "make_scenes", "random_rotations"]
 
 #: Initial-landmark noise (σθ degrees, σt metres, σ% fraction of each radius) and box noise
 #: σ_b (pixels per edge), per level, as in the paper.
@@ -32,6 +35,76 @@ NOISE_LEVELS = {
 }
 
 DEFAULT_CAMERA = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
+#: Viewing patterns: directions in a spherical cap ("cone") or on a horizontal arc ("arc").
+PATTERNS = ("cone", "arc")
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The simulation's free choices, where the paper is silent (docs/simulation.md).
+
+    ``focal``: f in px of a camera with the 640 × 480 / f = 500 field of view (image
+    1.28 f × 0.96 f, principal point at its centre), so f sets the boxes' size in pixels
+    against the fixed pixel noise. ``distance``: camera-to-centre range (m), uniform.
+    ``pattern``: "cone", viewing directions uniform in a spherical cap of the viewing
+    range's angular diameter around a direction of elevation uniform in ±``elevation_deg``;
+    or "arc", azimuths uniform over the viewing range, each view's elevation uniform in
+    ±``elevation_deg``. ``n_views`` cameras, each aimed at the centre ± ``aim_jitter`` m.
+    """
+
+    name: str = "custom"
+    focal: float = 500.0
+    distance: tuple[float, float] = (4.0, 6.0)
+    pattern: str = "cone"
+    elevation_deg: float = 15.0
+    n_views: int = 10
+    aim_jitter: float = 0.05
+
+    def __post_init__(self):
+        lo, hi = (float(x) for x in self.distance)
+        object.__setattr__(self, "distance", (lo, hi))
+        if not (np.isfinite(self.focal) and self.focal > 0):
+            raise ValueError(f"focal must be a positive number of pixels, got {self.focal}")
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+            raise ValueError(f"distance must be a range 0 < lo ≤ hi (m), got {self.distance}")
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"pattern must be one of {', '.join(PATTERNS)}, got {self.pattern!r}")
+        if not 0 <= self.elevation_deg < 90:
+            raise ValueError(f"elevation_deg must be in [0, 90), got {self.elevation_deg}")
+        if int(self.n_views) != self.n_views or self.n_views < 3:
+            raise ValueError(f"n_views must be an integer ≥ 3, got {self.n_views}")
+        if not (np.isfinite(self.aim_jitter) and self.aim_jitter >= 0):
+            raise ValueError(f"aim_jitter must be ≥ 0 (m), got {self.aim_jitter}")
+
+    @property
+    def camera(self) -> Camera:
+        f = float(self.focal)
+        return Camera(f, f, 0.64 * f, 0.48 * f, 1.28 * f, 0.96 * f)
+
+    def replace(self, **overrides) -> "Protocol":
+        """A copy with ``overrides`` (None values ignored), named "custom" if anything changed."""
+        kw = {k: v for k, v in overrides.items() if v is not None}
+        if not kw:
+            return self
+        return dataclasses.replace(self, **{"name": "custom", **kw})
+
+
+#: Named protocols. "v1": the study until issue 16 (f = 500 px, 4–6 m, cone); "paper": the
+#: setting calibrated to the paper's method-independent figures (docs/simulation.md,
+#: ``benchmarks/calibrate_protocol.py``), the default of ``spdslam simulate``.
+PROTOCOLS = {
+    "v1": Protocol("v1"),
+    "paper": Protocol("paper", focal=1500.0, distance=(4.0, 6.0), pattern="cone", elevation_deg=30.0),
+}
+
+
+def get_protocol(p) -> Protocol:
+    """A Protocol, or the named one of :data:`PROTOCOLS`."""
+    if isinstance(p, Protocol):
+        return p
+    if p not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {p!r}: expected one of {', '.join(PROTOCOLS)}")
+    return PROTOCOLS[p]
 
 
 def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -125,29 +198,34 @@ def make_scenes(
     n: int,
     noise: str = "M",
     angle_range_deg: float = 120.0,
-    n_views: int = 10,
+    n_views: int | None = None,
     box_noise: bool = True,
-    camera: Camera = DEFAULT_CAMERA,
+    camera: Camera | None = None,
     extent=(1.0, 2.0, 3.0),
     min_fraction: float = 0.5,
     center_box=(1.0, 1.0, 1.0),
-    distance=(4.0, 6.0),
-    centre_elevation_deg: float = 15.0,
-    aim_jitter: float = 0.05,
+    distance=None,
+    centre_elevation_deg: float | None = None,
+    aim_jitter: float | None = None,
+    protocol: "Protocol | str" = "v1",
 ) -> Scenes:
     """n independent scenes, generated with array operations (no loop over scenes).
 
     Object: an ellipsoid inside a bounded space of ``extent`` (the paper's 1 m × 2 m × 3 m):
     full axis lengths uniform in [min_fraction·eₖ, eₖ] (radii half of that), uniform random
-    rotation, centre uniform in a box of size ``center_box`` around the origin. Views: viewing
-    directions uniform in a spherical cap of angular diameter ``angle_range_deg`` (60°:
-    insufficient observation, 120°: sufficient) around a random direction of elevation
-    within ±``centre_elevation_deg``; distance uniform in ``distance`` (metres); each camera
-    aimed at the centre ± ``aim_jitter``. With the defaults and f = 500 px a box is about
-    75–300 px.
+    rotation, centre uniform in a box of size ``center_box`` around the origin. Views: as the
+    ``protocol`` (a :class:`Protocol` or a name of :data:`PROTOCOLS`) says, over a viewing
+    range of ``angle_range_deg`` (60°: insufficient observation, 120°: sufficient); its
+    camera, number of views, distance, elevation spread and aim jitter can be overridden
+    here (``n_views``, ``camera``, ``distance``, ``centre_elevation_deg``, ``aim_jitter``).
+    With the "v1" protocol (f = 500 px, 4–6 m) a box is about 75–300 px.
     Boxes: the closed-form box of the truth plus N(0, σ_b²) per edge (σ_b of the level).
     ``seed`` may be an int or a sequence of ints (e.g. (seed, cell index)).
     """
+    pr = get_protocol(protocol).replace(
+        n_views=n_views, distance=distance, elevation_deg=centre_elevation_deg, aim_jitter=aim_jitter)
+    camera = pr.camera if camera is None else camera
+    n_views = pr.n_views
     rng = np.random.default_rng(seed)
     level = NOISE_LEVELS[noise]
     R = random_rotations(rng, n)
@@ -156,26 +234,32 @@ def make_scenes(
     s = rng.uniform(min_fraction * half, half, size=(n, 3))
     truth = _from_axes(jnp.asarray(R), jnp.asarray(t), jnp.asarray(s))
 
-    # Viewing directions (object → camera): uniform in a spherical cap of angular diameter
-    # angle_range around a random centre direction of elevation within ±centre_elevation.
+    # Viewing directions (object → camera).
     az0 = rng.uniform(0, 2 * np.pi, size=n)
-    el0 = np.deg2rad(rng.uniform(-centre_elevation_deg, centre_elevation_deg, size=n))
-    centre = np.stack([np.cos(el0) * np.cos(az0), np.cos(el0) * np.sin(az0), np.sin(el0)], axis=1)
-    e1 = np.cross(centre, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(centre, e1)
-    cos_r = np.cos(np.deg2rad(angle_range_deg) / 2)
-    ct = rng.uniform(cos_r, 1.0, size=(n, n_views))
-    st = np.sqrt(1 - ct**2)
-    ph = rng.uniform(0, 2 * np.pi, size=(n, n_views))
-    dirs = (
-        ct[..., None] * centre[:, None]
-        + (st * np.cos(ph))[..., None] * e1[:, None]
-        + (st * np.sin(ph))[..., None] * e2[:, None]
-    )
-    d = rng.uniform(*distance, (n, n_views))
+    if pr.pattern == "cone":  # a spherical cap of angular diameter angle_range around a
+        # centre direction of elevation within ±elevation
+        el0 = np.deg2rad(rng.uniform(-pr.elevation_deg, pr.elevation_deg, size=n))
+        centre = np.stack([np.cos(el0) * np.cos(az0), np.cos(el0) * np.sin(az0), np.sin(el0)], axis=1)
+        e1 = np.cross(centre, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = np.cross(centre, e1)
+        cos_r = np.cos(np.deg2rad(angle_range_deg) / 2)
+        ct = rng.uniform(cos_r, 1.0, size=(n, n_views))
+        st = np.sqrt(1 - ct**2)
+        ph = rng.uniform(0, 2 * np.pi, size=(n, n_views))
+        dirs = (
+            ct[..., None] * centre[:, None]
+            + (st * np.cos(ph))[..., None] * e1[:, None]
+            + (st * np.sin(ph))[..., None] * e2[:, None]
+        )
+    else:  # a horizontal arc of angle_range, each view's elevation within ±elevation
+        half_range = np.deg2rad(angle_range_deg) / 2
+        az = az0[:, None] + rng.uniform(-half_range, half_range, size=(n, n_views))
+        el = np.deg2rad(rng.uniform(-pr.elevation_deg, pr.elevation_deg, size=(n, n_views)))
+        dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+    d = rng.uniform(*pr.distance, (n, n_views))
     eyes = t[:, None] + d[..., None] * dirs
-    aims = t[:, None] + aim_jitter * rng.normal(size=(n, n_views, 3))
+    aims = t[:, None] + pr.aim_jitter * rng.normal(size=(n, n_views, 3))
     poses, boxes = _views_and_boxes(truth, eyes, aims, camera)
     boxes = np.asarray(boxes)
     if box_noise and level["box_px"] > 0:
@@ -197,9 +281,10 @@ def make_scene(
     seed,
     noise: str = "M",
     angle_range_deg: float = 120.0,
-    n_views: int = 10,
+    n_views: int | None = None,
     box_noise: bool = True,
-    camera: Camera = DEFAULT_CAMERA,
+    camera: Camera | None = None,
+    protocol: "Protocol | str" = "v1",
 ) -> Scene:
     """One scene (the first of ``make_scenes(seed, 1, ...)``)."""
-    return make_scenes(seed, 1, noise, angle_range_deg, n_views, box_noise, camera)[0]
+    return make_scenes(seed, 1, noise, angle_range_deg, n_views, box_noise, camera, protocol=protocol)[0]
