@@ -82,8 +82,9 @@ class Protocol:
         return Camera(f, f, 0.64 * f, 0.48 * f, 1.28 * f, 0.96 * f)
 
     def replace(self, **overrides) -> "Protocol":
-        """A copy with ``overrides`` (None values ignored), named "custom" if anything changed."""
-        kw = {k: v for k, v in overrides.items() if v is not None}
+        """A copy with ``overrides`` (None values and unchanged ones ignored), named "custom"
+        if anything changed."""
+        kw = {k: v for k, v in overrides.items() if v is not None and v != getattr(self, k)}
         if not kw:
             return self
         return dataclasses.replace(self, **{"name": "custom", **kw})
