@@ -7,8 +7,9 @@
 # 1. Ensures SuiteSparse headers (cholmod.h) and OpenBLAS are present: as root with apt-get it
 #    installs Debian's libsuitesparse-dev and libopenblas0-pthread, otherwise it prints the
 #    command to run and continues.
-# 2. pip install -e ".[test,cholmod]"; if that fails (scikit-sparse cannot build), falls back
-#    to pip install -e ".[test]" and the scipy sparse solver is used instead of CHOLMOD.
+# 2. pip install -e ".[test,viewer,ros,cholmod]"; if that fails (scikit-sparse cannot build),
+#    falls back to pip install -e ".[test,viewer,ros]", and the CHOLMOD bundled with cvxopt (a
+#    default dependency) is used instead of scikit-sparse's.
 # Safe to re-run; never prompts.
 set -euo pipefail
 
@@ -69,12 +70,12 @@ else
 fi
 
 # --- the package ---------------------------------------------------------------------------
-if "$PY" -m pip install -q -e ".[test,cholmod]"; then
+if "$PY" -m pip install -q -e ".[test,viewer,ros,cholmod]"; then
     say "installed spdslam with CHOLMOD (scikit-sparse)"
 else
-    say "pip install -e \".[test,cholmod]\" failed; retrying without CHOLMOD"
-    "$PY" -m pip install -q -e ".[test]"
-    say "NOTE: scikit-sparse (CHOLMOD) is not installed; the scipy sparse solver will be used."
+    say "pip install -e \".[test,viewer,ros,cholmod]\" failed; retrying without scikit-sparse"
+    "$PY" -m pip install -q -e ".[test,viewer,ros]"
+    say "NOTE: scikit-sparse is not installed; the CHOLMOD bundled with cvxopt will be used."
 fi
 
 say "done; check with: spdslam info"

@@ -46,7 +46,7 @@ import spdslam  # noqa: E402
 from spdslam.io import pose_graph_factors, read_g2o  # noqa: E402
 import dataclasses  # noqa: E402
 
-from spdslam.solver import HAVE_CHOLMOD, Dogleg, LevenbergMarquardt, OptimizerParams  # noqa: E402
+from spdslam.solver import Dogleg, LevenbergMarquardt, OptimizerParams, default_sparse_solver  # noqa: E402
 
 #: The options every optimiser takes (the λ options are LM's).
 _SHARED = {f.name for f in dataclasses.fields(OptimizerParams)}
@@ -63,7 +63,7 @@ def cholmod_blas() -> str:
         return "unknown"
     libs = {os.path.realpath(line.split()[-1]) for line in maps
             if line.split()[-1].startswith("/")}
-    names = ("libblas", "libopenblas", "libmkl", "libblis")
+    names = ("libblas", "libopenblas", "libmkl", "libblis", "libsatlas", "libtatlas")
     libs = sorted(x for x in libs if os.path.basename(x).startswith(names))
     out = ", ".join(libs) or "none found"
     if any("/blas/libblas" in x for x in libs):
@@ -106,7 +106,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sphere2500.json"))
     ap.add_argument("--max-iterations", type=int, default=1000)
-    ap.add_argument("--linear-solver", default="cholmod" if HAVE_CHOLMOD else "scipy")
+    ap.add_argument("--linear-solver", default=default_sparse_solver(),
+                    help="cholmod, cvxopt or scipy (default: the one \"auto\" picks)")
     ap.add_argument("--lambda-initial", type=float, default=None)
     ap.add_argument("--lambda-schedule", choices=["nielsen", "fixed"], default=None)
     ap.add_argument("--lambda-factor", type=float, default=None)

@@ -274,6 +274,30 @@ def cli_runner():
         return CliRunner()
 
 
+def cli_invoke(*args):
+    """``spdslam ARGS…`` through a CliRunner, every argument passed as ``str``."""
+    from spdslam import cli
+
+    return cli_runner().invoke(cli.app, [str(a) for a in args])
+
+
+def assert_cli_ok(result):
+    assert result.exit_code == 0, (result.stdout, result.stderr, result.exception)
+
+
+def assert_cli_error(result, *fragments) -> str:
+    """Exit status 2 (a ``SystemExit``, no traceback) and exactly one line ``spdslam: error:
+    …`` on stderr holding every fragment; returns that line."""
+    assert result.exit_code == 2, (result.exit_code, result.stdout, result.stderr, result.exception)
+    assert isinstance(result.exception, SystemExit), result.exception
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("spdslam: error: "), lines[0]
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
 def batched_landmarks(param: str, R, t, s):
     """Batched landmarks (leading axis n) of one parameterisation ("spd", "rts", "full")
     from axes R (n, 3, 3), centres t (n, 3) and radii s (n, 3); exact spheres stay exactly

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 
+import pytest
 import typer
 from conftest import cli_runner
 
@@ -29,6 +30,20 @@ def test_info_reports_jax_and_float64():
     assert "enabled" in out  # float64 is switched on by importing spdslam
     assert spdslam.__version__ in result.output
     assert "sparse solver" in out
+
+
+@pytest.mark.parametrize("cholmod,cvxopt,name", [(True, True, "cholmod: CHOLMOD (scikit-sparse"),
+                                                 (False, True, "cvxopt: CHOLMOD bundled with cvxopt"),
+                                                 (False, False, "scipy: SuperLU")])
+def test_info_names_the_solver_the_optimiser_uses(monkeypatch, cholmod, cvxopt, name):
+    from spdslam.solver import _linear
+
+    monkeypatch.setattr(_linear, "HAVE_CHOLMOD", cholmod)
+    monkeypatch.setattr(_linear, "HAVE_CVXOPT", cvxopt)
+    assert cli._app.sparse_solver_name().startswith(name)
+    result = runner.invoke(cli.app, ["info"], terminal_width=200)
+    assert result.exit_code == 0, result.output
+    assert name in result.output
 
 
 def test_callback_sets_compilation_cache(tmp_path, monkeypatch):

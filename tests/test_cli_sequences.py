@@ -15,18 +15,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_cli_error as assert_error
+from conftest import assert_cli_ok as assert_ok
+from conftest import cli_invoke as invoke
 from conftest import cli_runner
 
 from spdslam import cli
-from spdslam.synthetic import make_room_sequence
-
 from spdslam.io import (
-    read_map,
-    read_tum,
     import_fr3_cabinet,
+    read_map,
     read_sequence,
+    read_tum,
     write_sequence,
 )
+from spdslam.synthetic import make_room_sequence
 
 runner = cli_runner()
 
@@ -38,26 +40,6 @@ FRAMES, OBJECTS = 40, 2
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def invoke(*args):
-    return runner.invoke(cli.app, [str(a) for a in args])
-
-
-def assert_ok(result):
-    assert result.exit_code == 0, (result.stdout, result.stderr, result.exception)
-
-
-def assert_error(result, *fragments):
-    """Exit status 2 and exactly one line ``spdslam: error: ...`` on stderr, no traceback."""
-    assert result.exit_code == 2, (result.exit_code, result.stdout, result.stderr, result.exception)
-    assert isinstance(result.exception, SystemExit), result.exception
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("spdslam: error: "), lines[0]
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
 
 
 def snapshot(folder: Path) -> dict:

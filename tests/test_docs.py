@@ -36,3 +36,20 @@ def test_formats_md_class_table_matches_the_code():
     for label, cp in BUILTIN_CLASSES.items():
         r = ", ".join(f"{x:.4g}" for x in cp.radii)
         assert f"| `{label}` | {r} | {cp.sigma:g} | {CLASS_SOURCES[label]} |" in text, label
+
+
+def test_your_data_md_blocks_write_a_sequence_that_maps(tmp_path, monkeypatch, capsys):
+    """docs/your-data.md's Python blocks run in order (in a scratch folder): the canonical
+    folder they write reads back with every box, and the run maps the room's objects."""
+    doc = Path(__file__).resolve().parents[1] / "docs" / "your-data.md"
+    blocks = re.findall(r"```python\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    assert len(blocks) == 2, "docs/your-data.md lost its examples"
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {"__name__": "docs_your_data"}
+    for i, code in enumerate(blocks):
+        exec(compile(code, f"{doc}:block{i + 1}", "exec"), scope)
+    rec, seq, result = scope["rec"], scope["seq"], scope["result"]
+    assert len(seq.detections) == len(rec.detections) and len(seq) == len(rec)
+    assert all(d.instance is None for d in seq.detections)
+    assert len(result.objects) == len(rec.objects_gt) == 3
+    assert f"3 objects mapped from {len(rec.detections)} boxes" in capsys.readouterr().out

@@ -371,3 +371,26 @@ def test_derivatives_finite_at_spheres(gen, kind):
         axis=-1,
     )
     np.testing.assert_allclose(JP, fd, atol=1e-8)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7])
+def test_sorted_axes_of_a_batch(n):
+    """sorted_axes on (n, 3, 3) gives each matrix's own axes (radii descending, det +1),
+    for every batch size (the sign fix once broadcast (n, 1) against (n,))."""
+    from scipy.spatial.transform import Rotation
+
+    from spdslam.geometry import sorted_axes
+
+    R = Rotation.random(n, random_state=n).as_matrix()
+    s = np.sort(np.random.default_rng(n).uniform(0.2, 2.0, (n, 3)), axis=1)[:, ::-1]
+    P = R @ (s[:, :, None] ** 2 * np.eye(3)) @ np.swapaxes(R, 1, 2)
+    Rb, sb = (np.asarray(a) for a in sorted_axes(P))
+    assert Rb.shape == (n, 3, 3) and sb.shape == (n, 3)
+    np.testing.assert_allclose(sb, s, rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(Rb), 1.0, atol=1e-12)
+    np.testing.assert_allclose(Rb @ (sb[:, :, None] ** 2 * np.eye(3)) @ np.swapaxes(Rb, 1, 2), P,
+                               atol=1e-12)
+    for k in range(n):  # the same as one matrix at a time
+        Rk, sk = (np.asarray(a) for a in sorted_axes(P[k]))
+        np.testing.assert_allclose(Rb[k], Rk, atol=1e-12)
+        np.testing.assert_allclose(sb[k], sk, atol=1e-12)

@@ -242,3 +242,35 @@ def test_write_overlays_on_a_small_sequence(tmp_path):
     bare = Sequence("bare", camera, stamps, poses, dets)
     assert write_overlays(tmp_path / "ov5", bare, ells, poses) == []
     assert not (tmp_path / "ov5").exists()
+
+
+def test_conic_ellipses_batched_equal_one_at_a_time():
+    """The batched conic → ellipse (used by the rerun recording) agrees with conic_ellipse
+    where that one succeeds and flags exactly the conics it refuses."""
+    from spdslam.evaluation import conic_ellipse, conic_ellipses, ellipse_points, ellipses_points
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((40, 2, 2))
+    S0 = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(2)
+    c0 = rng.uniform(-50, 50, (40, 2))
+    C = np.zeros((40, 3, 3))  # real ellipses, at any non-zero scale and sign
+    C[:, :2, :2] = S0 - c0[:, :, None] * c0[:, None, :]
+    C[:, :2, 2] = C[:, 2, :2] = -c0
+    C[:, 2, 2] = -1.0
+    C *= rng.uniform(-3.0, 3.0, (40, 1, 1))
+    C[:8] = rng.standard_normal((8, 3, 3))  # indefinite ones: hyperbolas or nothing
+    C[8, 2, 2] = C[8, 2, 2] * 0.0
+    C[9, 0, 0] = np.nan
+    c, S, ok = conic_ellipses(C)
+    pts = ellipses_points(c, S, 12)
+    assert pts.shape == (40, 13, 2) and ok.sum() >= 20 and not ok[8] and not ok[9]
+    for k in range(40):
+        try:
+            ck, Sk = conic_ellipse(C[k])
+        except ValueError:
+            assert not ok[k]
+            continue
+        assert ok[k]
+        np.testing.assert_allclose(c[k], ck, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(S[k], Sk, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(pts[k], ellipse_points(ck, Sk, 12), rtol=1e-12, atol=1e-12)

@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_cli_error as assert_error
+from conftest import cli_invoke as invoke
 from conftest import cli_runner
 
-from spdslam import cli
 from spdslam.io import (
     SequenceFormatError,
     dumps_strict,
@@ -30,21 +31,6 @@ from spdslam.io import (
 from spdslam.synthetic import make_room_sequence
 
 runner = cli_runner()
-
-
-def invoke(*args):
-    return runner.invoke(cli.app, [str(a) for a in args])
-
-
-def assert_error(result, *fragments):
-    """Exit 2 and one line ``spdslam: error: …`` on stderr, no traceback."""
-    assert result.exit_code == 2, (result.exit_code, result.stdout, result.stderr, result.exception)
-    assert isinstance(result.exception, SystemExit), result.exception
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), result.stderr
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    return lines[0]
 
 
 def snapshot(folder: Path) -> dict:

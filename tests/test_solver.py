@@ -1,4 +1,4 @@
-"""The nonlinear least-squares solver: LM and GN, the three linear solvers, batched solves,
+"""The nonlinear least-squares solver: LM and GN, the linear solvers, batched solves,
 fixed variables, robust kernels, validity, history, stopping rules, error messages, and
 non-SE(3) variables (the SPD ellipsoid and the Full quadric with its unobservable scale).
 
@@ -7,6 +7,8 @@ that the compiled kernels are reused across tests.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +22,7 @@ from spdslam import Ellipsoid, EllipsoidFull, spd
 from spdslam.factors import BetweenFactor, Cauchy, CustomFactor, Huber, PriorFactor
 from spdslam.solver import (
     HAVE_CHOLMOD,
+    HAVE_CVXOPT,
     GaussNewton,
     LevenbergMarquardt,
     NonlinearFactorGraph,
@@ -97,10 +100,12 @@ def test_lm_and_gn_reach_the_same_optimum():
     assert not np.allclose(pose_matrices(values), pose_matrices(lm.values))
 
 
-@pytest.mark.parametrize("kind", ["cholmod", "scipy"])
+@pytest.mark.parametrize("kind", ["cholmod", "cvxopt", "scipy"])
 def test_sparse_solvers_match_dense(kind):
     if kind == "cholmod" and not HAVE_CHOLMOD:
         pytest.skip("scikit-sparse is not installed")
+    if kind == "cvxopt" and not HAVE_CVXOPT:
+        pytest.skip("cvxopt is not installed")
     graph, values, _ = pose_graph(2)
     dense = LevenbergMarquardt(linear_solver="dense", **TIGHT).optimize(graph, values)
     sparse = LevenbergMarquardt(linear_solver=kind, **TIGHT).optimize(graph, values)
@@ -117,9 +122,32 @@ def test_auto_solver_choice_and_bad_name():
     graph, values, _ = pose_graph(3)
     assert LevenbergMarquardt(max_iterations=1).optimize(graph, values).linear_solver == "dense"
     big = LevenbergMarquardt(max_iterations=1, dense_threshold=10).optimize(graph, values)
-    assert big.linear_solver == ("cholmod" if HAVE_CHOLMOD else "scipy")
+    assert big.linear_solver == ("cholmod" if HAVE_CHOLMOD else "cvxopt" if HAVE_CVXOPT
+                                 else "scipy")
     with pytest.raises(ValueError, match="linear_solver must be"):
         LevenbergMarquardt(linear_solver="qr").optimize(graph, values)
+
+
+@pytest.mark.parametrize("cholmod,cvxopt,expected", [(True, True, "cholmod"),
+                                                     (False, True, "cvxopt"),
+                                                     (False, False, "scipy")])
+def test_auto_falls_back_in_order(monkeypatch, cholmod, cvxopt, expected):
+    """Without scikit-sparse "auto" takes cvxopt's CHOLMOD, without either scipy."""
+    from spdslam.solver import _linear
+
+    monkeypatch.setattr(_linear, "HAVE_CHOLMOD", cholmod)
+    monkeypatch.setattr(_linear, "HAVE_CVXOPT", cvxopt)
+    if expected == "scipy":  # the slow last resort says so
+        with pytest.warns(RuntimeWarning, match="SuperLU"):
+            assert _linear.resolve_linear_solver("auto", 10_000) == expected
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert _linear.resolve_linear_solver("auto", 10_000) == expected
+    assert _linear.resolve_linear_solver("auto", 10) == "dense"
+    if not cvxopt:
+        with pytest.raises(ImportError, match="needs cvxopt"):
+            _linear.resolve_linear_solver("cvxopt", 10_000)
 
 
 # ------------------------------------------------------------------------------ batched

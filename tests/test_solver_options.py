@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from test_solver import TIGHT, pose_graph, pose_matrices
 
-from spdslam.solver import HAVE_CHOLMOD, LevenbergMarquardt
+from spdslam.solver import HAVE_CHOLMOD, HAVE_CVXOPT, LevenbergMarquardt, marginal_covariances
 
 needs_cholmod = pytest.mark.skipif(not HAVE_CHOLMOD, reason="scikit-sparse is not installed")
+needs_cvxopt = pytest.mark.skipif(not HAVE_CVXOPT, reason="cvxopt is not installed")
 
 
 @needs_cholmod
@@ -24,6 +25,81 @@ def test_cholmod_modes_and_orderings_match_dense(mode, ordering):
     assert res.iterations == dense.iterations
     np.testing.assert_allclose(res.final_cost, dense.final_cost, rtol=1e-10)
     np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(dense.values), atol=1e-9)
+
+
+@needs_cvxopt
+@pytest.mark.parametrize("ordering", ["default", "amd", "natural"])
+def test_cvxopt_orderings_match_dense(ordering):
+    graph, values, _ = pose_graph(3)
+    dense = LevenbergMarquardt(linear_solver="dense", **TIGHT).optimize(graph, values)
+    res = LevenbergMarquardt(linear_solver="cvxopt", cholmod_ordering=ordering,
+                             **TIGHT).optimize(graph, values)
+    assert res.linear_solver == "cvxopt" and res.iterations == dense.iterations
+    np.testing.assert_allclose(res.final_cost, dense.final_cost, rtol=1e-10)
+    np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(dense.values), atol=1e-9)
+
+
+def _spd_lower(n, seed, density=0.05):
+    """(lower-triangle data, CSC pattern) of a random sparse SPD matrix, and the matrix."""
+    import scipy.sparse as sps
+
+    rng = np.random.default_rng(seed)
+    B = sps.random(n, n, density=density, random_state=rng, format="csc")
+    A = (B @ B.T + n * sps.eye(n)).tocsc()
+    L = sps.tril(A).tocsc()
+    L.sort_indices()
+    diag = np.array([L.indptr[j] for j in range(n)])  # the diagonal is first in each column
+    assert np.all(L.indices[diag] == np.arange(n))
+    pattern = dict(indices=L.indices, indptr=L.indptr, diag=diag, nnz=L.nnz)
+    return L.data.copy(), pattern, A.toarray()
+
+
+@needs_cvxopt
+def test_cvxopt_solver_any_storage_order_many_rhs_and_indefinite():
+    from spdslam.solver._linear import make_linear_solver
+
+    n = 60
+    data, pattern, A = _spd_lower(n, 0)
+    b = np.random.default_rng(1).standard_normal((n, 3))
+    s = make_linear_solver("cvxopt", pattern, n)
+    np.testing.assert_allclose(A @ s.solve(data, b), b, atol=1e-10)
+    np.testing.assert_allclose(A @ s.solve(data, b[:, 0]), b[:, 0], atol=1e-10)
+    # the same matrix given with the entries of each column in reverse order
+    ip = pattern["indptr"]
+    perm = np.concatenate([np.arange(ip[j], ip[j + 1])[::-1] for j in range(n)])
+    rev = dict(pattern, indices=pattern["indices"][perm],
+               diag=np.array([ip[j + 1] - 1 for j in range(n)]))
+    s2 = make_linear_solver("cvxopt", rev, n)
+    assert s2._order is not None  # cvxopt sorts: the values are written in its order
+    np.testing.assert_allclose(s2.solve(data[perm], b), s.solve(data, b), atol=1e-12)
+    # refactorising on the same analysis with other values
+    np.testing.assert_allclose((2 * A) @ s.solve(2 * data, b), b, atol=1e-10)
+    bad = data.copy()
+    bad[pattern["diag"][7]] = -1.0
+    assert s.solve(bad, b) is None  # not positive definite
+    assert s.solve(data, b) is not None  # and the next solve works again
+
+
+@needs_cvxopt
+def test_cvxopt_rejects_what_it_cannot_do():
+    graph, values, _ = pose_graph(3)
+    for mode, ordering, match in (("simplicial", "default", "cholmod_mode 'simplicial' needs "
+                                   "scikit-sparse"),
+                                  ("supernodal", "metis", "cholmod_ordering 'metis' needs "
+                                   "scikit-sparse")):
+        with pytest.raises(ValueError, match=match):
+            LevenbergMarquardt(linear_solver="cvxopt", cholmod_mode=mode,
+                               cholmod_ordering=ordering).optimize(graph, values)
+
+
+@needs_cvxopt
+def test_marginals_through_cvxopt_match_dense():
+    graph, values, _ = pose_graph(5)
+    keys = list(values.keys())[:3]
+    dense = marginal_covariances(graph, values, keys, linear_solver="dense")
+    cvx = marginal_covariances(graph, values, keys, linear_solver="cvxopt")
+    for k in keys:
+        np.testing.assert_allclose(cvx[k], dense[k], rtol=1e-9, atol=1e-14)
 
 
 def _libgomp_loaded() -> bool:

@@ -1,5 +1,5 @@
 """The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``evaluate``, ``import``,
-``compare``, ``demo``. The top layer: it may import every other package."""
+``compare``, ``demo``, ``view``. The top layer: it may import every other package."""
 
 from . import _sequences, _simulate  # noqa: F401  (register the commands)
 from ._app import CACHE_ENV as CACHE_ENV

@@ -2,7 +2,8 @@
 
 A single typer application, :data:`app`. Commands are plain functions registered with
 ``@app.command()`` in the modules of this package (``_simulate``: ``simulate``;
-``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``). Conventions:
+``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``, ``view``).
+Conventions:
 
 * bad user input -> :func:`fail` (one line on stderr, exit status 2);
 * heavy imports (solver, factors, matplotlib, ...) go *inside* the command function, so
@@ -139,12 +140,15 @@ def cholmod_available() -> bool:
 
 def sparse_solver_name() -> str:
     """Human-readable name of the sparse linear solver the optimiser will use (as the
-    solver itself decides: ``spdslam.solver.HAVE_CHOLMOD``)."""
-    from ..solver import HAVE_CHOLMOD
+    solver itself decides: ``spdslam.solver.default_sparse_solver``)."""
+    from ..solver import default_sparse_solver
 
-    if HAVE_CHOLMOD:
-        return "CHOLMOD (scikit-sparse)"
-    return "scipy.sparse (SuperLU)"
+    return {
+        "cholmod": f"cholmod: CHOLMOD (scikit-sparse {_dist_version('scikit-sparse')})",
+        "cvxopt": f"cvxopt: CHOLMOD bundled with cvxopt {_dist_version('cvxopt')}"
+                  " (install scikit-sparse for thread and METIS options)",
+        "scipy": "scipy: SuperLU (slow: neither scikit-sparse nor cvxopt imports)",
+    }[default_sparse_solver()]
 
 
 def _dist_version(name: str) -> str:
@@ -194,7 +198,7 @@ def info() -> None:
     versions.add_column("value")
     versions.add_row("python", f"{platform.python_version()} ({sys.executable})")
     versions.add_row("spdslam", __version__)
-    for dist in ("jax", "jaxlib", "jaxlie", "numpy", "scipy"):
+    for dist in ("jax", "jaxlib", "jaxlie", "numpy", "scipy", "cvxopt"):
         versions.add_row(dist, _dist_version(dist))
     has_cholmod = cholmod_available()
     versions.add_row(

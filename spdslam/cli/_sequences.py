@@ -1,4 +1,4 @@
-"""The sequence commands: ``run``, ``evaluate``, ``import``, ``compare`` and ``demo``.
+"""The sequence commands: ``run``, ``evaluate``, ``import``, ``compare``, ``demo`` and ``view``.
 
 Their choices and help come from the factor registry (robust-kernel groups) and the mapping
 (methods, models, the sigma table), so a new factor type or method appears here unchanged.
@@ -28,7 +28,7 @@ from ..mapping._methods import ZERO_ALLOWED
 from ._app import app, check_output, console, err_console, fail
 from ._simulate import _split
 
-__all__ = ["run", "evaluate", "import_", "compare", "demo", "DEMO_MARKER"]
+__all__ = ["run", "evaluate", "import_", "compare", "demo", "view", "DEMO_MARKER"]
 
 _SIGMA_HELP = (
     "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); NAME one of "
@@ -154,6 +154,36 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
     return result, metrics
 
 
+def _check_recording(path: Path, option: str) -> None:
+    """Refuse, before anything is computed, a recording path that is a folder, and a
+    missing rerun-sdk (the viewer extra)."""
+    from ..evaluation._rerun import RERUN_MISSING
+
+    if path.is_dir():
+        fail(f"{option}: {path} is a folder: expected the path of a .rrd file")
+    try:
+        import rerun  # noqa: F401
+    except ImportError:
+        fail(RERUN_MISSING)
+
+
+def _write_recording(path: Path, option: str, objects, trajectory, seq, to_groundtruth=None,
+                     images: bool = True) -> None:
+    """``evaluation.write_recording`` (atomic), its errors as one line."""
+    from ..evaluation import write_recording
+
+    try:
+        write_recording(path, objects, trajectory, seq, to_groundtruth=to_groundtruth,
+                        images=images)
+    except ImportError as e:
+        fail(str(e))
+    except ValueError as e:
+        fail(f"cannot record {path}: {e}")
+    except OSError as e:
+        fail(f"{option}: cannot write {path}: {e.strerror or e}")
+    console.print(f"wrote {path} (open it with: rerun {path})")
+
+
 @app.command()
 def run(
     sequence: Path = typer.Argument(..., help="Sequence folder (canonical format or fr3_cabinet layout)."),
@@ -173,11 +203,13 @@ def run(
     class_table: bool = typer.Option(True, "--class-table/--no-class-table", help="Classes without a priors.yaml entry take the built-in size table (docs/formats.md)."),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
+    rerun: Path | None = typer.Option(None, "--rerun", help="Also write a rerun recording of the run to this .rrd file (needs rerun-sdk, the viewer extra; open it with: rerun FILE)."),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
 
     Writes OUT/map.json, OUT/trajectory.txt, OUT/map_top.png, and with ground truth
-    OUT/report.md and OUT/metrics.json, and with images OUT/overlay/.
+    OUT/report.md and OUT/metrics.json, and with images OUT/overlay/; with --rerun FILE
+    also a rerun recording (as the view command writes).
     """
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -198,15 +230,21 @@ def run(
     if support_planes not in SUPPORT_PLANES:
         fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
     check_output(out, [sequence])
+    if rerun is not None:
+        _check_recording(rerun, "--rerun")
     seq = _load_sequence(sequence)
     if not class_table:
         from ..io import without_class_table
 
         seq = without_class_table(seq)
-    _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
-                   keyframes=keyframes, support_planes=support_planes,
-                   parameterization=parameterization, box_model=box_model,
-                   object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
+    result, metrics = _run_and_write(
+        seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
+        keyframes=keyframes, support_planes=support_planes,
+        parameterization=parameterization, box_model=box_model,
+        object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
+    if rerun is not None:
+        _write_recording(rerun, "--rerun", result.objects, result.poses_tum, seq,
+                         metrics.get("to_groundtruth"))
 
 
 @app.command()
@@ -261,29 +299,50 @@ def evaluate(
 
 @app.command("import")
 def import_(
-    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt) or an OA-SLAM-style one (detections*.json, a camera YAML, TUM trajectories; docs/formats.md)."),
+    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt), an OA-SLAM-style one (detections*.json, a camera YAML, TUM trajectories; docs/formats.md) or a ROS 2 bag (a folder with metadata.yaml, or a .mcap or .db3 file)."),
     dest: Path = typer.Argument(..., help="Destination folder (canonical format)."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
-    trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth."),
-    min_score: float = typer.Option(0.5, help="OA-SLAM layout: leave out detections scored below this."),
-    undistort: bool = typer.Option(True, help="OA-SLAM layout: replace each box by the pinhole box of its undistorted outline (--no-undistort keeps the measured boxes)."),
+    trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth (a ROS 2 bag's poses come from --pose-topic)."),
+    min_score: float = typer.Option(0.5, help="OA-SLAM layout and ROS 2 bags: leave out detections scored below this."),
+    undistort: bool = typer.Option(True, help="OA-SLAM layout and ROS 2 bags: replace each box by the pinhole box of its undistorted outline (--no-undistort keeps the measured boxes)."),
+    camera_info_topic: str | None = typer.Option(None, help="ROS 2 bags: the sensor_msgs/msg/CameraInfo topic (default: the bag's only one)."),
+    detections_topic: str | None = typer.Option(None, help="ROS 2 bags: the vision_msgs/msg/Detection2DArray topic (default: the bag's only one)."),
+    pose_topic: str | None = typer.Option(None, help="ROS 2 bags: the camera poses, a geometry_msgs/msg/PoseStamped, nav_msgs/msg/Odometry or tf2_msgs/msg/TFMessage (/tf) topic (default: the bag's only one)."),
+    world_frame: str | None = typer.Option(None, help="ROS 2 bags: the world frame of the poses (tf: default the root of the camera's tf tree; PoseStamped, Odometry: checked against header.frame_id)."),
+    camera_frame: str | None = typer.Option(None, help="ROS 2 bags: the camera's optical frame (tf: default CameraInfo's header.frame_id; Odometry: checked against child_frame_id)."),
 ) -> None:
-    """Convert an fr3_cabinet- or OA-SLAM-style folder to the canonical sequence format."""
+    """Convert an fr3_cabinet- or OA-SLAM-style folder, or a ROS 2 bag (CameraInfo,
+    vision_msgs Detection2DArray, and PoseStamped, Odometry or tf camera poses; needs
+    the rosbags package, the 'ros' extra), to the canonical sequence format."""
     from ..io import (
         SequenceFormatError,
         import_fr3_cabinet,
         import_oaslam,
+        import_rosbag,
         is_oaslam_layout,
         write_sequence,
     )
 
-    if not source.is_dir():
-        fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder, got no such folder")
+    bag = (source / "metadata.yaml").is_file() if source.is_dir() else source.suffix.lower() in (".mcap", ".db3")
+    bag_options = {"--camera-info-topic": camera_info_topic, "--detections-topic": detections_topic,
+                   "--pose-topic": pose_topic, "--world-frame": world_frame, "--camera-frame": camera_frame}
+    if not bag and not source.is_dir():
+        fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder or a ROS 2 bag, got no such folder")
     if trajectory not in ("odometry", "groundtruth"):
         fail(f"--trajectory: expected odometry or groundtruth, got {trajectory!r}")
+    if bag and trajectory != "odometry":
+        fail(f"--trajectory: a ROS 2 bag's poses come from --pose-topic: expected odometry, got {trajectory!r}")
+    if not bag and any(v is not None for v in bag_options.values()):
+        given = ", ".join(k for k, v in bag_options.items() if v is not None)
+        fail(f"{given}: expected a ROS 2 bag (a folder with metadata.yaml, or a .mcap or .db3 file), got {source}")
+    if not math.isfinite(min_score):
+        fail(f"--min-score: expected a finite number, got {min_score!r}")
     check_output(dest, [source], "DEST")
     try:
-        if is_oaslam_layout(source):
+        if bag:
+            seq = import_rosbag(source, camera_info_topic, detections_topic, pose_topic, world_frame,
+                                camera_frame, min_score, undistort, name=dest.name)
+        elif is_oaslam_layout(source):
             seq = import_oaslam(source, trajectory, min_score, undistort)
         else:
             seq = import_fr3_cabinet(source)
@@ -294,6 +353,8 @@ def import_(
         fail(f"{dest}: {e}")
     except OSError as e:
         fail(f"DEST: cannot write {dest}: {e.strerror or e}")
+    except ValueError as e:  # a ROS 2 bag's options that do not fit its topics
+        fail(f"{source}: {e}")
     console.print(f"imported {len(seq)} poses, {len(seq.detections)} detections into {dest}")
 
 
@@ -388,3 +449,41 @@ def demo(
     )
     # automatic association ignores the ids; the generator's (scored_seq) only score it
     _run_and_write(scored_seq, method, out / "run", True, False, {}, 100, associate)
+
+
+@app.command()
+def view(
+    out: Path = typer.Argument(..., help="Output folder of spdslam run (map.json and trajectory.txt)."),
+    sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, detections, images, ground truth); default: the demo's sequence/ beside a demo's run/, else none."),
+    recording: Path | None = typer.Option(None, "--out", help="The recording to write (default OUT/recording.rrd)."),
+    images: bool = typer.Option(True, "--images/--no-images", help="Embed the sequence's images (a long sequence's recording grows with them)."),
+) -> None:
+    """Write a rerun recording (.rrd) of a run: the ellipsoids, the trajectories, the camera
+    per frame and, with the sequence, its ground truth, images, detections and the projected
+    ellipses. Open it with: rerun FILE (needs rerun-sdk, the viewer extra)."""
+    from ..io import MapFormatError, SequenceFormatError, read_map, read_tum
+
+    if out.is_file() and out.name == "map.json":
+        out = out.parent
+    if not out.is_dir():
+        fail(f"{out}: expected the output folder of spdslam run, got no such folder")
+    recording = recording if recording is not None else out / "recording.rrd"
+    _check_recording(recording, "--out")
+    try:
+        m, objects = read_map(out)
+    except MapFormatError as e:
+        fail(str(e))
+    traj = out / "trajectory.txt"
+    if not traj.is_file():
+        fail(f"{traj}: expected the trajectory written by spdslam run, got no such file")
+    try:
+        poses = read_tum(traj, str(traj))
+    except SequenceFormatError as e:
+        fail(str(e))
+    if sequence is None and (out.parent / DEMO_MARKER).is_file() and (out.parent / "sequence").is_dir():
+        sequence = out.parent / "sequence"  # a demo's run/: its sequence/ beside it
+        console.print(f"sequence: {sequence}")
+    seq = _load_sequence(sequence) if sequence is not None else None
+    if seq is None:
+        err_console.print("no --sequence: the recording has no camera image view, detections or ground truth")
+    _write_recording(recording, "--out", objects, poses, seq, m.get("to_groundtruth"), images)

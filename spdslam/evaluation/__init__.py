@@ -18,8 +18,10 @@ from ._metrics import trajectory_alignment as trajectory_alignment
 from ._metrics import translation_error as translation_error
 from ._plots import camera_centers as camera_centers
 from ._plots import conic_ellipse as conic_ellipse
+from ._plots import conic_ellipses as conic_ellipses
 from ._plots import conic_outline as conic_outline
 from ._plots import ellipse_points as ellipse_points
+from ._plots import ellipses_points as ellipses_points
 from ._plots import plane_basis as plane_basis
 from ._plots import plot_map_top as plot_map_top
 from ._plots import plot_overlay as plot_overlay
@@ -39,6 +41,7 @@ from ._report import shown as shown
 from ._report import table_iii as table_iii
 from ._report import to_groundtruth as to_groundtruth
 from ._report import write_run as write_run
+from ._rerun import write_recording as write_recording  # needs rerun-sdk (the viewer extra) when called
 from ._stats import Interval as Interval
 from ._stats import PairedComparison as PairedComparison
 from ._stats import bootstrap as bootstrap

@@ -29,8 +29,10 @@ from ..io import MATCH_TOLERANCE
 __all__ = [
     "camera_centers",
     "conic_ellipse",
+    "conic_ellipses",
     "conic_outline",
     "ellipse_points",
+    "ellipses_points",
     "plane_basis",
     "plot_map_top",
     "plot_overlay",
@@ -75,12 +77,38 @@ def ellipse_points(center, S, n: int = 100) -> np.ndarray:
     """n points (n×2) c + S^½ (cos θ, sin θ), θ = 2πk/n, on the ellipse
     {x : (x − c)ᵀ S⁻¹ (x − c) = 1}; the first point is repeated at the end (n+1 rows)."""
     S = np.asarray(S, dtype=float)
-    w, V = np.linalg.eigh(0.5 * (S + S.T))
+    w = np.linalg.eigvalsh(0.5 * (S + S.T))
     if not np.all(w > 0):
         raise ValueError(f"the ellipse's shape matrix must be positive definite, eigenvalues {w.tolist()}")
+    return ellipses_points(center, S, n)
+
+
+def ellipses_points(center, S, n: int = 100) -> np.ndarray:
+    """Batched ``ellipse_points``: centres (…, 2), shapes (…, 2, 2) → (…, n+1, 2); a shape
+    that is not positive definite is not checked (its negative eigenvalues count as 0)."""
+    S = np.asarray(S, dtype=float)
+    w, V = np.linalg.eigh(0.5 * (S + np.swapaxes(S, -1, -2)))
     theta = np.linspace(0.0, 2.0 * np.pi, int(n) + 1)
-    unit = np.stack([np.cos(theta), np.sin(theta)], axis=1)
-    return np.asarray(center, dtype=float) + (unit * np.sqrt(w)) @ V.T
+    unit = np.stack([np.cos(theta), np.sin(theta)], axis=-1)  # (n+1, 2)
+    r = np.sqrt(np.maximum(w, 0.0))[..., None, :]
+    return np.asarray(center, dtype=float)[..., None, :] + (unit * r) @ np.swapaxes(V, -1, -2)
+
+
+def conic_ellipses(Cstar):
+    """Batched ``conic_ellipse`` without raising: dual conics (…, 3, 3) → (c (…, 2),
+    S (…, 2, 2), ok (…,)); where ``ok`` is False (not finite, C*₃₃ = 0, or S not positive
+    definite) c = 0 and S = I stand in."""
+    C = np.asarray(Cstar, dtype=float)
+    C = 0.5 * (C + np.swapaxes(C, -1, -2))
+    finite = np.all(np.isfinite(C), axis=(-1, -2))
+    C = np.where(finite[..., None, None], C, 0.0)
+    c33 = C[..., 2, 2]
+    ok = finite & (np.abs(c33) > 1e-12 * np.abs(C).max(axis=(-1, -2)))
+    C = C / np.where(ok, -c33, -1.0)[..., None, None]
+    c = -C[..., :2, 2]
+    S = C[..., :2, :2] + c[..., :, None] * c[..., None, :]
+    ok &= (S[..., 0, 0] > 0) & (np.linalg.det(S) > 0)
+    return (np.where(ok[..., None], c, 0.0), np.where(ok[..., None, None], S, np.eye(2)), ok)
 
 
 def conic_ellipse(Cstar) -> tuple[np.ndarray, np.ndarray]:
@@ -93,14 +121,11 @@ def conic_ellipse(Cstar) -> tuple[np.ndarray, np.ndarray]:
     C = np.asarray(Cstar, dtype=float)
     if C.shape != (3, 3) or not np.all(np.isfinite(C)):
         raise ValueError(f"a dual conic must be a finite 3×3 matrix, got shape {C.shape}")
-    C = 0.5 * (C + C.T)
-    scale = np.abs(C).max()
-    if not abs(C[2, 2]) > 1e-12 * scale:
-        raise ValueError("not an ellipse: C*₃₃ = 0 (the conic is a parabola or degenerate)")
-    C = C / -C[2, 2]
-    c = -C[:2, 2]
-    S = C[:2, :2] + np.outer(c, c)
-    if not (S[0, 0] > 0 and np.linalg.det(S) > 0):
+    c, S, ok = conic_ellipses(C)
+    if not ok:
+        C = 0.5 * (C + C.T)
+        if not abs(C[2, 2]) > 1e-12 * np.abs(C).max():
+            raise ValueError("not an ellipse: C*₃₃ = 0 (the conic is a parabola or degenerate)")
         raise ValueError("not an ellipse: the dual conic's shape is not positive definite")
     return c, S
 

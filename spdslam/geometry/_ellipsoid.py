@@ -72,7 +72,7 @@ def sorted_axes(P):
     s = jnp.sqrt(jnp.maximum(w[..., ::-1], 0.0))
     R = V[..., :, ::-1]
     det = jnp.linalg.det(R)
-    R = R.at[..., :, 2].multiply(jnp.sign(det)[..., None] + (det == 0))
+    R = R.at[..., :, 2].multiply((jnp.sign(det) + (det == 0))[..., None])
     return R, s
 
 

@@ -35,6 +35,7 @@ from ._oaslam import read_opencv_camera as read_opencv_camera
 from ._oaslam import read_quadrics_gt as read_quadrics_gt
 from ._parse import MATCH_TOLERANCE as MATCH_TOLERANCE
 from ._parse import SequenceFormatError as SequenceFormatError
+from ._parse import nearest_stamps as nearest_stamps
 from ._parse import read_images as read_images
 from ._parse import read_tum as read_tum
 from ._readers import read_camera as read_camera
@@ -43,6 +44,7 @@ from ._readers import read_ellipsoids as read_ellipsoids
 from ._readers import read_objects_gt as read_objects_gt
 from ._readers import read_priors as read_priors
 from ._readers import read_sequence as read_sequence
+from ._rosbag import import_rosbag as import_rosbag
 from ._sequence import ClassPrior as ClassPrior
 from ._sequence import Detection as Detection
 from ._sequence import EllipsoidDetection as EllipsoidDetection

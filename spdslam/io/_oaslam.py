@@ -35,6 +35,7 @@ from ._parse import (
     _rows,
     camera_from,
     check_box,
+    nearest_stamps,
     optional,
     read_text,
     read_tum,
@@ -264,13 +265,13 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     if trajectory == "groundtruth" and raw:
         # the motion capture runs at 100 Hz: the camera's frames are the poses nearest to
         # the images (those with a detection), within the matching tolerance
-        near, ok = _nearest(traj[:, 0], np.array([r[0] for r in raw]))
+        near, ok = nearest_stamps(traj[:, 0], np.array([r[0] for r in raw]))
         traj = traj[np.unique(near[ok])]
     timestamps = traj[:, 0]
     detections = []
     if raw:
         t = np.array([r[0] for r in raw])
-        near, ok = _nearest(timestamps, t)
+        near, ok = nearest_stamps(timestamps, t)
         boxes = undistort_boxes(np.stack([r[1] for r in raw]), camera, dist) if undistort and np.any(dist) \
             else np.stack([r[1] for r in raw])
         bad = ~np.all(np.isfinite(boxes), axis=1) | ~(boxes[:, 2] > boxes[:, 0]) | ~(boxes[:, 3] > boxes[:, 1])
@@ -296,12 +297,3 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     return Sequence(folder.name, camera, timestamps, traj[:, 1:], detections, objects, gt, priors)
 
 
-def _nearest(sorted_t: np.ndarray, t: np.ndarray):
-    """(index of the nearest of ``sorted_t`` for each of ``t``, whether it is within the
-    0.02 s matching tolerance)."""
-    if len(sorted_t) == 1:
-        i = np.zeros(len(t), int)
-    else:
-        j = np.clip(np.searchsorted(sorted_t, t), 1, len(sorted_t) - 1)
-        i = np.where(np.abs(sorted_t[j - 1] - t) < np.abs(sorted_t[j] - t), j - 1, j)
-    return i, np.abs(sorted_t[i] - t) <= MATCH_TOLERANCE

@@ -15,7 +15,8 @@ import numpy as np
 
 from ..geometry import Camera
 
-__all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images", "read_text"]
+__all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images", "read_text",
+           "nearest_stamps"]
 
 #: A detection timestamp matches the nearest trajectory pose within this many seconds.
 MATCH_TOLERANCE = 0.02
@@ -172,6 +173,17 @@ def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
     if not rows:
         raise SequenceFormatError(name, None, f"at least one line '{layout}'", "an empty file")
     return np.array(rows, dtype=float)
+
+
+def nearest_stamps(sorted_t: np.ndarray, t: np.ndarray):
+    """(index of the nearest of ``sorted_t`` (increasing) for each of ``t``, whether it is
+    within ``MATCH_TOLERANCE``, 0.02 s)."""
+    if len(sorted_t) == 1:
+        i = np.zeros(len(t), int)
+    else:
+        j = np.clip(np.searchsorted(sorted_t, t), 1, len(sorted_t) - 1)
+        i = np.where(np.abs(sorted_t[j - 1] - t) < np.abs(sorted_t[j] - t), j - 1, j)
+    return i, np.abs(sorted_t[i] - t) <= MATCH_TOLERANCE
 
 
 def _match(file, line, t: float, timestamps: np.ndarray) -> int:

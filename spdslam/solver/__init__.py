@@ -20,6 +20,8 @@ from ._keys import L as L
 from ._keys import Symbol as Symbol
 from ._keys import X as X
 from ._linear import HAVE_CHOLMOD as HAVE_CHOLMOD
+from ._linear import HAVE_CVXOPT as HAVE_CVXOPT
+from ._linear import default_sparse_solver as default_sparse_solver
 from ._lm import CONVERGED_REASONS as CONVERGED_REASONS
 from ._lm import DoglegParams as DoglegParams
 from ._lm import GaussNewtonParams as GaussNewtonParams

@@ -10,7 +10,11 @@ H is given as the data of its lower triangle in a fixed CSC pattern (``Problem.s
   (the layout's order: variable types by first appearance), "best". ``openmp`` and
   ``blas_threads``: threads of CHOLMOD's OpenMP regions and of its BLAS (``cholmod_threads``;
   default one each).
-- ``scipy``:   SuperLU on the full symmetric matrix (fallback when scikit-sparse is missing).
+- ``cvxopt``:  the CHOLMOD that cvxopt's wheels bundle (a plain ``pip install`` dependency):
+  the same supernodal Cholesky, symbolic analysis once per structure, values written into
+  the fixed pattern each time; supernodal mode and the orderings "default"/"amd" (AMD) and
+  "natural" only, no thread options (its BLAS is serial). The fallback when scikit-sparse is missing.
+- ``scipy``:   SuperLU on the full symmetric matrix (last resort: neither is importable).
 - ``dense``:   LAPACK Cholesky of the dense matrix (small problems).
 
 ``solve`` returns None when the matrix is not positive definite (or the solve fails).
@@ -34,13 +38,24 @@ try:  # pragma: no cover - availability depends on the environment
 except Exception:  # noqa: BLE001
     _cholmod = None
 
-__all__ = ["HAVE_CHOLMOD", "make_linear_solver", "DENSE_THRESHOLD", "CHOLMOD_MODES",
-           "CHOLMOD_ORDERINGS", "cholmod_threads", "HAVE_OPENMP_CONTROL", "HAVE_BLAS_CONTROL"]
+try:  # pragma: no cover - a default dependency, but its wheel may be missing on a platform
+    import cvxopt as _cvxopt
+    from cvxopt import cholmod as _cvx_cholmod
+except Exception:  # noqa: BLE001
+    _cvxopt = _cvx_cholmod = None
+
+__all__ = ["HAVE_CHOLMOD", "HAVE_CVXOPT", "SPARSE_SOLVERS", "make_linear_solver", "DENSE_THRESHOLD", "CHOLMOD_MODES",
+           "CHOLMOD_ORDERINGS", "CVXOPT_ORDERINGS", "cholmod_threads", "default_sparse_solver", "HAVE_OPENMP_CONTROL", "HAVE_BLAS_CONTROL"]
 
 CHOLMOD_MODES = ("supernodal", "simplicial", "auto")
 CHOLMOD_ORDERINGS = ("default", "amd", "metis", "nesdis", "colamd", "natural", "best")
 
 HAVE_CHOLMOD = _cholmod is not None
+HAVE_CVXOPT = _cvx_cholmod is not None
+#: sparse solvers in the order ``linear_solver="auto"`` tries them
+SPARSE_SOLVERS = ("cholmod", "cvxopt", "scipy")
+#: the orderings the cvxopt solver can apply (its CHOLMOD is built without METIS)
+CVXOPT_ORDERINGS = ("default", "amd", "natural")
 
 
 def _loaded_library(names, symbols):
@@ -212,6 +227,75 @@ class CholmodSolver(_Solver):
             return None
 
 
+class CvxoptSolver(_Solver):
+    """CHOLMOD through cvxopt: ``cholmod.symbolic`` once, ``cholmod.numeric`` per solve on a
+    ``spmatrix`` whose values are replaced in place (``A.V = …``, same pattern). Its storage
+    order is read once (values 0, 1, … written and read back), so the pattern need not be
+    sorted. Supernodal LLᵀ only: cvxopt's simplicial mode is an LDLᵀ that accepts D ≤ 0, so
+    it could not tell that H is not positive definite."""
+
+    name = "cvxopt"
+
+    def __init__(self, pattern, n, mode: str = "supernodal", ordering: str = "default"):
+        super().__init__()
+        if _cvx_cholmod is None:
+            raise ImportError("linear_solver='cvxopt' needs cvxopt (pip install cvxopt)")
+        check_cholmod_options(mode, ordering)
+        if mode != "supernodal":
+            raise ValueError(
+                f"cholmod_mode {mode!r} needs scikit-sparse; the cvxopt solver factorises "
+                "supernodally only (its simplicial LDLᵀ does not detect an indefinite H)"
+            )
+        if ordering not in CVXOPT_ORDERINGS:
+            raise ValueError(
+                f"cholmod_ordering {ordering!r} needs scikit-sparse; the cvxopt solver takes "
+                f"{', '.join(CVXOPT_ORDERINGS)}"
+            )
+        self.n = n
+        indptr = np.asarray(pattern["indptr"], dtype=np.int64)
+        rows = np.asarray(pattern["indices"], dtype=np.int64)
+        cols = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr))
+        nnz = rows.size
+        self.A = _cvxopt.spmatrix(_cvxopt.matrix(np.arange(nnz, dtype=np.float64)),
+                                  _cvxopt.matrix(rows), _cvxopt.matrix(cols), (n, n))
+        order = np.asarray(self.A.V, dtype=np.float64).ravel().astype(np.int64)
+        self._order = None if np.array_equal(order, np.arange(nnz)) else order
+        perm = {} if ordering != "natural" else {"p": _cvxopt.matrix(np.arange(n, dtype=np.int64))}
+        with self._options():
+            self.factor = _cvx_cholmod.symbolic(self.A, uplo="L", **perm)
+
+    @contextlib.contextmanager
+    def _options(self):
+        """cvxopt's ``cholmod.options`` is module-global: set for the call, then restored."""
+        opts = _cvx_cholmod.options
+        saved = dict(opts)
+        opts["supernodal"] = 2
+        try:
+            yield
+        finally:
+            opts.clear()
+            opts.update(saved)
+
+    def _factorize(self, data):
+        data = np.ascontiguousarray(data, dtype=np.float64)
+        self.A.V = _cvxopt.matrix(data if self._order is None else data[self._order])
+        try:
+            with self._options():
+                _cvx_cholmod.numeric(self.A, self.factor)
+        except (ArithmeticError, ValueError):
+            return None
+        return self.factor
+
+    def _backsolve(self, factor, rhs):
+        rhs = np.asarray(rhs, dtype=np.float64)
+        B = _cvxopt.matrix(rhs.reshape(self.n, -1))
+        try:
+            _cvx_cholmod.solve(factor, B)
+        except (ArithmeticError, ValueError):
+            return None
+        return np.asarray(B).reshape(rhs.shape)
+
+
 def check_cholmod_options(mode: str, ordering: str) -> None:
     if mode not in CHOLMOD_MODES:
         raise ValueError(f"cholmod_mode must be one of {', '.join(CHOLMOD_MODES)}, got {mode!r}")
@@ -222,24 +306,44 @@ def check_cholmod_options(mode: str, ordering: str) -> None:
 
 
 def resolve_linear_solver(kind: str, n: int, dense_threshold: int = DENSE_THRESHOLD) -> str:
+    """The solver that ``kind`` means here: "auto" is dense below ``dense_threshold`` tangent
+    dimensions, else the first importable of ``SPARSE_SOLVERS``."""
     if kind == "auto":
         if n < dense_threshold:
             return "dense"
-        return "cholmod" if HAVE_CHOLMOD else "scipy"
-    if kind not in ("cholmod", "scipy", "dense"):
+        kind = default_sparse_solver()
+        if kind == "scipy":
+            warnings.warn("neither scikit-sparse nor cvxopt imports: the sparse normal equations "
+                          "are solved by scipy's SuperLU, 8-20x slower (pip install cvxopt)",
+                          RuntimeWarning, stacklevel=2)
+        return kind
+    if kind not in SPARSE_SOLVERS + ("dense",):
         raise ValueError(
-            f"linear_solver must be 'auto', 'cholmod', 'scipy' or 'dense', got {kind!r}"
+            f"linear_solver must be 'auto', 'cholmod', 'cvxopt', 'scipy' or 'dense', got {kind!r}"
         )
     if kind == "cholmod" and not HAVE_CHOLMOD:
         raise ImportError("linear_solver='cholmod' needs scikit-sparse (sksparse.cholmod)")
+    if kind == "cvxopt" and not HAVE_CVXOPT:
+        raise ImportError("linear_solver='cvxopt' needs cvxopt (pip install cvxopt)")
     return kind
+
+
+def default_sparse_solver() -> str:
+    """The sparse solver "auto" uses: CHOLMOD through scikit-sparse, else through cvxopt,
+    else scipy's SuperLU."""
+    if HAVE_CHOLMOD:
+        return "cholmod"
+    return "cvxopt" if HAVE_CVXOPT else "scipy"
 
 
 def make_linear_solver(kind: str, pattern, n: int, cholmod_mode: str = "supernodal",
                        cholmod_ordering: str = "default", cholmod_openmp: bool = False,
                        cholmod_blas_threads: int | None = 1):
-    """The solver ``kind`` for the CSC ``pattern``; the CHOLMOD options apply to "cholmod"."""
+    """The solver ``kind`` for the CSC ``pattern``; the CHOLMOD options apply to "cholmod",
+    mode "supernodal" and the orderings "default", "amd", "natural" also to "cvxopt"."""
     if kind == "cholmod":
         return CholmodSolver(pattern, n, cholmod_mode, cholmod_ordering, cholmod_openmp,
                              cholmod_blas_threads)
+    if kind == "cvxopt":
+        return CvxoptSolver(pattern, n, cholmod_mode, cholmod_ordering)
     return {"dense": DenseSolver, "scipy": ScipySolver}[kind](pattern, n)

@@ -123,12 +123,12 @@ class OptimizerParams:
     gradient_tolerance: stop when ‖Jᵀr‖∞ ≤ this.
     step_tolerance:     stop when ‖δ‖₂ ≤ this.
     min_diagonal, max_diagonal: clip of diag H in the damping matrix D.
-    linear_solver:      "auto" (dense below ``dense_threshold`` tangent dims, else CHOLMOD if
-                        scikit-sparse is importable, else scipy), "cholmod", "scipy", "dense"
-                        (the batched solver is always dense).
+    linear_solver:      "auto" (dense below ``dense_threshold`` tangent dims, else CHOLMOD
+                        through scikit-sparse, else through cvxopt, else scipy), "cholmod",
+                        "cvxopt", "scipy", "dense" (the batched solver is always dense).
     cholmod_mode, cholmod_ordering: CHOLMOD's factorisation ("supernodal", "simplicial",
-                        "auto") and fill-reducing ordering ("default", "amd", "metis", …);
-                        see ``_linear``.
+                        "auto") and fill-reducing ordering ("default", "amd", "metis", …;
+                        cvxopt: "default", "amd", "natural"); see ``_linear``.
     cholmod_openmp, cholmod_blas_threads: threads of CHOLMOD's OpenMP regions (False: one)
                         and of its OpenBLAS (None: unchanged) during factorisations and
                         solves; see ``_linear.cholmod_threads``.
