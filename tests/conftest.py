@@ -14,7 +14,19 @@ Fixtures
 
 from __future__ import annotations
 
+import os
 import zlib
+
+# The suite compiles hundreds of XLA programs, most of them run once or twice: LLVM's
+# optimisation of the CPU code costs more than it saves here, so tests compile with the
+# backend optimisation off, as the batched solver's short
+# compiles do anyway (solver._batched.FAST_COMPILE_OPTIONS). Same HLO, same results to
+# rounding; the CLI and the benchmarks keep XLA's default. SPDSLAM_TEST_XLA_DEFAULT=1 keeps
+# the default for the tests too. Set before JAX starts its backend (subprocesses inherit it).
+if os.environ.get("SPDSLAM_TEST_XLA_DEFAULT") != "1" and \
+        "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                               " --xla_backend_optimization_level=0").strip()
 
 import numpy as np
 import pytest
