@@ -286,6 +286,21 @@ def cli_runner():
         return CliRunner()
 
 
+def cli_subprocess(*args, timeout: float = 900, env: dict | None = None):
+    """``spdslam ARGS…`` in a fresh Python process with XLA's default optimisation (for the
+    few tests whose time is spent running, not compiling, programs: a real recording):
+    the ``CompletedProcess`` with text stdout and stderr."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ if env is None else env)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "xla_backend_optimization_level" not in f]
+    env["XLA_FLAGS"] = " ".join(flags)
+    code = "import sys; from spdslam.cli import app; sys.argv[0] = 'spdslam'; app()"
+    return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, env=env, check=False)
+
+
 def cli_invoke(*args):
     """``spdslam ARGS…`` through a CliRunner, every argument passed as ``str``."""
     from spdslam import cli

@@ -185,15 +185,13 @@ def test_fr2_desk_runs_end_to_end_without_a_degenerate_object(tmp_path, monkeypa
     """``spdslam run`` on the raw folder: no traceback, every output written, no object in
     map.json with a radius below 1 mm or 1/1000 of its largest, failures listed with a
     reason. (The IoU target of the real-sequences issue is not met yet: docs/sequences.md.)"""
-    from conftest import cli_runner
-
-    from spdslam.cli import app
+    from conftest import cli_subprocess
 
     monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "fr2"
-    res = cli_runner().invoke(app, ["run", str(FR2), "--out", str(out)])
-    assert res.exit_code == 0, res.output
-    assert "Traceback" not in res.output
+    res = cli_subprocess("run", FR2, "--out", out)  # XLA's default optimisation: it runs long
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Traceback" not in res.stdout + res.stderr
     for f in ("map.json", "metrics.json", "report.md", "map_top.png", "trajectory.txt"):
         assert (out / f).is_file(), f
     m = json.loads((out / "map.json").read_text())
