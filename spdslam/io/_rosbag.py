@@ -459,7 +459,9 @@ def import_rosbag(path, camera_info_topic: str | None = None, detections_topic: 
     frame_id) is known (each moving link interpolated between its samples, or its end
     sample within 0.02 s). Detections scored below ``min_score`` are left out; with
     distortion, boxes are replaced by the pinhole box of their undistorted outline unless
-    ``undistort=False``. No priors: the back end's defaults apply."""
+    ``undistort=False``. Priors: only the up direction, estimated from the cameras as for the
+    OA-SLAM layout (``estimate_up``) when they determine it; the rest takes the back end's
+    defaults."""
     path = Path(path)
     bag = str(path)
     if world_frame is not None:
