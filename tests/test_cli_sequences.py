@@ -93,13 +93,14 @@ def test_run_writes_all_outputs(run_out):
     assert "mean IoU" in report
 
 
-def test_run_map_json(run_out, seq):
+def test_run_map_json(run_out, seq, seq_dir):
     result, out = run_out
     assert_ok(result)
     m = json.loads((out / "map.json").read_text(encoding="utf-8"))
     for key in ("method", "parameterization", "iterations", "final_cost", "objects"):
         assert key in m, key
     assert m["method"] == "multi-spd" and m["parameterization"] == "spd"
+    assert m["sequence"] == str(seq_dir.resolve())  # the folder read, for spdslam view
     assert isinstance(m["iterations"], int) and m["iterations"] >= 1
     assert 0 < m["final_cost"] < m["initial_cost"]  # noisy boxes: a positive cost, lowered
     gt_labels = {o.id: o.label for o in seq.objects_gt}

@@ -12,6 +12,7 @@ import dataclasses
 import json
 import shutil
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -281,15 +282,27 @@ def test_view_of_the_demo_run(demo):
 
 def test_view_without_a_sequence_and_with_out(demo, tmp_path):
     run = tmp_path / "run"
-    shutil.copytree(demo / "run", run, ignore=shutil.ignore_patterns("*.rrd"))  # no demo marker beside it: no sequence
+    shutil.copytree(demo / "run", run, ignore=shutil.ignore_patterns("*.rrd"))  # no demo marker beside it
+    m = json.loads((run / "map.json").read_text(encoding="utf-8"))
+    assert Path(m["sequence"]) == (demo / "sequence").resolve()  # spdslam demo records it
+    # the sequence map.json records is found without --sequence
+    result = invoke("view", run, "--out", tmp_path / "found.rrd")
+    assert_ok(result)
+    assert "frommap.json" in "".join(result.stdout.split())  # rich wraps long lines
+    assert "/world/camera/image/detections" in Recording(tmp_path / "found.rrd").entities
+    # recorded but gone: said on stderr, and the recording has no camera image view
+    m["sequence"] = str(tmp_path / "moved-away")
+    (run / "map.json").write_text(json.dumps(m), encoding="utf-8")
     target = tmp_path / "deep" / "view.rrd"
     result = invoke("view", run, "--out", target)
     assert_ok(result)
+    said = "".join(result.stderr.split())  # rich wraps long lines, paths included
+    assert "".join(f"{tmp_path / 'moved-away'}, is not there".split()) in said
     rec = Recording(target)
     assert rec.frames("/world/camera") == list(range(FRAMES))
     assert not any(e.startswith("/world/camera/image") for e in rec.entities)
     assert not (run / "recording.rrd").exists()
-    # and with it: the sequence's detections and ground truth
+    # and with --sequence: the sequence's detections and ground truth
     assert_ok(invoke("view", run, "--sequence", demo / "sequence"))
     assert "/world/camera/image/detections" in Recording(run / "recording.rrd").entities
 

@@ -121,7 +121,7 @@ def _progress(message: str) -> None:
 
 
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
-                   keyframes="all", support_planes="priors", **overrides):
+                   keyframes="all", support_planes="priors", source=None, **overrides):
     from ..evaluation import write_run
     from ..mapping import run_sequence
 
@@ -133,7 +133,7 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     try:
-        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite)
+        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source)
     except FileExistsError as e:
         fail(f"--out: {e}")
     except OSError as e:  # the folder became unwritable, the disk is full, …
@@ -239,7 +239,7 @@ def run(
         seq = without_class_table(seq)
     result, metrics = _run_and_write(
         seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
-        keyframes=keyframes, support_planes=support_planes,
+        keyframes=keyframes, support_planes=support_planes, source=sequence,
         parameterization=parameterization, box_model=box_model,
         object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
     if rerun is not None:
@@ -376,7 +376,8 @@ def compare(
     _check_out(out, overwrite)
     rows, fronts = [], {}
     for name in names:
-        result, metrics = _run_and_write(seq, name, out / name, overwrite, False, {}, 100)
+        result, metrics = _run_and_write(seq, name, out / name, overwrite, False, {}, 100,
+                                         source=sequence)
         init = result.method.initialization
         if init not in fronts:
             fronts[init] = metrics["front_end"]["summary"]
@@ -448,13 +449,14 @@ def demo(
         f"({n_false} false) -> {out / 'sequence'}"
     )
     # automatic association ignores the ids; the generator's (scored_seq) only score it
-    _run_and_write(scored_seq, method, out / "run", True, False, {}, 100, associate)
+    _run_and_write(scored_seq, method, out / "run", True, False, {}, 100, associate,
+                   source=out / "sequence")
 
 
 @app.command()
 def view(
     out: Path = typer.Argument(..., help="Output folder of spdslam run (map.json and trajectory.txt)."),
-    sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, detections, images, ground truth); default: the demo's sequence/ beside a demo's run/, else none."),
+    sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, detections, images, ground truth); default: the folder map.json records (spdslam run writes it), else the demo's sequence/ beside a demo's run/, else none."),
     recording: Path | None = typer.Option(None, "--out", help="The recording to write (default OUT/recording.rrd)."),
     images: bool = typer.Option(True, "--images/--no-images", help="Embed the sequence's images (a long sequence's recording grows with them)."),
 ) -> None:
@@ -480,6 +482,13 @@ def view(
         poses = read_tum(traj, str(traj))
     except SequenceFormatError as e:
         fail(str(e))
+    recorded = m.get("sequence")
+    if sequence is None and isinstance(recorded, str) and recorded:
+        if Path(recorded).is_dir():
+            sequence = Path(recorded)  # the folder spdslam run recorded in map.json
+            console.print(f"sequence: {sequence} (from map.json; --sequence to choose another)")
+        else:
+            err_console.print(f"the sequence recorded in map.json, {recorded}, is not there")
     if sequence is None and (out.parent / DEMO_MARKER).is_file() and (out.parent / "sequence").is_dir():
         sequence = out.parent / "sequence"  # a demo's run/: its sequence/ beside it
         console.print(f"sequence: {sequence}")

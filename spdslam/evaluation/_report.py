@@ -334,13 +334,17 @@ def ground_truth_in_map_frame(seq, T):
 
 
 def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
-              overwrite: bool = False) -> dict:
+              overwrite: bool = False, source=None) -> dict:
     """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
     map_top.png and overlay/ (with images) into ``out``, atomically. ``result`` is a
-    ``mapping.MapResult`` (anything with its fields and ``as_dict()``). Returns the metrics."""
+    ``mapping.MapResult`` (anything with its fields and ``as_dict()``); ``source``: the
+    sequence folder it was read from, recorded (absolute) as map.json's ``sequence`` so that
+    ``spdslam view OUT`` finds it. Returns the metrics."""
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
+        if source is not None:
+            m["sequence"] = str(Path(source).resolve())
         metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
         if "to_groundtruth" in metrics:
             m["to_groundtruth"] = metrics["to_groundtruth"]
