@@ -395,3 +395,11 @@ def check_jacobians(residual, values, args, kind=None, symmetric_cols=None, h=1e
             + f", entry {worst[1:]}\nanalytic {Ja[worst[0]]}\ncentral differences {Jn[worst[0]]}"
         )
     return np.asarray(r), [np.asarray(j) for j in J]
+
+
+def pytest_collection_modifyitems(config, items):
+    """Studies marked ``slow`` (run on demand) may take longer than the suite's per-test
+    timeout (pyproject.toml): they get none."""
+    for item in items:
+        if item.get_closest_marker("slow") is not None and item.get_closest_marker("timeout") is None:
+            item.add_marker(pytest.mark.timeout(0))

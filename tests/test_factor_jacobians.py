@@ -220,6 +220,20 @@ def _support_plane(param):
     return Case((batched_landmarks(param, R, t, s),), (jnp.asarray(planes),), kind)
 
 
+@case("landmark_prior", params=("spd", "rts"))
+def _landmark_prior(param):
+    """Landmarks near a prior mean (a perturbed copy of each): the residual x ⊟ x̄ and its
+    Jacobian through x's retraction."""
+    R, t, s, kind, _ = configurations(25)
+    rng = np.random.default_rng(26)
+    Rm = R @ Rotation.from_rotvec(0.2 * rng.normal(size=(N, 3))).as_matrix()
+    tm = t + 0.2 * rng.normal(size=t.shape)
+    sm = s * np.exp(0.2 * rng.normal(size=s.shape))
+    offset = jnp.asarray(0.1 * rng.normal(size=(N, 9)))
+    return Case((batched_landmarks(param, R, t, s),), (batched_landmarks(param, Rm, tm, sm), offset),
+                kind)
+
+
 @case("ellipsoid_measurement")
 def _ellipsoid_measurement(param):
     """Noisy camera-frame measurements of each ellipsoid; spheres measured as spheres."""

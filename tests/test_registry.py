@@ -23,6 +23,7 @@ from spdslam.factors import (
     Huber,
     InverseBoxFactor,
     InverseCuboidBoxFactor,
+    LandmarkPriorFactor,
     OrientationFactor,
     PriorFactor,
     RadiusFloorFactor,
@@ -58,6 +59,8 @@ EXAMPLES = {
     "classic_shape": lambda **n: ClassicShapeFactor(L(0), [0.3, 0.2, 0.1], **n),
     "size": lambda **n: SizeFactor(L(0), [0.3, 0.2, 0.1], **n),
     "radius_floor": lambda **n: RadiusFloorFactor(L(0), 0.01, **n),
+    "landmark_prior": lambda **n: LandmarkPriorFactor(
+        L(0), Ellipsoid.from_axes(np.eye(3), [0.0, 0.0, 1.0], [0.3, 0.2, 0.1]), **n),
     "support_plane": lambda **n: SupportPlaneFactor(L(0), [0, 0, 1, 0], **n),
     "prior": lambda **n: PriorFactor(X(0), T, **n),
     "between": lambda **n: BetweenFactor(X(0), X(1), T, **n),

@@ -120,20 +120,52 @@ def _progress(message: str) -> None:
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
 
 
+def _run_online(seq, method, sigmas, max_iterations, associate, online: dict, **overrides):
+    """``mapping.run_online`` with the console's progress: (result, a writer of
+    latency.csv and latency.png for ``write_run``), with the latency figures printed."""
+    import numpy as np
+
+    from ..evaluation import latency_csv, plot_latency
+    from ..mapping import run_online
+
+    result, records = run_online(seq, method, associate=associate, sigmas=sigmas,
+                                 final_iterations=max_iterations, progress=_progress,
+                                 **online, **overrides)
+    ms = 1e3 * np.array([r.seconds for r in records])
+    dt = np.diff(np.asarray(seq.timestamps, float))
+    rate = 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else None
+    console.print(f"online: {len(records)} frames, time per frame median {np.median(ms):.3g} ms, "
+                  f"99th percentile {np.percentile(ms, 99):.3g} ms, max {ms.max():.3g} ms"
+                  + (f" (frame period {1e3 / rate:.3g} ms)" if rate else ""))
+
+    def extra(folder):
+        (folder / "latency.csv").write_text(latency_csv(records), encoding="utf-8")
+        plot_latency(folder / "latency.png", records, rate=rate, title=f"online mapping of {seq.name}")
+
+    return result, extra
+
+
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
-                   keyframes="all", support_planes="priors", source=None, **overrides):
+                   keyframes="all", support_planes="priors", source=None, online=None,
+                   **overrides):
     from ..evaluation import write_run
     from ..mapping import run_sequence
 
     _check_out(out, overwrite)
+    extra = None
     try:
-        result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
-                              associate=associate, keyframes=keyframes,
-                              support_planes=support_planes, progress=_progress, **overrides)
+        if online is None:
+            result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
+                                  associate=associate, keyframes=keyframes,
+                                  support_planes=support_planes, progress=_progress, **overrides)
+        else:
+            result, extra = _run_online(seq, method, sigmas, max_iterations, associate, online,
+                                        **overrides)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     try:
-        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source)
+        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source,
+                            extra=extra)
     except FileExistsError as e:
         fail(f"--out: {e}")
     except OSError as e:  # the folder became unwritable, the disk is full, …
@@ -204,12 +236,19 @@ def run(
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
     rerun: Path | None = typer.Option(None, "--rerun", help="Also write a rerun recording of the run to this .rrd file (needs rerun-sdk, the viewer extra; open it with: rerun FILE)."),
+    online: bool = typer.Option(False, "--online", help="Replay the sequence frame by frame through the online mapper (a fixed-lag smoother) instead of one batch optimisation; also writes OUT/latency.csv and OUT/latency.png."),
+    window: int = typer.Option(30, min=2, help="--online: frames whose poses the fixed-lag problem keeps free."),
+    every: int = typer.Option(10, min=1, help="--online: frames between optimisations."),
+    online_iterations: int = typer.Option(5, min=1, help="--online: LM iterations per optimisation."),
+    final_batch: bool = typer.Option(True, "--final-batch/--no-final-batch", help="--online: after the last frame, one batch optimisation of every frame and view from the online state (--max-iterations); without it the map is the online estimates."),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
 
     Writes OUT/map.json, OUT/trajectory.txt, OUT/map_top.png, and with ground truth
     OUT/report.md and OUT/metrics.json, and with images OUT/overlay/; with --rerun FILE
-    also a rerun recording (as the view command writes).
+    also a rerun recording (as the view command writes). With --online the frames are
+    mapped one at a time (docs/online.md), and OUT/latency.csv and OUT/latency.png say how
+    long each took.
     """
     if method not in METHODS:
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
@@ -229,6 +268,14 @@ def run(
         fail(f"--keyframes: {e}")
     if support_planes not in SUPPORT_PLANES:
         fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
+    online_settings = None
+    if online:
+        if keyframes != "all":
+            fail("--online: every frame is used; --keyframes must be all")
+        if support_planes != "priors":
+            fail("--online: support planes come from the priors only; --support-planes must be priors")
+        online_settings = {"window": window, "every": every, "max_iterations": online_iterations,
+                           "final_batch": final_batch}
     check_output(out, [sequence])
     if rerun is not None:
         _check_recording(rerun, "--rerun")
@@ -239,7 +286,7 @@ def run(
         seq = without_class_table(seq)
     result, metrics = _run_and_write(
         seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
-        keyframes=keyframes, support_planes=support_planes, source=sequence,
+        keyframes=keyframes, support_planes=support_planes, source=sequence, online=online_settings,
         parameterization=parameterization, box_model=box_model,
         object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
     if rerun is not None:

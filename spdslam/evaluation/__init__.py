@@ -22,7 +22,10 @@ from ._plots import conic_ellipses as conic_ellipses
 from ._plots import conic_outline as conic_outline
 from ._plots import ellipse_points as ellipse_points
 from ._plots import ellipses_points as ellipses_points
+from ._plots import LATENCY_COLUMNS as LATENCY_COLUMNS
+from ._plots import latency_csv as latency_csv
 from ._plots import plane_basis as plane_basis
+from ._plots import plot_latency as plot_latency
 from ._plots import plot_map_top as plot_map_top
 from ._plots import plot_overlay as plot_overlay
 from ._plots import top_view_ellipse as top_view_ellipse

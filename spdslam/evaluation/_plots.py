@@ -33,7 +33,9 @@ __all__ = [
     "conic_outline",
     "ellipse_points",
     "ellipses_points",
+    "latency_csv",
     "plane_basis",
+    "plot_latency",
     "plot_map_top",
     "plot_overlay",
     "top_view_ellipse",
@@ -454,3 +456,51 @@ def write_overlays(folder, sequence, ellipsoids, poses_tum, frames=None, max_fra
         pose = poses[f]
         out.append(plot_overlay(target, image, sequence.camera, pose, ellipsoids, dets, labels, dpi))
     return out
+
+
+# --- online latency -------------------------------------------------------------------------
+
+
+LATENCY_COLUMNS = ("frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations")
+
+
+def latency_csv(records) -> str:
+    """latency.csv of an online run: a header and one row per frame (``FrameRecord``s:
+    frame, timestamp (s), seconds spent on the frame, objects mapped after it, factors and
+    free variables of the problem solved at it (0: none solved), LM iterations)."""
+    lines = [",".join(LATENCY_COLUMNS)]
+    for r in records:
+        lines.append(f"{r.frame},{r.timestamp:.6f},{r.seconds:.6f},{r.objects},{r.factors},"
+                     f"{r.variables},{r.iterations}")
+    return "\n".join(lines) + "\n"
+
+
+def plot_latency(path, records, rate: float | None = None, title: str = "", dpi: int = 110) -> Path:
+    """Time per frame of an online run (log scale; frames where the problem was solved
+    marked), its median and 99th percentile, the frame period 1/``rate`` when given, and
+    the objects mapped (right axis)."""
+    frame = np.array([r.frame for r in records], dtype=float)
+    ms = 1e3 * np.array([r.seconds for r in records], dtype=float)
+    solved = np.array([r.factors > 0 for r in records], dtype=bool)
+    objects = np.array([r.objects for r in records], dtype=float)
+    fig = _figure(figsize=(8.0, 4.0), layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    if ms.size:
+        ax.plot(frame[~solved], np.maximum(ms[~solved], 1e-3), ".", ms=2, color="tab:blue",
+                label="frame (no optimisation)")
+        ax.plot(frame[solved], np.maximum(ms[solved], 1e-3), ".", ms=4, color="tab:orange",
+                label="frame with an optimisation")
+        med, p99 = np.median(ms), np.percentile(ms, 99)
+        ax.axhline(med, color="tab:green", lw=1, label=f"median {med:.3g} ms")
+        ax.axhline(p99, color="tab:red", lw=1, label=f"99th percentile {p99:.3g} ms")
+    if rate:
+        ax.axhline(1e3 / rate, color="k", ls="--", lw=1, label=f"frame period at {rate:.3g} Hz")
+    ax.set_yscale("log")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("time to process (ms)")
+    ax.legend(loc="upper left", fontsize=7)
+    ax2 = ax.twinx()
+    ax2.plot(frame, objects, color="0.4", lw=1)
+    ax2.set_ylabel("objects mapped", color="0.4")
+    ax.set_title(title or "online mapping: time per frame")
+    return _save(fig, path, dpi)

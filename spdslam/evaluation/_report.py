@@ -334,12 +334,13 @@ def ground_truth_in_map_frame(seq, T):
 
 
 def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
-              overwrite: bool = False, source=None) -> dict:
+              overwrite: bool = False, source=None, extra=None) -> dict:
     """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
     map_top.png and overlay/ (with images) into ``out``, atomically. ``result`` is a
     ``mapping.MapResult`` (anything with its fields and ``as_dict()``); ``source``: the
     sequence folder it was read from, recorded (absolute) as map.json's ``sequence`` so that
-    ``spdslam view OUT`` finds it. Returns the metrics."""
+    ``spdslam view OUT`` finds it; ``extra(folder)`` writes more files into the folder
+    before it is put in place (an online run's latency.csv). Returns the metrics."""
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
@@ -366,6 +367,8 @@ def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None =
             write_overlays(tmp / "overlay", seq, [o.ellipsoid for o in result.objects],
                            result.poses_tum, max_frames=max_overlays,
                            labels=[f"{o.label} {o.id}" for o in result.objects])
+        if extra is not None:
+            extra(tmp)
         return metrics
 
     return write_folder_atomically(out, write, overwrite)

@@ -35,6 +35,8 @@ from ._ellipsoid_measurement import (
 from ._ellipsoid_measurement import (
     ellipsoid_measurement_residual as ellipsoid_measurement_residual,
 )
+from ._landmark_prior import LandmarkPriorFactor as LandmarkPriorFactor
+from ._landmark_prior import landmark_prior_residual as landmark_prior_residual
 from ._object import AxisOrientationFactor as AxisOrientationFactor
 from ._object import ClassicOrientationFactor as ClassicOrientationFactor
 from ._object import ClassicShapeFactor as ClassicShapeFactor

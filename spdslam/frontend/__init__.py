@@ -5,6 +5,7 @@ rest on. Imports ``geometry`` and ``io``.
 
 from ._association import Association as Association
 from ._association import AssociationSettings as AssociationSettings
+from ._association import OnlineTracker as OnlineTracker
 from ._association import Track as Track
 from ._association import associate as associate
 from ._association import associate_detailed as associate_detailed

@@ -33,6 +33,7 @@ __all__ = [
     "associate_detailed",
     "merge_tracks",
     "association_scores",
+    "OnlineTracker",
 ]
 
 
@@ -172,6 +173,14 @@ class _Fit:
 _BAD_FIT = _Fit(np.zeros(3), np.eye(3), 0.0, np.eye(3), None, False)
 
 
+def _check_boxes(box: np.ndarray, frames) -> None:
+    """``ValueError`` naming the first box that is not finite or not proper (x2 > x1, y2 > y1)."""
+    bad = ~np.all(np.isfinite(box), axis=1) | (box[:, 2] <= box[:, 0]) | (box[:, 3] <= box[:, 1])
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"detection {i} (frame {frames[i]}) has an invalid box {box[i].tolist()}")
+
+
 class _Scene:
     """The sequence as arrays, and the per-detection terms of the landmark fit.
 
@@ -194,69 +203,74 @@ class _Scene:
 
     def __init__(self, seq: Sequence, s: AssociationSettings):
         dets = seq.detections
-        cam = seq.camera
-        self.camera = cam
-        self.fx, self.fy, self.cx, self.cy = (float(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
-        self.W, self.H = float(cam.width), float(cam.height)
+        self._setup(seq.camera, seq.priors, s)
         n = len(dets)
         self.F = len(seq)
-        self.frame = np.array([d.frame for d in dets], dtype=int).reshape(n)
-        if n and (self.frame.min() < 0 or self.frame.max() >= self.F):
+        frame = np.array([d.frame for d in dets], dtype=int).reshape(n)
+        if n and (frame.min() < 0 or frame.max() >= self.F):
             raise ValueError(
-                f"detection frames must lie in [0, {self.F}), got {self.frame.min()}..{self.frame.max()}"
+                f"detection frames must lie in [0, {self.F}), got {frame.min()}..{frame.max()}"
             )
-        self.box = np.array([d.box for d in dets], dtype=float).reshape(n, 4)
-        bad = ~np.all(np.isfinite(self.box), axis=1) | (self.box[:, 2] <= self.box[:, 0]) | (
-            self.box[:, 3] <= self.box[:, 1]
-        )
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise ValueError(
-                f"detection {i} (frame {dets[i].frame}) has an invalid box {self.box[i].tolist()}"
-            )
+        box = np.array([d.box for d in dets], dtype=float).reshape(n, 4)
+        _check_boxes(box, [d.frame for d in dets])
         self.labels = sorted({d.label for d in dets})
         lab_idx = {lab: k for k, lab in enumerate(self.labels)}
-        self.label = np.array([lab_idx[d.label] for d in dets], dtype=int).reshape(n)
+        label = np.array([lab_idx[d.label] for d in dets], dtype=int).reshape(n)
         poses = np.asarray(seq.poses_tum, dtype=float)
         if not np.all(np.isfinite(poses)):
             raise ValueError("the trajectory (poses_tum) has non-finite values")
         self.R = quat_to_matrix(poses[:, 3:7]).reshape(self.F, 3, 3)  # R_wc
         self.C = poses[:, :3]
-        self.up, self.planes = (None, None) if seq.priors is None else seq.priors.up_and_planes()
-        # per detection: ray, truncation, prior range, fit terms
-        b = self.box
-        keep = np.asarray(truncation_mask(b, seq.camera, s.truncation_margin)) > 0
-        self.w_ok = keep[:, 0] & keep[:, 2]  # width untruncated
-        self.h_ok = keep[:, 1] & keep[:, 3]
+        for name, value in self._terms(frame, box, label).items():
+            setattr(self, name, value)
+        self.by_frame = [np.flatnonzero(self.frame == f) for f in range(self.F)]
+
+    def _setup(self, camera, priors, s: AssociationSettings) -> None:
+        """The camera, priors and per-class prior radius (what every detection's terms use)."""
+        self.camera, self.priors, self.settings = camera, priors, s
+        self.fx, self.fy, self.cx, self.cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+        self.W, self.H = float(camera.width), float(camera.height)
+        self.up, self.planes = (None, None) if priors is None else priors.up_and_planes()
+        self._class_radius: dict = {}
+
+    def class_radius(self, label: str) -> float:
+        """The geometric mean of the class prior's radii (``default_radius`` without one)."""
+        if label not in self._class_radius:
+            cp = class_prior(self.priors, label)
+            self._class_radius[label] = (self.settings.default_radius if cp is None else
+                                         float(np.exp(np.mean(np.log(np.asarray(cp.radii))))))
+        return self._class_radius[label]
+
+    def _terms(self, frame, box, label) -> dict:
+        """The per-detection arrays of detections (frame (n,), box (n, 4), label index (n,))
+        whose frames' poses are in ``self.R``, ``self.C``: ray, truncation, prior range and
+        the fit's normal-equation terms (class docstring)."""
+        s, n, b = self.settings, frame.size, box
+        keep = np.asarray(truncation_mask(b, self.camera, s.truncation_margin)) > 0
+        w_ok = keep[:, 0] & keep[:, 2]  # width untruncated
+        h_ok = keep[:, 1] & keep[:, 3]
         u = 0.5 * (b[:, 0] + b[:, 2])
         v = 0.5 * (b[:, 1] + b[:, 3])
         ray_c = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones(n)], 1)
         ray_c /= np.linalg.norm(ray_c, axis=1, keepdims=True)
-        self.ray = np.einsum("nij,nj->ni", self.R[self.frame], ray_c)
-        self.origin = self.C[self.frame]
-        radius = np.full(n, s.default_radius)
-        for lab, k in lab_idx.items():
-            cp = class_prior(seq.priors, lab)
-            if cp is not None:
-                radius[self.label == k] = float(np.exp(np.mean(np.log(np.asarray(cp.radii)))))
+        ray = np.einsum("nij,nj->ni", self.R[frame], ray_c)
+        origin = self.C[frame]
+        radius = np.array([self.class_radius(lab) for lab in self.labels] or [0.0])[label].reshape(n)
         w, h = b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]
-        size_px = np.where(
-            self.w_ok & self.h_ok, np.sqrt(w * h),
-            np.where(self.w_ok, w, np.where(self.h_ok, h, np.maximum(w, h))),
-        )
+        size_px = np.where(w_ok & h_ok, np.sqrt(w * h), np.where(w_ok, w, np.where(h_ok, h, np.maximum(w, h))))
         range0 = np.sqrt(self.fx * self.fy) * 2.0 * radius / size_px / ray_c[:, 2]
-        self.radius0 = radius
-        sig_ray = s.ray_sigma * np.where(self.w_ok & self.h_ok, 1.0, 4.0)
+        sig_ray = s.ray_sigma * np.where(w_ok & h_ok, 1.0, 4.0)
         w_perp = 1.0 / (sig_ray * range0) ** 2
         w_rng = 1.0 / (s.size_sigma * range0) ** 2
-        w_rng = np.where(self.w_ok | self.h_ok, w_rng, 0.01 * w_rng)
-        d = self.ray
-        ddT = d[:, :, None] * d[:, None, :]
-        self.A_perp = w_perp[:, None, None] * (np.eye(3)[None] - ddT)
-        self.b_perp = np.einsum("nij,nj->ni", self.A_perp, self.origin)
-        self.A_rng = w_rng[:, None, None] * ddT
-        self.b_rng = (w_rng * (np.einsum("ni,ni->n", d, self.origin) + range0))[:, None] * d
-        self.by_frame = [np.flatnonzero(self.frame == f) for f in range(self.F)]
+        w_rng = np.where(w_ok | h_ok, w_rng, 0.01 * w_rng)
+        ddT = ray[:, :, None] * ray[:, None, :]
+        A_perp = w_perp[:, None, None] * (np.eye(3)[None] - ddT)
+        A_rng = w_rng[:, None, None] * ddT
+        return dict(
+            frame=frame, box=b, label=label, w_ok=w_ok, h_ok=h_ok, ray=ray, origin=origin,
+            radius0=radius, A_perp=A_perp, b_perp=np.einsum("nij,nj->ni", A_perp, origin),
+            A_rng=A_rng, b_rng=(w_rng * (np.einsum("ni,ni->n", ray, origin) + range0))[:, None] * ray,
+        )
 
     # -- landmark fit and prediction --------------------------------------------------------
 
@@ -351,47 +365,90 @@ def _hungarian(cost, allowed):
 # -- stage 1: tracklets ------------------------------------------------------------------------
 
 
+@dataclass
+class _Tracking:
+    """Frame-by-frame tracking state: per tracklet its detections, label, last frame and
+    coarse landmark (``_Fit``)."""
+
+    groups: list = dataclasses.field(default_factory=list)
+    label: list = dataclasses.field(default_factory=list)
+    last: list = dataclasses.field(default_factory=list)
+    fits: list = dataclasses.field(default_factory=list)
+
+
+def _track_frame(sc: _Scene, s: AssociationSettings, st: _Tracking, f: int, dets: np.ndarray,
+                 refit=None, always=(), candidates=None) -> np.ndarray:
+    """Frame f of the tracking (``_tracklets``): its detections ``dets`` (indices into
+    ``sc``) assigned to the tracklets of ``st`` seen in the last ``max_gap`` frames, or
+    new ones; ``st`` is updated in place (``refit(t)``: tracklet t's new fit, default
+    ``sc.fit`` of all its detections; tracklets in ``always`` are candidates however long
+    unseen; ``candidates``: the tracklets to consider, default all). Returns the tracklet of
+    each detection."""
+    refit = refit or (lambda t: sc.fit(st.groups[t]))
+    owner = np.full(dets.size, -1)
+    act = [t for t in (range(len(st.groups)) if candidates is None else candidates)
+           if st.fits[t].ok and (f - st.last[t] <= s.max_gap or t in always)]
+    if act:
+        boxes, vis = sc.project(
+            np.array([st.fits[t].X for t in act]), np.array([st.fits[t].P for t in act]),
+            np.full(len(act), f),
+        )
+        iou = _iou(boxes[:, None], sc.box[dets][None])
+        allowed = (
+            vis[:, None]
+            & (np.array([st.label[t] for t in act])[:, None] == sc.label[dets][None])
+            & (iou >= s.iou_gate)
+        )
+        rows, cols = _hungarian(1.0 - iou, allowed)
+        for r, c in zip(rows, cols):
+            t = act[r]
+            st.groups[t].append(dets[c])
+            st.last[t] = f
+            st.fits[t] = refit(t)
+            owner[c] = t
+    for c in np.flatnonzero(owner < 0):
+        st.groups.append([dets[c]])
+        st.label.append(sc.label[dets[c]])
+        st.last.append(f)
+        st.fits.append(sc.fit([dets[c]]))
+        owner[c] = len(st.groups) - 1
+    return owner
+
+
 def _tracklets(sc: _Scene, s: AssociationSettings, dets_mask=None) -> list:
     """Frame-by-frame tracking: Hungarian on 1 − IoU(predicted box, detection) between the
     tracklets seen in the last ``max_gap`` frames and the frame's detections (same label,
     IoU ≥ ``iou_gate``); a detection that passes no gate starts a new tracklet. Only the
     detections where ``dets_mask`` is True take part (all by default)."""
-    groups, label, last, fits = [], [], [], []
+    st = _Tracking()
     for f in range(sc.F):
         dets = sc.by_frame[f]
         if dets_mask is not None:
             dets = dets[dets_mask[dets]]
-        if dets.size == 0:
-            continue
-        act = [t for t in range(len(groups)) if fits[t].ok and f - last[t] <= s.max_gap]
-        matched = np.zeros(dets.size, bool)
-        if act:
-            boxes, vis = sc.project(
-                np.array([fits[t].X for t in act]), np.array([fits[t].P for t in act]),
-                np.full(len(act), f),
-            )
-            iou = _iou(boxes[:, None], sc.box[dets][None])
-            allowed = (
-                vis[:, None]
-                & (np.array([label[t] for t in act])[:, None] == sc.label[dets][None])
-                & (iou >= s.iou_gate)
-            )
-            rows, cols = _hungarian(1.0 - iou, allowed)
-            for r, c in zip(rows, cols):
-                t = act[r]
-                groups[t].append(dets[c])
-                last[t] = f
-                fits[t] = sc.fit(groups[t])
-                matched[c] = True
-        for c in np.flatnonzero(~matched):
-            groups.append([dets[c]])
-            label.append(sc.label[dets[c]])
-            last.append(f)
-            fits.append(sc.fit([dets[c]]))
-    return [np.array(g, dtype=int) for g in groups]
+        if dets.size:
+            _track_frame(sc, s, st, f, dets)
+    return [np.array(g, dtype=int) for g in st.groups]
 
 
 # -- stage 2: merging --------------------------------------------------------------------------
+
+
+def _merge_cost(sc: _Scene, s: AssociationSettings, ga, fa: _Fit, cov_a, gb, fb: _Fit, cov_b):
+    """The cost of merging tracks a and b (detections ``ga``, ``gb``; fits and centre
+    covariances), or None where a gate forbids it (``_merge``)."""
+    if sc.label[ga[0]] != sc.label[gb[0]] or not (fa.ok and fb.ok):
+        return None
+    if np.intersect1d(sc.frame[ga], sc.frame[gb]).size:
+        return None
+    d_spd = float(spd.distance(fa.P, fb.P))
+    if d_spd > s.spd_gate:
+        return None
+    tau = s.centre_tolerance * (fa.radius + fb.radius)
+    delta = fa.X - fb.X
+    d_x = float(np.sqrt(delta @ np.linalg.solve(cov_a + cov_b + tau**2 * np.eye(3), delta)))
+    if d_x > s.centre_gate:
+        return None
+    return d_x / s.centre_gate + d_spd / s.spd_gate
 
 
 def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]:
@@ -410,20 +467,7 @@ def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]
     covs = [np.linalg.inv(f.info) if f.ok else None for f in fits]
 
     def pair_cost(a, b):
-        fa, fb = fits[a], fits[b]
-        if sc.label[groups[a][0]] != sc.label[groups[b][0]] or not (fa.ok and fb.ok):
-            return None
-        if np.intersect1d(sc.frame[groups[a]], sc.frame[groups[b]]).size:
-            return None
-        d_spd = float(spd.distance(fa.P, fb.P))
-        if d_spd > s.spd_gate:
-            return None
-        tau = s.centre_tolerance * (fa.radius + fb.radius)
-        delta = fa.X - fb.X
-        d_x = float(np.sqrt(delta @ np.linalg.solve(covs[a] + covs[b] + tau**2 * np.eye(3), delta)))
-        if d_x > s.centre_gate:
-            return None
-        return d_x / s.centre_gate + d_spd / s.spd_gate
+        return _merge_cost(sc, s, groups[a], fits[a], covs[a], groups[b], fits[b], covs[b])
 
     costs = {}
     for a in range(len(groups)):
@@ -554,6 +598,151 @@ def associate_detailed(seq: Sequence, settings: AssociationSettings | None = Non
     return Association(
         tracks, assignment, np.array(centres).reshape(-1, 3), np.array(shapes).reshape(-1, 3, 3), stats
     )
+
+
+class _Grow:
+    """Arrays that grow by rows (capacity doubled when full): ``add(**rows)``, ``view(name)``."""
+
+    def __init__(self):
+        self.n, self._buf = 0, {}
+
+    def add(self, **rows) -> None:
+        k = len(next(iter(rows.values())))
+        for name, r in rows.items():
+            r = np.asarray(r)
+            buf = self._buf.get(name)
+            if buf is None:
+                buf = self._buf[name] = np.zeros((max(64, k),) + r.shape[1:], r.dtype)
+            if self.n + k > len(buf):
+                bigger = np.zeros((max(2 * len(buf), self.n + k),) + buf.shape[1:], buf.dtype)
+                bigger[: self.n] = buf[: self.n]
+                buf = self._buf[name] = bigger
+            buf[self.n : self.n + k] = r
+        self.n += k
+
+    def view(self, name: str) -> np.ndarray:
+        return self._buf[name][: self.n]
+
+
+class OnlineTracker:
+    """Automatic association one frame at a time: the tracking stage of
+    :func:`associate_detailed` (step 1), with the same landmark model and gates.
+
+    ``add_frame(R_wc, centre, boxes, labels)`` assigns a frame's detections to the tracks
+    seen in the last ``max_gap`` frames (Hungarian on the IoU of the predicted box) or starts
+    new ones, and returns the track of each detection. A track's prediction is its coarse
+    landmark fitted to its latest ``fit_window`` detections, or the ellipsoid given by
+    ``set_landmark`` (the mapped object). ``merge(keep, drop)`` joins two tracks. Work per
+    frame is bounded by the tracks alive and ``fit_window``, not by the frames seen.
+    """
+
+    def __init__(self, camera, priors=None, settings: AssociationSettings | None = None,
+                 fit_window: int = 200, **overrides):
+        s = settings or AssociationSettings(**overrides)
+        if settings is not None and overrides:
+            s = dataclasses.replace(settings, **overrides)
+        self.settings, self.fit_window = s, int(fit_window)
+        sc = _Scene.__new__(_Scene)
+        sc._setup(camera, priors, s)
+        sc.labels, sc.F = [], 0
+        self._sc, self._lab = sc, {}
+        self._dets, self._frames = _Grow(), _Grow()
+        self._state = _Tracking()
+        self._mapped: dict = {}
+        self._alive: set = set()  # tracks seen in the last max_gap frames
+
+    def _sync(self) -> None:
+        sc = self._sc
+        for name in ("frame", "box", "label", "w_ok", "h_ok", "ray", "origin", "radius0",
+                     "A_perp", "b_perp", "A_rng", "b_rng"):
+            setattr(sc, name, self._dets.view(name))
+
+    def add_frame(self, R_wc, centre, boxes, labels) -> np.ndarray:
+        """The track index of each of the frame's detections (boxes (n, 4), labels (n,))."""
+        sc, s = self._sc, self.settings
+        f = sc.F
+        self._frames.add(R=np.asarray(R_wc, float)[None], C=np.asarray(centre, float)[None])
+        sc.R, sc.C, sc.F = self._frames.view("R"), self._frames.view("C"), f + 1
+        boxes = np.asarray(boxes, float).reshape(-1, 4)
+        if not len(boxes):
+            return np.zeros(0, int)
+        _check_boxes(boxes, [f] * len(boxes))
+        for lab in labels:
+            if lab not in self._lab:
+                self._lab[lab] = len(sc.labels)
+                sc.labels.append(lab)
+        idx = np.array([self._lab[lab] for lab in labels], dtype=int)
+        start = self._dets.n
+        self._dets.add(**sc._terms(np.full(len(boxes), f), boxes, idx))
+        self._sync()
+        dets = np.arange(start, self._dets.n)
+        st = self._state
+        self._alive = {t for t in self._alive if f - st.last[t] <= s.max_gap}
+        owner = _track_frame(sc, s, st, f, dets, refit=self._refit, always=self._mapped,
+                             candidates=sorted(self._alive | set(self._mapped)))
+        self._alive.update(int(t) for t in owner)
+        return owner
+
+    def _refit(self, t: int) -> _Fit:
+        if t in self._mapped:
+            return self._mapped[t]
+        return self._sc.fit(self._state.groups[t][-self.fit_window:])
+
+    def set_landmark(self, t: int, centre, P) -> None:
+        """Predict track t's boxes from the ellipsoid (centre, P) from now on."""
+        fit = self._state.fits[t]
+        self._mapped[t] = _Fit(np.asarray(centre, float), np.asarray(P, float), fit.radius,
+                               fit.info, fit.plane, True)
+        self._state.fits[t] = self._mapped[t]
+
+    def merge(self, keep: int, drop: int) -> None:
+        """Track ``drop``'s detections join ``keep``; ``drop`` is no longer continued."""
+        st = self._state
+        st.groups[keep] = sorted(st.groups[keep] + st.groups[drop])
+        st.last[keep] = max(st.last[keep], st.last[drop])
+        st.groups[drop] = []
+        st.fits[drop] = _BAD_FIT
+        self._mapped.pop(drop, None)
+        if keep not in self._mapped:
+            st.fits[keep] = self._refit(keep)
+
+    def match(self, t: int, candidates) -> int | None:
+        """The track among ``candidates`` that track t is a re-entry of (the batch merging's
+        gates and cost on the coarse fits of both, ``_merge``), or None."""
+        st, sc = self._state, self._sc
+        ga = np.array(st.groups[t][-self.fit_window:], dtype=int)
+        if not ga.size:
+            return None
+        fa = sc.fit(ga)
+        if not fa.ok:
+            return None
+        cov_a = np.linalg.inv(fa.info)
+        best, best_cost = None, np.inf
+        for c in candidates:
+            gb = np.array(st.groups[c][-self.fit_window:], dtype=int)
+            if c == t or not gb.size:
+                continue
+            fb = sc.fit(gb)
+            if not fb.ok:
+                continue
+            cost = _merge_cost(sc, self.settings, ga, fa, cov_a, gb, fb, np.linalg.inv(fb.info))
+            if cost is not None and cost < best_cost:
+                best, best_cost = c, cost
+        return best
+
+    def __len__(self) -> int:
+        return len(self._state.groups)
+
+    def track(self, t: int) -> tuple[np.ndarray, np.ndarray, str]:
+        """(frames, boxes, label) of track t, in frame order."""
+        g = np.array(self._state.groups[t], dtype=int)
+        frames = self._dets.view("frame")[g] if g.size else np.zeros(0, int)
+        boxes = self._dets.view("box")[g] if g.size else np.zeros((0, 4))
+        return frames, boxes, self._sc.labels[self._state.label[t]]
+
+    def size(self, t: int) -> int:
+        """The number of detections of track t."""
+        return len(self._state.groups[t])
 
 
 def associate(seq: Sequence, settings: AssociationSettings | None = None, **overrides) -> list:

@@ -26,6 +26,10 @@ from ._methods import SHAPE_FORMS as SHAPE_FORMS
 from ._methods import Method as Method
 from ._methods import robust_kernel as robust_kernel
 from ._methods import sigma_units as sigma_units
+from ._online import FrameRecord as FrameRecord
+from ._online import OnlineMap as OnlineMap
+from ._online import OnlineMapper as OnlineMapper
+from ._online import run_online as run_online
 from ._run import ASSOCIATIONS as ASSOCIATIONS
 from ._run import MAX_CENTER_SIGMA as MAX_CENTER_SIGMA
 from ._run import MAX_LOG_RADIUS_SIGMA as MAX_LOG_RADIUS_SIGMA
@@ -43,6 +47,7 @@ from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects
 from ._run import mapped_uncertainty as mapped_uncertainty
+from ._run import map_result as map_result
 from ._run import merged_track as merged_track
 from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates

@@ -127,11 +127,11 @@ def _odometry(ctx: SequenceContext, s: dict) -> list:
     return out
 
 
-def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
-                    s: dict, robust, planes=None) -> list:
+def _box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
+                 robust) -> list:
+    """The box factor of each of the track's detections (module docstring)."""
     key = L(track.id)
-    priors = ctx.priors
-    shape = object_shape(method, priors, track.label)
+    shape = object_shape(method, ctx.priors, track.label)
     box_factor = BOX_FACTORS[box_model, shape]
     out = []
     for f, b in zip(track.frames, track.boxes):
@@ -141,6 +141,16 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
             sigma = sigma + s[box_factor.kind + "_relative"] * size
         out.append(box_factor(X(f), key, b, ctx.camera, sigma=sigma, robust=robust,
                               truncation_margin=method.margin))
+    return out
+
+
+def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
+                    s: dict, robust, planes=None, boxes: bool = True) -> list:
+    """The box factors of the track (``boxes``) and the object's own factors."""
+    key = L(track.id)
+    priors = ctx.priors
+    shape = object_shape(method, priors, track.label)
+    out = _box_factors(ctx, track, method, box_model, s, robust) if boxes else []
     up = ctx.up
     if up is not None and method.orientation == "improved":
         if shape == "cuboid":

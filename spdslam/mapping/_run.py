@@ -61,6 +61,7 @@ __all__ = [
     "initialize",
     "initialize_objects",
     "initialize_from_measurements",
+    "map_result",
     "merged_track",
     "overlapping_duplicates",
     "run_sequence",
@@ -526,6 +527,7 @@ def run_sequence(
     support_planes: str = "priors",
     verbose: bool = False,
     progress: Callable[[str], Any] | None = None,
+    tolerance: float = 1e-6,
     **overrides,
 ) -> MapResult:
     """Initialise and jointly optimise a sequence with a named method (or a :class:`Method`);
@@ -541,7 +543,8 @@ def run_sequence(
     priors' planes only; "initial" / "optimised" estimate them, when the priors have none,
     from the initial objects or from the objects optimised without planes
     (``frontend.estimate_support_planes``; then optimised again with them).
-    ``progress(message)`` is called at each stage and after each LM iteration.
+    ``progress(message)`` is called at each stage and after each LM iteration; ``tolerance``:
+    LM's relative decrease at which it stops.
     """
     say = progress or (lambda message: None)
     if isinstance(method, str):
@@ -577,6 +580,7 @@ def run_sequence(
             f"({'accepted' if rec.accepted else 'rejected'}, λ {rec.lambda_:.2g})")
 
     optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
+                                   relative_tolerance=tolerance,
                                    callback=each_iteration if progress else None)
     total_it, first_cost, res, graph = 0, None, None, None
     planes = front.planes
@@ -613,13 +617,25 @@ def run_sequence(
             optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
 
     say("uncertainty: marginal covariances of the objects")
-    spread = mapped_uncertainty(graph, values, sorted(landmarks))
-    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k))
-               for k in sorted(landmarks)]
-    initial = [MapObject(k, labels[k], front.ellipsoids[k]) for k in sorted(front.ellipsoids)]
-    rows = np.stack([to_tum(values[X(i)]) for i in range(len(seq))])
-    poses_out = np.c_[np.asarray(seq.timestamps), rows]
-    failed = dict(front.failed)
+    return map_result(method, graph, values, labels, front.ellipsoids, seq.timestamps,
+                      front.failed, front.notes, association.record, total_it, first_cost, res)
+
+
+def map_result(method: Method, graph, values, labels: dict, initial: dict, timestamps,
+               failed: dict, notes: list, association: dict, iterations: int,
+               initial_cost: float, res) -> MapResult:
+    """The ``MapResult`` of an optimised graph: the objects L(id) of ``labels`` {id: label}
+    in ``values`` with their uncertainty (``mapped_uncertainty``), those degenerate or
+    poorly observed moved to the failures; the poses X(0…) as TUM rows with ``timestamps``;
+    ``initial`` {id: Ellipsoid} the front end's objects; ``res`` the last optimisation's
+    result (final cost, convergence)."""
+    ids = sorted(k for k in labels if L(k) in values)
+    spread = mapped_uncertainty(graph, values, ids)
+    objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k)) for k in ids]
+    first = [MapObject(k, labels[k], initial[k]) for k in sorted(initial)]
+    rows = np.stack([to_tum(values[X(i)]) for i in range(len(timestamps))])
+    poses_out = np.c_[np.asarray(timestamps), rows]
+    failed = dict(failed)
     kept = []
     for o in objects:  # reported, not mapped: an object whose extent the data do not fix
         why = degenerate(o.ellipsoid)
@@ -630,6 +646,6 @@ def run_sequence(
         else:
             kept.append(o)
     return MapResult(
-        method, kept, initial, poses_out, total_it, first_cost, res.final_cost,
-        res.converged, res.reason, failed, front.notes, association.record,
+        method, kept, first, poses_out, iterations, initial_cost, res.final_cost,
+        res.converged, res.reason, failed, list(notes), association,
     )

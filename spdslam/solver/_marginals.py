@@ -19,11 +19,12 @@ __all__ = ["marginal_covariances"]
 
 
 def marginal_covariances(graph: Iterable, values: Any, keys: Iterable[Hashable],
-                         linear_solver: str = "auto") -> dict:
+                         linear_solver: str = "auto", fixed: Iterable[Hashable] = ()) -> dict:
     """{key: Σ (d × d)} for each of ``keys`` (module docstring); a key whose block is not
     determined (H singular) gets a matrix of ``inf``. ``ValueError`` for a key that is not
-    a free variable of the graph."""
-    problem = Problem(graph, values)
+    a free variable of the graph. ``fixed`` keys are held (conditioned on), as in
+    ``optimize``."""
+    problem = Problem(graph, values, fixed)
     keys = list(keys)
     where = {}
     for ti, tkeys in enumerate(problem.type_keys):

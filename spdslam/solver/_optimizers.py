@@ -84,14 +84,17 @@ class Optimizer:
         self.params = resolve_params(self.Params, params, overrides)
         self.rule = StepRule.of(self.params)
 
-    def optimize(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = ()
-                 ) -> OptimizationResult:
-        """Minimise F over the free variables of ``values``; returns a new Values."""
+    def optimize(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
+                 rows: dict | None = None) -> OptimizationResult:
+        """Minimise F over the free variables of ``values``; returns a new Values.
+        ``rows`` {factor kind or variable class name: n}: pad those groups to at least n rows
+        (``Problem``), so that a caller solving a changing graph meets fewer array shapes
+        (each new one compiles)."""
         p = self.params
         t0 = time.perf_counter()
         if not isinstance(values, Values):
             values = Values(values)
-        problem = Problem(graph, values, fixed)
+        problem = Problem(graph, values, fixed, rows=rows)
         kind = resolve_linear_solver(p.linear_solver, problem.n, p.dense_threshold)
         solver = make_linear_solver(kind, problem.sparse_pattern(), problem.n, p.cholmod_mode,
                                     p.cholmod_ordering, p.cholmod_openmp, p.cholmod_blas_threads)

@@ -257,15 +257,18 @@ class Problem:
     """A factor graph with values, laid out for the solver (see the module docstring).
 
     ``fixed`` keys keep their values and have no tangent coordinates; so do keys that are
-    in ``values`` but touched by no factor (they are left out of the problem).
+    in ``values`` but touched by no factor (they are left out of the problem). ``rows``
+    {factor kind or variable class name: n}: pad those groups and types to at least n rows
+    (the ``bucket`` minimum; 8 otherwise).
 
     Attributes used by the optimisers: ``n`` (tangent dimension); ``vars`` (per type,
     stacked and padded); ``linearize``, ``step``, ``cost``, ``to_values``.
     """
 
     def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
-                 check_free: bool = True):
+                 check_free: bool = True, rows: dict | None = None):
         factors = list(graph)
+        rows = rows or {}
         self.factors = factors
         fixed = set(fixed)
         for k in fixed:
@@ -341,7 +344,7 @@ class Problem:
         )
         self.type_keys = t_keys
         self.nv = [len(keys) for keys in t_keys]
-        nv_pad = [bucket(nv) for nv in self.nv]
+        nv_pad = [bucket(nv, rows.get(c.__name__, 8)) for nv, c in zip(self.nv, t_cls)]
         self.vars = tuple(
             jax.tree.unflatten(
                 td,
@@ -407,7 +410,7 @@ class Problem:
                 valid=f0.valid,
             )
             nf = len(gb.fids)
-            nf_pad = bucket(nf)
+            nf_pad = bucket(nf, rows.get(f0.kind, 8))
             idx = np.asarray(gb.idx, np.int32).reshape(nf, len(var_types))
             leaves = [jnp.asarray(_pad_rows(np.stack([a[j] for a in gb.args]), nf_pad))
                       for j in range(len(gb.sig[3]))]

@@ -1,0 +1,200 @@
+"""Online mapping (``spdslam.mapping.OnlineMapper``): time per frame, on real data and on a
+long synthetic room, against the batch map.
+
+1. fr2_desk (``../shared/data/tum_fr2_desk``, skipped when absent): the batch run
+   (``run_sequence``), then the sequence replayed frame by frame through the online mapper,
+   twice in one process (the first replay compiles; the second runs on compiled code, as a
+   long-running mapper or a warm compilation cache does). Per replay: median, 99th
+   percentile and maximum time per frame; the frames processed; the delay of the last frame
+   and the largest delay when frames arrive at the sequence's own rate (30 Hz) and wait in
+   a queue while the mapper is busy (computed from the measured times: frame i arrives at
+   tᵢ − t₀, starts when it has arrived and frame i−1 is done); the mean IoU of the online
+   map, without and with the final batch optimisation, against the batch map's.
+2. The demo rooms (``--seeds``): the final batch optimisation's cost against the batch
+   run's, and the mean IoU of the online map (``demo_rooms``).
+3. A demo room of ``--room-frames`` frames (``make_room_sequence``, ``--room-objects``
+   objects, association by instance id), replayed twice as above: time per frame against
+   the frames seen; the fitted exponent b of (mean time per frame over a block of frames) ∝
+   (frames seen)^b over ``--blocks`` log-spaced blocks after the first ``--warmup`` frames
+   (b ≈ 0: the cost per frame does not grow). The first replay's blocks include the
+   compilations, which happen when the problem outgrows its padded shapes (a one-off cost,
+   not one that grows with the frames).
+
+    python3 benchmarks/online.py [--out benchmarks/results/online.json]
+    python3 benchmarks/online.py --skip-fr2 --room-frames 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # run from a checkout
+
+FR2 = HERE.parent / ".." / "shared" / "data" / "tum_fr2_desk"
+
+
+def stats(records, timestamps) -> dict:
+    """Figures of one replay (module docstring)."""
+    sec = np.array([r.seconds for r in records])
+    t = np.asarray(timestamps, float)
+    arrive = t - t[0]
+    done = 0.0
+    delay = np.zeros(len(sec))
+    for i, (a, s) in enumerate(zip(arrive, sec)):
+        done = max(a, done) + s
+        delay[i] = done - a
+    return dict(frames=len(records), median_ms=1e3 * float(np.median(sec)),
+                p99_ms=1e3 * float(np.percentile(sec, 99)), max_ms=1e3 * float(sec.max()),
+                total_s=float(sec.sum()), rate_hz=float(1.0 / np.median(np.diff(t))),
+                max_delay_s=float(delay.max()), last_delay_s=float(delay[-1]),
+                frames_with_optimisation=int(sum(r.factors > 0 for r in records)))
+
+
+def mean_iou(result, seq) -> float:
+    from spdslam.evaluation import evaluate_run
+
+    m = evaluate_run(result.as_dict(), result.objects, result.initial_objects, result.poses_tum, seq)
+    return float(m["summary"]["mean_iou"])
+
+
+def fr2(args) -> dict:
+    from spdslam.io import read_sequence
+    from spdslam.mapping import OnlineMapper, run_sequence
+
+    seq = read_sequence(FR2)
+    t0 = time.perf_counter()
+    batch = run_sequence(seq, "multi-spd")
+    out = {"batch": dict(seconds=time.perf_counter() - t0, objects=len(batch.objects),
+                         mean_iou=mean_iou(batch, seq))}
+    print(f"fr2_desk batch: {len(batch.objects)} objects, mean IoU {out['batch']['mean_iou']:.3f}, "
+          f"{out['batch']['seconds']:.1f} s", flush=True)
+    by_frame: dict = {}
+    for d in seq.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    for rep in ("first", "second"):
+        m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="auto", window=args.window,
+                         every=args.every, max_iterations=args.iterations)
+        for i in range(len(seq)):
+            m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
+        r = stats(m.records, seq.timestamps)
+        online = m.finish(final_batch=False)
+        final = m.finish(final_batch=True)
+        r.update(objects_online=len(online.objects), mean_iou_online=mean_iou(online, seq),
+                 objects_final=len(final.objects), mean_iou_final=mean_iou(final, seq))
+        out[rep + "_replay"] = r
+        print(f"fr2_desk replay ({rep}): {r['frames']} frames, per frame median {r['median_ms']:.3g} ms, "
+              f"p99 {r['p99_ms']:.3g} ms, max {r['max_ms']:.3g} ms; at {r['rate_hz']:.3g} Hz the "
+              f"largest delay {r['max_delay_s']:.3g} s, the last frame's {r['last_delay_s']:.3g} s; "
+              f"mean IoU online {r['mean_iou_online']:.3f} ({r['objects_online']} objects), "
+              f"after the final batch {r['mean_iou_final']:.3f} ({r['objects_final']})", flush=True)
+    return out
+
+
+def demo_rooms(args) -> dict:
+    """Per demo room (``make_room_sequence(seed)``, association by instance id): the batch
+    map and the replay, both LM run to convergence (relative tolerance 1e-10): the relative
+    difference of the final batch optimisation's cost from the batch run's, and the mean
+    IoU of the batch map, the online map and the map after the final batch."""
+    from spdslam.mapping import run_online, run_sequence
+    from spdslam.synthetic import make_room_sequence
+
+    out = {}
+    for seed in args.seeds:
+        seq = make_room_sequence(seed)
+        batch = run_sequence(seq, "multi-spd", tolerance=1e-10, max_iterations=300)
+        online, _ = run_online(seq, final_batch=False, window=args.window, every=args.every,
+                               max_iterations=args.iterations)
+        final, _ = run_online(seq, window=args.window, every=args.every, max_iterations=args.iterations,
+                              final_iterations=300, final_tolerance=1e-10)
+        r = dict(batch_cost=batch.final_cost, final_cost=final.final_cost,
+                 cost_rel_diff=abs(final.final_cost - batch.final_cost) / batch.final_cost,
+                 iou_batch=mean_iou(batch, seq), iou_online=mean_iou(online, seq),
+                 iou_final=mean_iou(final, seq))
+        out[f"seed_{seed}"] = r
+        print(f"demo room {seed}: final batch cost {r['final_cost']:.8g} against the batch run's "
+              f"{r['batch_cost']:.8g} (relative difference {r['cost_rel_diff']:.2g}); mean IoU batch "
+              f"{r['iou_batch']:.3f}, online {r['iou_online']:.3f}, after the final batch "
+              f"{r['iou_final']:.3f}", flush=True)
+    return out
+
+
+def room(args) -> dict:
+    from spdslam.mapping import OnlineMapper
+    from spdslam.synthetic import make_room_sequence
+
+    seq = make_room_sequence(args.seed, args.room_frames, args.room_objects, drift=0.001)
+    by_frame: dict = {}
+    for d in seq.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    out = {}
+    for rep in ("first", "second"):
+        m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
+                         every=args.every, max_iterations=args.iterations)
+        t0 = time.perf_counter()
+        for i in range(len(seq)):
+            m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
+        wall = time.perf_counter() - t0
+        sec = np.array([r.seconds for r in m.records])
+        blocks = np.geomspace(max(args.warmup, 1), len(sec), args.blocks + 1).astype(int)
+        mid, mean = [], []
+        for a, b in zip(blocks[:-1], blocks[1:]):
+            if b - a >= args.every:  # at least one optimisation in the block
+                mid.append(np.sqrt(a * b))
+                mean.append(sec[a:b].mean())
+        b_exp, _ = np.polyfit(np.log(mid), np.log(mean), 1)
+        r = dict(frames=len(seq), objects=args.room_objects, detections=len(seq.detections),
+                 wall_s=wall, median_ms=1e3 * float(np.median(sec)), p99_ms=1e3 * float(np.percentile(sec, 99)),
+                 exponent=float(b_exp), objects_mapped=len(m.landmarks),
+                 blocks=[dict(frames=float(x), mean_ms=1e3 * float(y)) for x, y in zip(mid, mean)])
+        out[rep + "_replay"] = r
+        print(f"room {len(seq)} frames x {args.room_objects} objects ({len(seq.detections)} boxes), "
+              f"{rep} replay: {wall:.1f} s, per frame median {r['median_ms']:.3g} ms, p99 {r['p99_ms']:.3g} ms; "
+              f"fitted exponent of time per frame against frames seen (after {args.warmup}): "
+              f"{r['exponent']:.3f}", flush=True)
+        for blk in r["blocks"]:
+            print(f"  around frame {blk['frames']:7.0f}: {blk['mean_ms']:.3g} ms per frame")
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=None, help="Write the figures as JSON here.")
+    ap.add_argument("--window", type=int, default=30)
+    ap.add_argument("--every", type=int, default=10)
+    ap.add_argument("--iterations", type=int, default=5)
+    ap.add_argument("--skip-fr2", action="store_true")
+    ap.add_argument("--skip-room", action="store_true")
+    ap.add_argument("--room-frames", type=int, default=10000)
+    ap.add_argument("--room-objects", type=int, default=100)
+    ap.add_argument("--warmup", type=int, default=500)
+    ap.add_argument("--blocks", type=int, default=12)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=lambda t: [int(x) for x in t.split(",") if x.strip()],
+                    default=[0, 1, 2, 3, 4], help="Demo rooms ('' for none).")
+    args = ap.parse_args()
+    out = {}
+    if not args.skip_fr2:
+        if FR2.is_dir():
+            out["fr2_desk"] = fr2(args)
+        else:
+            print(f"fr2_desk: {FR2} not found, skipped")
+    if args.seeds:
+        out["demo_rooms"] = demo_rooms(args)
+    if not args.skip_room:
+        out["room"] = room(args)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

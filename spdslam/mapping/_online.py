@@ -1,0 +1,670 @@
+"""Online mapping: frames added one at a time, objects mapped as the camera moves.
+
+``OnlineMapper.add_frame`` takes a frame (timestamp, T_wc pose or odometry, detections,
+optional measured ellipsoids) in timestamp order. Per frame:
+
+1. the pose's initial value: the input motion since the previous frame applied to that
+   frame's current estimate, T̂ᵢ = T̂ᵢ₋₁ (Tᵢ₋₁⁻¹ Tᵢ) (the first frame: its input pose);
+2. association: by instance id, or automatically (``frontend.OnlineTracker``: the tracking
+   stage of the batch association, one frame at a time);
+3. every ``every`` frames (and at the first frame a track could become an object):
+   objects are created for the tracks with at least ``min_views`` views that the batch
+   initialisation accepts (``initialize_objects`` on the current pose estimates), duplicates
+   merged (automatic association: ``overlapping_duplicates``), and the fixed-lag problem
+   solved by LM from the current estimates (warm start).
+
+The fixed-lag problem. Free: the poses of the last ``window`` frames and the objects that
+have factors not yet marginalised. Factors: the odometry between consecutive frames of the
+window (the first one from the frame before it, whose pose is held fixed; a prior on the
+first frame while the window starts there), the box (and measured-ellipsoid) factors not yet
+marginalised (their poses fixed when older than the window), each object's own factors
+(orientation, plane, shape, size, radius floor) and its ``LandmarkPriorFactor``. After the
+solve, the box factors of frames older than the window are marginalised: with their poses
+fixed, their Gauss–Newton quadratic in the object (with the object's previous prior) at the
+current estimate becomes the object's new prior (mean x̂ ⊞ (−H⁺g), information H). Older
+poses keep their last estimate (conditioning, not marginalising, the poses). The work per
+frame is bounded by the window, not by the frames seen (docs/online.md measures it).
+
+``finish(final_batch=True)`` runs one batch optimisation of the whole graph (every frame and
+view, ``build_graph``) from the online state; ``final_batch=False`` reports the online
+estimates as they are. Both give a ``MapResult``, as ``run_sequence`` does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+import jaxlie
+import numpy as np
+import scipy.sparse
+
+from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
+from ..frontend import AssociationSettings, OnlineTracker, Track
+from ..geometry import as_ellipsoid
+from ..geometry.se3 import as_pose, from_tum, to_tum
+from ..io import Detection, EllipsoidDetection, Sequence
+from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
+from ..solver._problem import Problem, bucket
+from ._context import SequenceContext
+from ._graph import (
+    _box_factors,
+    _measurement_factors,
+    _object_factors,
+    _with_robust_by_type,
+    build_graph,
+    mapping_sigmas,
+)
+from ._methods import METHODS, Method, robust_kernel
+from ._run import (
+    _drop_rarely_detected,
+    _landmark,
+    _visible,
+    initialize_objects,
+    map_result,
+    overlapping_duplicates,
+)
+
+__all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "run_online"]
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What ``add_frame`` did: frame index, timestamp, seconds spent, objects mapped after
+    it, factors and free variables of the problem solved (0 if none), LM iterations."""
+
+    frame: int
+    timestamp: float
+    seconds: float
+    objects: int
+    factors: int
+    variables: int
+    iterations: int
+
+
+@dataclass(frozen=True)
+class OnlineMap:
+    """The map after a frame: ``objects`` {id: (label, Ellipsoid)}, ``poses_tum`` (F, 8)
+    rows ``t tx ty tz qx qy qz qw`` (the current estimates), ``covariances`` {id: 9×9} of the
+    objects in the last problem solved (in the landmark's chart; objects not in it: none)."""
+
+    objects: dict
+    poses_tum: np.ndarray
+    covariances: dict = field(default_factory=dict)
+
+
+class _Poses:
+    """The current pose estimates as a growing (F, 7) array of jaxlie parameters, indexable
+    as ``SequenceContext.poses`` is (``poses[i]`` a ``jaxlie.SE3``)."""
+
+    def __init__(self):
+        self._a = np.zeros((256, 7))
+        self.n = 0
+
+    def append(self, wxyz_xyz) -> None:
+        if self.n == len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self.n] = wxyz_xyz
+        self.n += 1
+
+    @property
+    def array(self) -> np.ndarray:
+        return self._a[: self.n]
+
+    def __getitem__(self, i) -> jaxlie.SE3:
+        return jaxlie.SE3(self._a[: self.n][i])
+
+    def __len__(self) -> int:
+        return self.n
+
+
+def _detection(d, frame: int, timestamp: float) -> Detection:
+    """A ``Detection`` of this frame from a Detection or (label, box[, score[, instance]])."""
+    if isinstance(d, Detection):
+        return dataclasses.replace(d, frame=frame, timestamp=timestamp)
+    try:
+        if isinstance(d, str) or not 2 <= len(d) <= 4 or not isinstance(d[0], str):
+            raise ValueError
+        label, box, *rest = d
+        score = float(rest[0]) if rest else 1.0
+        instance = None if len(rest) < 2 or rest[1] is None else int(rest[1])
+        return Detection(frame, timestamp, box, label, score, instance)
+    except (TypeError, ValueError):
+        raise ValueError(f"frame {frame}: a detection must be a Detection or (label, box "
+                         f"[x1, y1, x2, y2][, score[, instance]]), got {d!r}") from None
+
+
+class OnlineMapper:
+    """Incremental object mapping (module docstring).
+
+    ``camera``, ``priors``: as a ``Sequence``'s. ``method``: a name of ``METHODS`` or a
+    ``Method`` (SPD or RTS landmarks). ``associate``: "instances" (every detection carries
+    its object's id; negative ids are false detections) or "auto". ``window``: frames whose
+    poses are free; ``every``: frames between optimisations; ``max_iterations``: LM
+    iterations per optimisation; ``min_views``: views before an object is created;
+    ``sigmas``: as ``run_sequence``'s.
+    """
+
+    def __init__(self, camera, priors=None, method: str | Method = "multi-spd", *,
+                 associate: str = "auto", window: int = 30, every: int = 10,
+                 max_iterations: int = 5, min_views: int = 3, sigmas: dict | None = None,
+                 association: AssociationSettings | None = None, name: str = "online",
+                 **overrides):
+        if isinstance(method, str):
+            if method not in METHODS:
+                raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+            method = METHODS[method]
+        method = method.replace(**overrides)
+        if method.parameterization not in ("spd", "rts"):
+            raise ValueError(f"online mapping takes SPD or RTS landmarks, not {method.parameterization!r}")
+        if method.box_model not in ("inverse", "semi"):
+            raise ValueError(f"online mapping takes one box model (inverse or semi), not {method.box_model!r}")
+        if associate not in ("instances", "auto"):
+            raise ValueError(f"associate must be instances or auto, got {associate!r}")
+        for k, v, lo in (("window", window, 2), ("every", every, 1), ("max_iterations", max_iterations, 1),
+                         ("min_views", min_views, 1)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ValueError(f"{k} must be an integer >= {lo}, got {v!r}")
+        self.method, self.associate = method, associate
+        self.window, self.every, self.min_views = int(window), int(every), int(min_views)
+        self.name = name
+        empty = Sequence(name, camera, np.zeros(0), np.zeros((0, 7)), [], priors=priors)
+        self._ctx0 = SequenceContext.of(empty)
+        self._sigmas = mapping_sigmas(self._ctx0, sigmas)
+        self._user_sigmas = sigmas
+        self._robust = robust_kernel(method.robust, method.robust_k)
+        self._optimizer = LevenbergMarquardt(max_iterations=int(max_iterations))
+        self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
+        self._assoc_settings = association or AssociationSettings()
+        self._timestamps: list = []
+        self._input = _Poses()  # input poses (jaxlie parameters)
+        self._est = _Poses()  # current estimates
+        self._detections: list = []
+        self._ellipsoids: list = []
+        self._views: dict = {}  # track id -> [(frame, box)]
+        self._labels: dict = {}  # track id -> Counter of its detections' labels
+        self._candidates: set = set()  # tracks with new views that are not objects
+        self._measured: dict = {}  # track id -> [EllipsoidDetection]
+        self.landmarks: dict = {}  # object id -> landmark value
+        self._pending: dict = {}  # object id -> [(frame, factor)]: views not yet marginalised
+        self._pending_meas: dict = {}  # … the same of its measured ellipsoids
+        self._prior: dict = {}  # object id -> LandmarkPriorFactor
+        self._tried: dict = {}  # track id -> views at the last failed initialisation
+        self.failed: dict = {}
+        self.notes: list = []
+        self.records: list = []
+        self._initial: dict = {}
+        self._merged: dict = {}  # object id -> label, of the objects merged into another
+        self._last_graph = None
+        self._last_values = None
+        self._since = 0
+        self._rows: dict = {}  # padded rows of the fixed-lag problem, per kind / type
+        self._rows_marginal: dict = {}  # … of the marginalisation's
+
+    # --- input ------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    def add_frame(self, timestamp: float, pose: Any = None, *, odometry: Any = None,
+                  detections: Iterable = (), ellipsoids: Iterable = ()) -> FrameRecord:
+        """Add one frame (module docstring) and return what was done. ``pose``: T_wc (a
+        ``jaxlie.SE3``, 4×4, or a TUM row tx ty tz qx qy qz qw); or ``odometry``: the motion
+        T_{i−1}⁻¹ Tᵢ since the previous frame. ``detections``: ``Detection``s or (label, box
+        [x1, y1, x2, y2][, score[, instance]]); ``ellipsoids``: ``EllipsoidDetection``s
+        (camera frame, with instance ids)."""
+        t0 = time.perf_counter()
+        t = float(timestamp)
+        if not np.isfinite(t):
+            raise ValueError(f"frame {len(self)}: the timestamp must be finite, got {timestamp!r}")
+        if self._timestamps and t <= self._timestamps[-1]:
+            what = "duplicates" if t == self._timestamps[-1] else "is before"
+            raise ValueError(f"frame {len(self)}: timestamp {t:.6f} {what} the last frame's "
+                             f"({self._timestamps[-1]:.6f}); frames must come in increasing time")
+        if (pose is None) == (odometry is None):
+            raise ValueError(f"frame {len(self)}: give a pose or an odometry step, not "
+                             f"{'both' if pose is not None else 'neither'}")
+        if pose is None and not self._timestamps:
+            raise ValueError("the first frame needs a pose (odometry is relative to the previous frame)")
+        T_in = self._pose(odometry if pose is None else pose)
+        if pose is None:
+            T_in = jaxlie.SE3(self._input.array[-1]) @ T_in
+        wxyz = np.asarray(T_in.wxyz_xyz, float)
+        if not np.all(np.isfinite(wxyz)):
+            raise ValueError(f"frame {len(self)}: the pose is not finite")
+        f = len(self)
+        dets = [_detection(d, f, t) for d in detections]
+        meas = [dataclasses.replace(m, frame=f, timestamp=t) for m in ellipsoids]
+        for m in meas:
+            if not isinstance(m, EllipsoidDetection):
+                raise ValueError(f"frame {f}: measured ellipsoids must be EllipsoidDetection, got {m!r}")
+        if self.associate == "instances":
+            missing = [d for d in dets if d.instance is None]
+            if missing:
+                raise ValueError(f"frame {f}: {len(missing)} detections without an instance id "
+                                 "(association by instance ids needs one on every detection)")
+        if f == 0:
+            est = wxyz
+        else:
+            step = jaxlie.SE3(self._input.array[-1]).inverse() @ T_in
+            est = np.asarray((jaxlie.SE3(self._est.array[-1]) @ step).wxyz_xyz)
+        self._timestamps.append(t)
+        self._input.append(wxyz)
+        self._est.append(est)
+        self._detections += dets
+        self._ellipsoids += meas
+        self._associate(f, dets)
+        for m in meas:
+            if m.instance is not None and m.instance >= 0 and self.associate == "instances":
+                self._measured.setdefault(m.instance, []).append(m)
+                if m.instance in self.landmarks:
+                    self._pending_meas.setdefault(m.instance, []).extend(self._measurement(m.instance, [m]))
+        self._since += 1
+        ready = any(self._could_start(k) for k in self._candidates)
+        factors = variables = iterations = 0
+        if self._since >= self.every or (ready and not self.landmarks):
+            self._since = 0
+            factors, variables, iterations = self._update()
+        rec = FrameRecord(f, t, time.perf_counter() - t0, len(self.landmarks), factors, variables, iterations)
+        self.records.append(rec)
+        return rec
+
+    @staticmethod
+    def _pose(p) -> jaxlie.SE3:
+        if isinstance(p, jaxlie.SE3):
+            return p
+        a = np.asarray(p, float)
+        if a.shape == (7,):
+            return from_tum(a)
+        return as_pose(a)
+
+    def _associate(self, f: int, dets: list) -> None:
+        if not dets:
+            if self._tracker is not None:
+                T = jaxlie.SE3(self._est.array[f])
+                self._tracker.add_frame(np.asarray(T.rotation().as_matrix()), np.asarray(T.translation()),
+                                        np.zeros((0, 4)), [])
+            return
+        if self._tracker is None:
+            ids = [d.instance for d in dets]
+        else:
+            T = jaxlie.SE3(self._est.array[f])
+            ids = list(self._tracker.add_frame(
+                np.asarray(T.rotation().as_matrix()), np.asarray(T.translation()),
+                np.stack([d.box for d in dets]), [d.label for d in dets]))
+        for d, k in zip(dets, ids):
+            if k is None or k < 0:
+                continue  # a known false detection
+            k = int(k)
+            self._views.setdefault(k, []).append((f, np.asarray(d.box, float)))
+            self._labels.setdefault(k, Counter())[d.label] += 1
+            if k not in self.landmarks:
+                self._candidates.add(k)
+            if k in self.landmarks:
+                self._pending.setdefault(k, []).extend(self._box_factors(k, [(f, np.asarray(d.box, float))]))
+
+    def _label(self, k) -> str:
+        counts = self._labels.get(k) or Counter(m.label for m in self._measured.get(k, []))
+        return max(sorted(counts), key=counts.__getitem__)
+
+    def _track(self, k, views=None) -> Track:
+        views = self._views.get(k, []) if views is None else views
+        frames = np.array([v[0] for v in views], dtype=int)
+        boxes = np.array([v[1] for v in views], dtype=float).reshape(-1, 4)
+        return Track(k, self._label(k), frames, boxes)
+
+    def _could_start(self, k) -> bool:
+        n = len(self._views.get(k, ()))
+        need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
+        return n >= need and n >= 1.5 * self._tried.get(k, 0)
+
+    def _context(self) -> SequenceContext:
+        """The context of the frames so far, with the current estimates as the poses."""
+        return dataclasses.replace(self._ctx0, wxyz_xyz=self._est.array, poses=self._est)
+
+    # --- the update ---------------------------------------------------------------------------
+    def _create_objects(self) -> None:
+        ctx = self._context()
+        cands = sorted(k for k in self._candidates if self._could_start(k))
+        for k in cands:
+            if self._tracker is not None and self.landmarks:
+                j = self._tracker.match(k, sorted(self.landmarks))
+                if j is not None:  # a re-entry of object j (after a gap, or a split track)
+                    self._join(j, k)
+                    continue
+            tr = self._track(k)
+            init, failed, _ = initialize_objects(ctx, [tr], self.method, self.min_views)
+            if k not in init:
+                self._tried[k] = len(tr.frames)
+                continue
+            e = init[k]
+            ok = np.asarray(_visible(e, jaxlie.SE3(self._est.array[tr.frames])))
+            if ok.sum() < self.min_views:
+                self._tried[k] = len(tr.frames)
+                continue
+            self.landmarks[k] = _landmark(e, self.method)
+            self._candidates.discard(k)
+            self._initial[k] = e
+            self._views[k] = [v for v, good in zip(self._views[k], ok) if good]
+            self._pending[k] = self._box_factors(k, self._views[k])
+            self._pending_meas[k] = self._measurement(k, self._measured.get(k, []))
+            if not ok.all():
+                self.notes.append(f"object {k}: {int((~ok).sum())} of {ok.size} views dropped "
+                                  "(the initial ellipsoid is not wholly in front of the camera there)")
+
+    def _join(self, keep, drop) -> None:
+        """Track ``drop``'s views join object ``keep`` (``drop`` is no object)."""
+        self._tracker.merge(keep, drop)
+        views = self._views.pop(drop)
+        self._views[keep] = sorted(self._views[keep] + views, key=lambda v: v[0])
+        self._labels[keep] += self._labels.pop(drop)
+        self._candidates.discard(drop)
+        self._pending.setdefault(keep, []).extend(self._box_factors(keep, views))
+        self._tried.pop(drop, None)
+
+    def _merge_duplicates(self, active) -> None:
+        """Objects of ``active`` that are one object with another (automatic association):
+        the same label and each centre inside the other's ellipsoid (``overlapping_duplicates``'s
+        rule, checked for the objects of the window against all); the one with more views is
+        kept and the other's views join it."""
+        if self._tracker is None or len(self.landmarks) < 2:
+            return
+        ids = sorted(self.landmarks)
+        E = {k: as_ellipsoid(self.landmarks[k]) for k in ids}
+        C = np.stack([np.asarray(E[k].center, float) for k in ids])
+        Pinv = np.linalg.inv(np.stack([np.asarray(E[k].P, float) for k in ids]))
+        labels = [self._label(k) for k in ids]
+        where = {k: i for i, k in enumerate(ids)}
+        gone: set = set()
+        for a in sorted(active):
+            if a in gone or a not in where:
+                continue
+            i = where[a]
+            d = C - C[i]
+            depth = np.maximum(np.einsum("nj,jk,nk->n", d, Pinv[i], d), np.einsum("nj,njk,nk->n", d, Pinv, d))
+            depth[i] = np.inf
+            for j in np.argsort(depth):
+                b = ids[j]
+                if depth[j] >= 1.0:
+                    break
+                if b in gone or labels[j] != labels[i]:
+                    continue
+                keep, drop = (a, b) if len(self._views[a]) >= len(self._views[b]) else (b, a)
+                self._merge(keep, drop)
+                gone.add(drop)
+                break
+
+    def _merge(self, keep, drop) -> None:
+        """Object ``drop`` is object ``keep``: its views join it, its landmark and prior go."""
+        self._tracker.merge(keep, drop)
+        self._merged[drop] = self._label(drop)
+        self._views[keep] = sorted(self._views[keep] + self._views.pop(drop), key=lambda v: v[0])
+        self._labels[keep] += self._labels.pop(drop)
+        moved = [(f, fac.replace(keys=[L(keep) if key == L(drop) else key for key in fac.keys]))
+                 for f, fac in self._pending.pop(drop, [])]
+        self._pending.setdefault(keep, []).extend(moved)
+        self.landmarks.pop(drop)
+        self._prior.pop(drop, None)
+        self._pending_meas.pop(drop, None)
+        self.notes.append(f"objects {keep} and {drop} ({self._label(keep)}) are one object: "
+                          f"each centre lay inside the other ellipsoid; {drop}'s boxes joined to {keep}")
+
+    def _box_factors(self, k, views) -> list:
+        """[(frame, box factor)] of object k's ``views`` [(frame, box)] (made once per view)."""
+        if not views:
+            return []
+        out = _box_factors(self._ctx0, self._track(k, views), self.method, self.method.box_model,
+                           self._sigmas, self._robust)
+        return [(f, fac) for (f, _), fac in zip(views, out)]
+
+    def _measurement(self, k, meas) -> list:
+        """[(frame, factor)] of object k's measured ellipsoids ``meas``."""
+        if not meas:
+            return []
+        out = _measurement_factors(self._ctx0, {k: list(meas)}, {k: self.landmarks[k]},
+                                   self._sigmas, self._robust)
+        return [(m.frame, fac) for m, fac in zip(meas, out)]
+
+    def _object_graph(self, k, items, with_prior: bool, with_object: bool = True) -> list:
+        """Factors of object k: ``items`` [(frame, factor)] (views, measured ellipsoids), its
+        own factors (orientation, plane, shape, size, radius floor: ``with_object``) and its
+        marginal prior (``with_prior``)."""
+        out = [fac for _, fac in items]
+        if with_object:
+            out += _object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method,
+                                   self.method.box_model, self._sigmas, self._robust, boxes=False)
+        if with_prior and k in self._prior:
+            out.append(self._prior[k])
+        return out
+
+    def _update(self) -> tuple[int, int, int]:
+        """Create and merge objects, solve the fixed-lag problem, marginalise what left the
+        window. Returns (factors, free variables, LM iterations)."""
+        self._create_objects()
+        self._merge_duplicates([k for k in self.landmarks if self._pending.get(k)])
+        n = len(self)
+        start = max(0, n - self.window)
+        factors = []
+        if start == 0:
+            factors.append(PriorFactor(X(0), self._input[0], sigma=self._sigmas["first_pose"]))
+        odo = np.r_[np.full(3, self._sigmas["odometry_translation"]),
+                    np.full(3, self._sigmas["odometry_rotation"])]
+        for i in range(max(start, 1), n):
+            step = self._input[i - 1].inverse() @ self._input[i]
+            factors.append(BetweenFactor(X(i - 1), X(i), step, sigma=odo))
+        active = sorted(k for k in self.landmarks if self._pending.get(k) or self._pending_meas.get(k))
+        for k in active:
+            factors += self._object_graph(k, self._pending.get(k, []) + self._pending_meas.get(k, []), True)
+        factors = _with_robust_by_type(factors, self.method)
+        graph = NonlinearFactorGraph(factors)
+        values = Values()
+        keys = {key for f in factors for key in f.keys}
+        for key in keys:
+            values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
+        fixed = [key for key in keys if key.chr == "x" and key.index < start]
+        if start > 0:
+            fixed.append(X(start - 1))
+        fixed = sorted(set(fixed) & keys, key=lambda k: k.index)
+        res = self._optimizer.optimize(graph, values, fixed, rows=self._padding(factors, values, self._rows))
+        for key in keys:
+            if key.chr == "l":
+                self.landmarks[key.index] = res.values[key]
+            elif key.index >= start:
+                self._est._a[key.index] = np.asarray(res.values[key].wxyz_xyz)
+        if self._tracker is not None:
+            for k in active:
+                e = as_ellipsoid(self.landmarks[k])
+                self._tracker.set_landmark(k, np.asarray(e.center), np.asarray(e.P))
+        self._last_graph, self._last_values, self._last_fixed = graph, res.values, fixed
+        self._marginalise(start)
+        free = len(keys) - len(fixed)
+        return len(factors), free, res.iterations
+
+    def _padding(self, factors, values, rows: dict) -> dict:
+        """Rows to pad each factor kind and variable type to (``rows`` is updated): a quarter
+        more than the count, and never fewer than before, so that the shapes (and compilations) change
+        only when the problem outgrows them (a few times per run), not at every update."""
+        counts = Counter(f.kind for f in factors)
+        counts.update(type(values[k]).__name__ for k in values)
+        for name, c in counts.items():
+            floor = rows.get(name) or bucket(
+                4 * self.window if "box" in name else
+                self.window + self.every + 8 if name in ("between", "SE3") else 16)
+            rows[name] = max(floor, bucket(int(np.ceil(1.25 * c))))
+        return dict(rows)
+
+    def _marginalise(self, start: int) -> None:
+        """The box and measurement factors of frames before ``start`` become the objects'
+        priors (module docstring)."""
+        old = {}
+        for k in sorted(self.landmarks):
+            items = [v for v in self._pending.get(k, []) + self._pending_meas.get(k, []) if v[0] < start]
+            if items:
+                old[k] = items
+        if not old:
+            return
+        factors = []
+        for k, items in old.items():
+            factors += self._object_graph(k, items, with_prior=True, with_object=False)
+        factors = _with_robust_by_type(factors, self.method)
+        values = Values()
+        for key in {key for f in factors for key in f.keys}:
+            values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
+        poses = [key for key in values if key.chr == "x"]
+        problem = Problem(NonlinearFactorGraph(factors), values, poses,
+                          rows=self._padding(factors, values, self._rows_marginal))
+        h, g, _, _, finite = problem.linearize(problem.vars)
+        sp = problem.sparse_pattern()
+        H = scipy.sparse.csc_matrix((h, sp["indices"], sp["indptr"]), shape=(problem.n, problem.n)).toarray()
+        H = H + H.T - np.diag(np.diag(H))
+        where = {key: (ti, j) for ti, tkeys in enumerate(problem.type_keys) for j, key in enumerate(tkeys)}
+        for k in old:
+            ti, j = where[L(k)]
+            o = int(problem.offsets[ti][j])
+            d = problem.tspecs[ti].dim
+            Hk, gk = H[o:o + d, o:o + d], g[o:o + d]
+            prior = self._prior_from(Hk, gk) if finite else None
+            if prior is None:
+                self.notes.append(f"object {k}: the views before frame {start} could not be "
+                                  "summarised (non-finite); they are dropped")
+            else:
+                self._prior[k] = LandmarkPriorFactor(L(k), self.landmarks[k], prior[0],
+                                                     sqrt_info=prior[1])
+            self._pending[k] = [v for v in self._pending.get(k, []) if v[0] >= start]
+            self._pending_meas[k] = [v for v in self._pending_meas.get(k, []) if v[0] >= start]
+
+    @staticmethod
+    def _prior_from(H, g):
+        """(offset o = −H⁺g, W with WᵀW = H) of the quadratic ½δᵀHδ + gᵀδ, or None."""
+        H = 0.5 * (H + H.T)
+        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+            return None
+        w, V = np.linalg.eigh(H)
+        keep = w > 1e-10 * max(w[-1], 1e-300)
+        w = np.where(keep, w, 0.0)
+        inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+        return -(V * inv) @ (V.T @ g), np.sqrt(w)[:, None] * V.T
+
+    # --- output ----------------------------------------------------------------------------
+    def current_map(self, covariances: bool = False) -> OnlineMap:
+        """The map now (``OnlineMap``); ``covariances``: the objects' marginal covariances in
+        the last problem solved (``solver.marginal_covariances``, one factorisation)."""
+        rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._est.array]) if len(self) else np.zeros((0, 7))
+        poses = np.c_[np.asarray(self._timestamps), rows]
+        objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
+        cov = {}
+        if covariances and self._last_graph is not None:
+            from ..solver import marginal_covariances
+
+            keys = [key for key in self._last_values if key.chr == "l"]
+            cov = {key.index: c for key, c in marginal_covariances(
+                self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
+        return OnlineMap(objects, poses, cov)
+
+    def sequence(self) -> Sequence:
+        """The frames so far as a ``Sequence`` (input poses, detections, measured ellipsoids)."""
+        rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._input.array]) if len(self) else np.zeros((0, 7))
+        return Sequence(self.name, self._ctx0.camera, np.asarray(self._timestamps), rows,
+                        list(self._detections), priors=self._ctx0.priors,
+                        ellipsoids=list(self._ellipsoids) if self._ellipsoids else None)
+
+    def finish(self, final_batch: bool = True, max_iterations: int = 100,
+               tolerance: float = 1e-6, progress=None):
+        """The ``MapResult`` of the frames so far (the mapper is not changed): after one batch
+        optimisation of every frame and view from the online state (``final_batch``; LM with
+        ``max_iterations`` and relative ``tolerance``), or of the online estimates as they are
+        (the uncertainty then still comes from the whole graph)."""
+        say = progress or (lambda message: None)
+        if not len(self):
+            raise ValueError("no frames were added")
+        seq = self.sequence()
+        ctx = SequenceContext.of(seq)
+        landmarks = dict(self.landmarks)
+        tracks = [self._track(k) for k in sorted(landmarks)]
+        rare = {}
+        if self._tracker is not None:  # the batch run's rule for spurious automatic tracks
+            rare = _drop_rarely_detected(self._context(), tracks,
+                                         {k: as_ellipsoid(v) for k, v in landmarks.items()})
+            for k in rare:
+                landmarks.pop(k)
+            tracks = [tr for tr in tracks if tr.id in landmarks]
+        measured = {k: self._measured[k] for k in landmarks if k in self._measured}
+        graph = build_graph(ctx, tracks, landmarks, self.method, self.method.box_model,
+                            self._user_sigmas, measured)
+        values = Values()
+        for i in range(len(self)):
+            values[X(i)] = self._est[i]
+        for k, lm in landmarks.items():
+            values[L(k)] = lm
+        optimizer = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance)
+        say(f"{'final batch optimisation' if final_batch else 'online map'}: {len(values)} "
+            f"variables, {len(graph)} factors")
+        if final_batch:
+            res = optimizer.optimize(graph, values)
+            values = res.values
+        else:
+            res = _Unchanged(graph, values)
+        failed = {**self.failed, **rare}
+        need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
+        short = 0
+        for k in self._views:
+            if k in self.landmarks:
+                continue
+            if len(self._views[k]) < need and self._tracker is not None:
+                short += 1  # a tentative track, discarded as the batch association does
+            elif len(self._views[k]) < self.min_views:
+                failed.setdefault(k, f"{len(self._views[k])} views, needs at least {self.min_views}")
+            else:
+                failed.setdefault(k, "not initialised: the boxes do not give an ellipsoid in front of the cameras")
+        labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
+        notes = list(self.notes) + ([f"{short} tentative tracks with fewer than {need} detections "
+                                     "discarded"] if short else [])
+        record = {"mode": "online-" + self.associate}
+        return map_result(self.method, graph, values, labels, dict(self._initial), seq.timestamps,
+                          failed, notes, record, res.iterations, res.initial_cost, res)
+
+
+class _Unchanged:
+    """The figures of a result without an optimisation (the cost at the given values)."""
+
+    def __init__(self, graph, values):
+        c = Problem(graph, values).cost()
+        self.initial_cost = self.final_cost = c
+        self.iterations, self.converged, self.reason = 0, True, "online estimates (no final batch)"
+
+
+def run_online(seq: Sequence, method: str | Method = "multi-spd", *, associate: str | None = None,
+               sigmas: dict | None = None, window: int = 30, every: int = 10,
+               max_iterations: int = 5, min_views: int = 3, final_batch: bool = True,
+               final_iterations: int = 100, final_tolerance: float = 1e-6, progress=None,
+               **overrides):
+    """Replay a sequence through an ``OnlineMapper``, frame by frame in timestamp order:
+    (``MapResult``, the ``FrameRecord`` of every frame). ``associate`` as
+    ``run_sequence``'s (None: by instance id when every detection has one, else auto);
+    ``final_batch``, ``final_iterations``, ``final_tolerance``: ``OnlineMapper.finish``'s.
+    ``progress(message)`` every 100 frames."""
+    say = progress or (lambda message: None)
+    if associate is None:
+        has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
+        associate = "instances" if has_ids or not seq.detections else "auto"
+    mapper = OnlineMapper(seq.camera, seq.priors, method, associate=associate, window=window,
+                          every=every, max_iterations=max_iterations, min_views=min_views,
+                          sigmas=sigmas, name=seq.name, **overrides)
+    by_frame: dict = {}
+    for d in seq.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    meas: dict = {}
+    for m in seq.ellipsoids or ():
+        meas.setdefault(m.frame, []).append(m)
+    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
+    for n, i in enumerate(order):
+        mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
+                         ellipsoids=meas.get(int(i), ()))
+        if (n + 1) % 100 == 0 or n + 1 == len(order):
+            r = mapper.records[-1]
+            say(f"online: frame {n + 1} of {len(order)}, {r.objects} objects")
+    result = mapper.finish(final_batch=final_batch, max_iterations=final_iterations,
+                           tolerance=final_tolerance, progress=say)
+    return result, list(mapper.records)

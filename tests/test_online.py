@@ -1,0 +1,225 @@
+"""Online mapping (``mapping.OnlineMapper``, ``spdslam run --online``): the incremental map
+against the batch one on a small demo room, the fixed-lag problem and its marginal priors,
+and the input it refuses (frames out of order, duplicate timestamps, …)."""
+
+from __future__ import annotations
+
+import csv
+
+import jaxlie
+import numpy as np
+import pytest
+from conftest import assert_cli_error, assert_cli_ok, cli_invoke
+
+from spdslam.evaluation import evaluate_objects
+from spdslam.factors import LandmarkPriorFactor
+from spdslam.geometry import Ellipsoid, EllipsoidFull, manifold
+from spdslam.io import write_sequence
+from spdslam.mapping import OnlineMapper, run_online, run_sequence
+from spdslam.mapping._online import OnlineMapper as _Mapper
+from spdslam.solver import L, NonlinearFactorGraph, Values
+from spdslam.synthetic import make_room_sequence
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_room_sequence(seed=1, frames=90, objects=5)
+
+
+#: LM run to convergence (the optimum is in a flat valley: at LM's default relative
+#: tolerance, 1e-6 per step, runs from different starts stop up to ~1e-4 apart in cost)
+TIGHT = dict(tolerance=1e-10, max_iterations=300)
+
+
+@pytest.fixture(scope="module")
+def batch(room):
+    return run_sequence(room, "multi-spd", associate="instances", **TIGHT)
+
+
+@pytest.fixture(scope="module")
+def replay(room):
+    """The room replayed frame by frame: (mapper, online map, map after a final batch)."""
+    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances")
+    for i in range(len(room)):
+        m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+    return m, m.finish(final_batch=False), m.finish(final_batch=True, **TIGHT)
+
+
+def _mean_iou(result, seq, by_id: bool = True) -> float:
+    return evaluate_objects(result.objects, seq.objects_gt, by_id=by_id)[1]["mean_iou"]
+
+
+def test_a_final_batch_from_the_online_state_gives_the_batch_optimum(room, batch, replay):
+    _, online, final = replay
+    assert [o.id for o in final.objects] == [o.id for o in batch.objects]
+    assert final.final_cost == pytest.approx(batch.final_cost, rel=1e-6)
+    # the online map alone is already near it, and as good as the batch map
+    assert online.final_cost >= final.final_cost * (1 - 1e-9)
+    assert abs(_mean_iou(online, room) - _mean_iou(batch, room)) <= 0.02
+    assert _mean_iou(batch, room) > 0.5
+
+
+def test_every_frame_is_recorded_and_the_problem_stays_bounded(room, replay):
+    m, _, _ = replay
+    assert [r.frame for r in m.records] == list(range(len(room)))
+    solved = [r for r in m.records if r.factors]
+    assert len(solved) >= len(room) // m.every
+    # free variables: the window's poses and the objects with views in it, never the past
+    assert max(r.variables for r in solved) <= m.window + len(m.landmarks)
+    assert all(np.isfinite(r.seconds) and r.seconds >= 0 for r in m.records)
+    assert m.records[-1].objects == len(room.objects_gt)
+
+
+def test_views_that_left_the_window_become_priors(room, replay):
+    m, _, _ = replay
+    assert set(m._prior) == set(m.landmarks)
+    last = max(r.frame for r in m.records if r.factors)  # the last update's window began at
+    start = last + 1 - m.window
+    pending = [f for k in m._pending for f, _ in m._pending[k]]
+    assert pending and min(pending) >= start
+
+
+def test_the_map_can_be_read_after_any_frame(room):
+    m = OnlineMapper(room.camera, room.priors, associate="instances")
+    for i in range(25):
+        m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+        now = m.current_map()
+        assert now.poses_tum.shape == (i + 1, 8)
+        assert np.all(np.isfinite(now.poses_tum))
+    now = m.current_map(covariances=True)
+    assert now.objects and set(now.covariances) <= set(now.objects)
+    for k, C in now.covariances.items():
+        assert C.shape == (9, 9) and np.all(np.isfinite(C))
+        assert np.all(np.linalg.eigvalsh(C) > 0)
+        label, e = now.objects[k]
+        assert isinstance(e, Ellipsoid) and label
+
+
+def test_frames_out_of_order_and_duplicate_timestamps_are_refused(room):
+    m = OnlineMapper(room.camera, room.priors, associate="instances")
+    m.add_frame(1.0, room.poses_tum[0], detections=room.detections_at(0))
+    with pytest.raises(ValueError, match=r"frame 1: timestamp 1\.000000 duplicates the last frame's"):
+        m.add_frame(1.0, room.poses_tum[1])
+    with pytest.raises(ValueError, match=r"frame 1: timestamp 0\.500000 is before the last frame's"):
+        m.add_frame(0.5, room.poses_tum[1])
+    with pytest.raises(ValueError, match="must be finite"):
+        m.add_frame(float("nan"), room.poses_tum[1])
+    assert len(m) == 1 and len(m.records) == 1  # nothing was added
+    m.add_frame(1.1, room.poses_tum[1])  # a later frame is taken
+
+
+def test_frames_without_detections_and_odometry_input(room):
+    """Frames with no detection keep the trajectory going; odometry steps give the same
+    poses as the absolute ones."""
+    a = OnlineMapper(room.camera, room.priors, associate="instances")
+    b = OnlineMapper(room.camera, room.priors, associate="instances")
+    T = [jaxlie.SE3(np.asarray(jaxlie.SE3.from_rotation_and_translation(
+        jaxlie.SO3(np.roll(r[3:7], 1)), r[:3]).wxyz_xyz)) for r in room.poses_tum[:12]]
+    for i in range(12):
+        a.add_frame(room.timestamps[i], room.poses_tum[i])
+        if i == 0:
+            b.add_frame(room.timestamps[i], T[0])
+        else:
+            b.add_frame(room.timestamps[i], odometry=T[i - 1].inverse() @ T[i])
+    assert len(a.records) == 12 and a.records[-1].objects == 0
+    np.testing.assert_allclose(a.current_map().poses_tum, b.current_map().poses_tum, atol=1e-9)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda m, r: m.add_frame(0.0, odometry=r.poses_tum[0]), "the first frame needs a pose"),
+    (lambda m, r: m.add_frame(0.0, r.poses_tum[0], odometry=r.poses_tum[0]), "not both"),
+    (lambda m, r: m.add_frame(0.0), "not neither"),
+    (lambda m, r: m.add_frame(0.0, r.poses_tum[0], detections=[("chair", [1, 2, 30, 40])]),
+     "1 detections without an instance id"),
+    (lambda m, r: m.add_frame(0.0, r.poses_tum[0], detections=["chair"]), "a detection must be"),
+    (lambda m, r: m.add_frame(0.0, np.full(7, np.nan)), "the pose is not finite"),
+])
+def test_bad_frames_are_refused_with_a_message(room, call, message):
+    m = OnlineMapper(room.camera, room.priors, associate="instances")
+    with pytest.raises(ValueError, match=message):
+        call(m, room)
+    assert len(m) == 0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"parameterization": "full"}, "SPD or RTS landmarks"),
+    ({"box_model": "semi-then-inverse"}, "one box model"),
+    ({"associate": "ids"}, "instances or auto"),
+    ({"window": 1}, "window must be an integer >= 2"),
+    ({"every": 0}, "every must be an integer >= 1"),
+    ({"method": "nope"}, "unknown method"),
+])
+def test_bad_settings_are_refused(room, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        OnlineMapper(room.camera, room.priors, **kwargs)
+
+
+def test_automatic_association_online_finds_the_objects(room):
+    """Automatic association, one frame at a time, on the room's boxes (ids ignored)."""
+    result, records = run_online(room, associate="auto")
+    assert len(records) == len(room)
+    assert result.association["mode"] == "online-auto"
+    assert len(result.objects) == len(room.objects_gt)
+    assert _mean_iou(result, room, by_id=False) > 0.5  # automatic ids are not instance ids
+
+
+def test_marginal_prior_is_the_quadratic_it_replaces(rng):
+    """½‖W((x ⊟ x₀) − o)‖² − ½‖W o‖² = ½δᵀHδ + gᵀδ for the prior of (H, g), H only
+    positive semi-definite (a direction the views leave free)."""
+    A = rng.normal(size=(9, 7))
+    H = A @ A.T
+    g = H @ rng.normal(size=9)  # in the range of H, as a sum of JᵀJ and Jᵀr is
+    offset, W = _Mapper._prior_from(H, g)
+    np.testing.assert_allclose(W.T @ W, H, atol=1e-9)
+    x0 = Ellipsoid.from_axes(np.eye(3), [0.5, -0.2, 1.0], [0.4, 0.3, 0.2])
+    f = LandmarkPriorFactor(L(0), x0, offset, sqrt_info=W)
+    const = 0.5 * float(np.sum((W @ offset) ** 2))
+    for _ in range(3):
+        d = 1e-2 * rng.normal(size=9)
+        x = manifold.retract(x0, d)
+        delta = np.asarray(manifold.local(x0, x))
+        assert f.error(x) - const == pytest.approx(0.5 * delta @ H @ delta + g @ delta, rel=1e-9, abs=1e-12)
+
+
+def test_landmark_prior_factor_takes_spd_and_rts_landmarks_only():
+    e = Ellipsoid.from_axes(np.eye(3), [0.0, 0.0, 1.0], [0.3, 0.2, 0.1])
+    with pytest.raises(ValueError, match="9 tangent coordinates"):
+        LandmarkPriorFactor(L(0), EllipsoidFull.from_ellipsoid(e))
+    with pytest.raises(TypeError, match="must be a landmark"):
+        LandmarkPriorFactor(L(0), np.eye(3))
+    with pytest.raises(ValueError, match="offset must be 9"):
+        LandmarkPriorFactor(L(0), e, np.zeros(3))
+    f = LandmarkPriorFactor(L(0), e, sigma=0.1)
+    graph, values = NonlinearFactorGraph([f]), Values({L(0): manifold.retract(e, 0.05 * np.ones(9))})
+    assert graph.error(values) > 0 and f.error(e) == pytest.approx(0.0, abs=1e-20)
+
+
+def test_run_online_cli_writes_the_batch_outputs_and_the_latency(tmp_path, room):
+    seq_dir = tmp_path / "room"
+    write_sequence(room, seq_dir)
+    out = tmp_path / "out"
+    r = cli_invoke("run", str(seq_dir), "--online", "--out", str(out), "--no-overlay")
+    assert_cli_ok(r)
+    assert "online: 90 frames, time per frame median" in r.stdout
+    for name in ("map.json", "trajectory.txt", "map_top.png", "report.md", "metrics.json",
+                 "latency.csv", "latency.png"):
+        assert (out / name).is_file(), name
+    rows = list(csv.DictReader((out / "latency.csv").open()))
+    assert [int(x["frame"]) for x in rows] == list(range(len(room)))
+    assert set(rows[0]) == {"frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations"}
+    assert all(float(x["seconds"]) >= 0 for x in rows)
+    assert int(rows[-1]["objects"]) == len(room.objects_gt)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--keyframes", "motion"], "--online: every frame is used; --keyframes must be all"),
+    (["--support-planes", "initial"], "--online: support planes come from the priors only"),
+    (["--box-model", "semi-then-inverse"], "one box model"),
+])
+def test_run_online_cli_refuses_what_it_cannot_do(tmp_path, room, args, message):
+    seq_dir = tmp_path / "room"
+    write_sequence(room, seq_dir)
+    out = tmp_path / "out"
+    r = cli_invoke("run", str(seq_dir), "--online", "--out", str(out), *args)
+    assert_cli_error(r, message)
+    assert not out.exists()
