@@ -103,6 +103,7 @@ def demo_rooms(args) -> dict:
     difference of the final batch optimisation's cost from the batch run's, and the mean
     IoU of the batch map, the online map and the map after the final batch."""
     from spdslam.mapping import run_online, run_sequence
+    from spdslam.solver import clear_caches
     from spdslam.synthetic import make_room_sequence
 
     out = {}
@@ -118,6 +119,7 @@ def demo_rooms(args) -> dict:
                  iou_batch=mean_iou(batch, seq), iou_online=mean_iou(online, seq),
                  iou_final=mean_iou(final, seq))
         out[f"seed_{seed}"] = r
+        clear_caches()
         print(f"demo room {seed}: final batch cost {r['final_cost']:.8g} against the batch run's "
               f"{r['batch_cost']:.8g} (relative difference {r['cost_rel_diff']:.2g}); mean IoU batch "
               f"{r['iou_batch']:.3f}, online {r['iou_online']:.3f}, after the final batch "
@@ -179,19 +181,30 @@ def main() -> int:
     ap.add_argument("--seeds", type=lambda t: [int(x) for x in t.split(",") if x.strip()],
                     default=[0, 1, 2, 3, 4], help="Demo rooms ('' for none).")
     args = ap.parse_args()
+    from spdslam.solver import clear_caches
+
     out = {}
+
+    def done(name, figures):
+        """Keep a part's figures (written at once), then drop the compiled programs: one
+        process holding every part's executables reaches the kernel's map limit (seen as
+        "LLVM ERROR: Unable to allocate section memory")."""
+        out[name] = figures
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+        clear_caches()
+
     if not args.skip_fr2:
         if FR2.is_dir():
-            out["fr2_desk"] = fr2(args)
+            done("fr2_desk", fr2(args))
         else:
             print(f"fr2_desk: {FR2} not found, skipped")
     if args.seeds:
-        out["demo_rooms"] = demo_rooms(args)
+        done("demo_rooms", demo_rooms(args))
     if not args.skip_room:
-        out["room"] = room(args)
+        done("room", room(args))
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
         print(f"wrote {args.out}")
     return 0
 

@@ -27,7 +27,9 @@ frame is bounded by the window, not by the frames seen (docs/online.md measures 
 
 ``finish(final_batch=True)`` runs one batch optimisation of the whole graph (every frame and
 view, ``build_graph``) from the online state; ``final_batch=False`` reports the online
-estimates as they are. Both give a ``MapResult``, as ``run_sequence`` does.
+estimates as they are. Both give a ``MapResult``, as ``run_sequence`` does; with automatic
+association, objects detected in too few of the frames that see them are reported, not
+mapped (the batch run's rule, ``MIN_DETECTION_RATE``).
 """
 
 from __future__ import annotations
