@@ -133,6 +133,9 @@ def test_frames_without_detections_and_odometry_input(room):
      "1 detections without an instance id"),
     (lambda m, r: m.add_frame(0.0, r.poses_tum[0], detections=["chair"]), "a detection must be"),
     (lambda m, r: m.add_frame(0.0, np.full(7, np.nan)), "the pose is not finite"),
+    (lambda m, r: m.add_frame(0.0, r.poses_tum[0], detections=[("chair", [5, 2, 3, 40], 1.0, 0)]),
+     r"frame 0: detection 0 has an invalid box \[5\.0, 2\.0, 3\.0, 40\.0\]"),
+    (lambda m, r: m.add_frame(0.0, r.poses_tum[0], ellipsoids=["cup"]), "must be EllipsoidDetection"),
 ])
 def test_bad_frames_are_refused_with_a_message(room, call, message):
     m = OnlineMapper(room.camera, room.priors, associate="instances")

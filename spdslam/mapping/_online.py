@@ -238,10 +238,16 @@ class OnlineMapper:
             raise ValueError(f"frame {len(self)}: the pose is not finite")
         f = len(self)
         dets = [_detection(d, f, t) for d in detections]
-        meas = [dataclasses.replace(m, frame=f, timestamp=t) for m in ellipsoids]
-        for m in meas:
+        for i, d in enumerate(dets):
+            b = d.box
+            if not (np.all(np.isfinite(b)) and b[2] > b[0] and b[3] > b[1]):
+                raise ValueError(f"frame {f}: detection {i} has an invalid box {b.tolist()} "
+                                 "(expected finite x1 < x2, y1 < y2)")
+        ellipsoids = list(ellipsoids)
+        for m in ellipsoids:
             if not isinstance(m, EllipsoidDetection):
                 raise ValueError(f"frame {f}: measured ellipsoids must be EllipsoidDetection, got {m!r}")
+        meas = [dataclasses.replace(m, frame=f, timestamp=t) for m in ellipsoids]
         if self.associate == "instances":
             missing = [d for d in dets if d.instance is None]
             if missing:
