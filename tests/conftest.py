@@ -403,3 +403,18 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("slow") is not None and item.get_closest_marker("timeout") is None:
             item.add_marker(pytest.mark.timeout(0))
+
+
+#: ``-n auto`` (pyproject.toml) starts one test process per core, but no more than this: each
+#: holds its own JAX runtime and compiled programs (a few GB on the largest tests).
+MAX_TEST_PROCESSES = 4
+
+
+def pytest_xdist_auto_num_workers(config):
+    """The process count of ``-n auto``: the cores this process may use, at most
+    ``MAX_TEST_PROCESSES``."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_TEST_PROCESSES))
