@@ -23,7 +23,7 @@ ALLOWED = {
     "frontend": {"geometry", "io"},
     "mapping": {"geometry", "factors", "solver", "io", "frontend"},
     "evaluation": {"geometry", "io"},
-    "experiments": {"geometry", "factors", "solver", "synthetic", "evaluation"},
+    "experiments": {"geometry", "factors", "solver", "io", "synthetic", "mapping", "evaluation"},
     "cli": {"geometry", "factors", "solver", "io", "synthetic", "frontend", "mapping",
             "evaluation", "experiments"},
 }

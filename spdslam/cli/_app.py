@@ -67,6 +67,34 @@ def fail(message: str, code: int = 2) -> NoReturn:
     raise typer.Exit(code)
 
 
+#: Help of the engine options shared by simulate, compare and batch.
+RAY_HELP = ("Run the tasks on Ray (the ray extra), by default on a local Ray instance with "
+            "--workers CPUs. Results are those of the run without --ray.")
+RAY_ADDRESS_HELP = ("Run the tasks on the Ray cluster at this address (auto, ray://HOST:10001, "
+                    "...); implies --ray.")
+WORKERS_HELP = "CPUs of the local Ray instance (--ray without --ray-address; default: all cores)."
+RETRIES_HELP = "Attempts more for a task that fails or whose worker dies (then it is reported)."
+
+
+def open_engine(ray: bool, address: str | None, workers: int | None, retries: int):
+    """The engine the options ask for (``experiments.make_engine``: in this process without
+    --ray), or a one-line error."""
+    from ..experiments import make_engine
+
+    if address is not None and not address.strip():
+        fail("--ray-address: expected an address (auto, ray://HOST:10001, ...), got an empty string")
+    choice = address if address is not None else ("local" if ray else None)
+    if workers is not None and choice != "local":
+        fail("--workers: sets the CPUs of a local Ray instance: expected --ray without --ray-address")
+    try:
+        return make_engine(choice, workers, retries)
+    except ImportError as e:
+        fail(str(e))
+    except Exception as e:  # noqa: BLE001 - Ray's errors when a cluster cannot be reached
+        where = "a local Ray instance" if choice == "local" else f"the Ray cluster at {choice}"
+        fail(f"--ray: cannot start or reach {where}: {type(e).__name__}: {e}")
+
+
 def check_output(out: Path, inputs=(), option: str = "--out") -> None:
     """Refuse, before anything is read or written, an output folder that is one of the
     ``inputs``, lies inside one or contains one (``--overwrite`` would delete it), or that

@@ -24,11 +24,11 @@ from ..mapping import (
     SUPPORT_PLANES,
     parse_keyframes,
 )
-from ..mapping._methods import ZERO_ALLOWED
-from ._app import app, check_output, console, err_console, fail
+from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
+                   console, err_console, fail, open_engine)
 from ._simulate import _split
 
-__all__ = ["run", "evaluate", "import_", "compare", "demo", "view", "DEMO_MARKER"]
+__all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "DEMO_MARKER"]
 
 _SIGMA_HELP = (
     "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); NAME one of "
@@ -53,6 +53,8 @@ def _load_sequence(path: Path):
 
 
 def _parse_sigmas(items) -> dict:
+    from ..mapping import check_sigma
+
     out = {}
     for item in items or []:
         name, sep, value = item.partition("=")
@@ -62,9 +64,10 @@ def _parse_sigmas(items) -> dict:
             v = float(value)
         except ValueError:
             fail(f"--sigma: {value!r} is not a number (in {item!r})")
-        if not (math.isfinite(v) and (v > 0 or (v == 0 and name.strip() in ZERO_ALLOWED))):
+        try:
+            out[name.strip()] = check_sigma(name.strip(), v)
+        except ValueError:
             fail(f"--sigma: expected a finite positive value, got {item!r}")
-        out[name.strip()] = v
     return out
 
 
@@ -89,30 +92,13 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def _parse_robust(items, robust_k):
-    """``--robust`` values: KERNEL (box and measured-ellipsoid factors, threshold
-    ``--robust-k``) or TYPE=KERNEL[:K] (one factor type) -> Method overrides."""
-    groups = robust_groups()
-    out, by_type = {}, []
-    for item in items or []:
-        ftype, sep, rest = item.partition("=")
-        if not sep:
-            ftype, rest = None, item
-        name, colon, k = rest.partition(":")
-        try:
-            k = float(k) if colon else (robust_k if robust_k is not None else 1.0)
-        except ValueError:
-            fail(f"--robust: {k!r} is not a number (in {item!r})")
-        if (ftype is not None and ftype not in groups) or name not in ROBUST_KERNELS \
-                or not (math.isfinite(k) and k > 0):
-            fail(f"--robust: expected KERNEL or TYPE=KERNEL[:K] with KERNEL one of {', '.join(ROBUST_KERNELS)}, "
-                 f"TYPE one of {', '.join(groups)} and K > 0, got {item!r}")
-        if ftype is None:
-            out["robust"], out["robust_k"] = name, k
-        else:
-            by_type.append((ftype, name, k))
-    if by_type:
-        out["robust_by_type"] = tuple(by_type)
-    return out
+    """``--robust`` values → Method overrides (``mapping.parse_robust``), or a one-line error."""
+    from ..mapping import parse_robust
+
+    try:
+        return parse_robust(items, robust_k)
+    except ValueError as e:
+        fail(f"--robust: {e}")
 
 
 def _progress(message: str) -> None:
@@ -120,49 +106,33 @@ def _progress(message: str) -> None:
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
 
 
-def _run_online(seq, method, sigmas, max_iterations, associate, online: dict, **overrides):
-    """``mapping.run_online`` with the console's progress: (result, a writer of
-    latency.csv and latency.png for ``write_run``), with the latency figures printed."""
+def _print_latency(seq, records, rate) -> None:
     import numpy as np
 
-    from ..evaluation import latency_csv, plot_latency
-    from ..mapping import run_online
-
-    result, records = run_online(seq, method, associate=associate, sigmas=sigmas,
-                                 final_iterations=max_iterations, progress=_progress,
-                                 **online, **overrides)
     ms = 1e3 * np.array([r.seconds for r in records])
-    dt = np.diff(np.asarray(seq.timestamps, float))
-    rate = 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else None
     console.print(f"online: {len(records)} frames, time per frame median {np.median(ms):.3g} ms, "
                   f"99th percentile {np.percentile(ms, 99):.3g} ms, max {ms.max():.3g} ms"
                   + (f" (frame period {1e3 / rate:.3g} ms)" if rate else ""))
-
-    def extra(folder):
-        (folder / "latency.csv").write_text(latency_csv(records), encoding="utf-8")
-        plot_latency(folder / "latency.png", records, rate=rate, title=f"online mapping of {seq.name}")
-
-    return result, extra
 
 
 def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
                    keyframes="all", support_planes="priors", source=None, online=None,
                    **overrides):
     from ..evaluation import write_run
-    from ..mapping import run_sequence
+    from ..experiments import latency_writer, map_sequence
 
     _check_out(out, overwrite)
     extra = None
     try:
-        if online is None:
-            result = run_sequence(seq, method, sigmas=sigmas, max_iterations=max_iterations,
-                                  associate=associate, keyframes=keyframes,
-                                  support_planes=support_planes, progress=_progress, **overrides)
-        else:
-            result, extra = _run_online(seq, method, sigmas, max_iterations, associate, online,
-                                        **overrides)
+        result, records = map_sequence(seq, method, online=online, max_iterations=max_iterations,
+                                       sigma=sigmas, associate=associate, keyframes=keyframes,
+                                       support_planes=support_planes, progress=_progress,
+                                       **overrides)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
+    if records is not None:
+        extra, rate = latency_writer(seq, records)
+        _print_latency(seq, records, rate)
     try:
         metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source,
                             extra=extra)
@@ -170,6 +140,13 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
         fail(f"--out: {e}")
     except OSError as e:  # the folder became unwritable, the disk is full, …
         fail(f"--out: cannot write {out}: {e.strerror or e}")
+    _print_result(result)
+    _print_metrics(metrics)
+    console.print(f"wrote {out}")
+    return result, metrics
+
+
+def _print_result(result) -> None:
     console.print(
         f"{result.method.name}: {len(result.objects)} objects, {result.iterations} iterations "
         f"({result.reason}), cost {result.initial_cost:.6g} -> {result.final_cost:.6g}"
@@ -181,9 +158,6 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
         scores = (f": precision {a['precision']:.3f}, recall {a['recall']:.3f} against the instance ids"
                   if "precision" in a else "")
         console.print(f"automatic data association, {len(result.objects) + len(result.failed)} tracks{scores}")
-    _print_metrics(metrics)
-    console.print(f"wrote {out}")
-    return result, metrics
 
 
 def _check_recording(path: Path, option: str) -> None:
@@ -254,8 +228,6 @@ def run(
         fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
     sigmas = _parse_sigmas(sigma)
     robust_overrides = _parse_robust(robust, robust_k)
-    if robust_k is not None and "robust" not in robust_overrides:
-        robust_overrides["robust_k"] = robust_k
     if associate not in (None, *ASSOCIATIONS):
         fail(f"--associate: expected {' or '.join(ASSOCIATIONS)}, got {associate!r}")
     if object_shape not in (None, *OBJECT_SHAPE_CHOICES):
@@ -274,7 +246,7 @@ def run(
             fail("--online: every frame is used; --keyframes must be all")
         if support_planes != "priors":
             fail("--online: support planes come from the priors only; --support-planes must be priors")
-        online_settings = {"window": window, "every": every, "max_iterations": online_iterations,
+        online_settings = {"window": window, "every": every, "iterations": online_iterations,
                            "final_batch": final_batch}
     check_output(out, [sequence])
     if rerun is not None:
@@ -405,15 +377,64 @@ def import_(
     console.print(f"imported {len(seq)} poses, {len(seq.detections)} detections into {dest}")
 
 
+def _open_engine_options(ray, ray_address, workers, retries):
+    return open_engine(ray or ray_address is not None, ray_address, workers, retries)
+
+
+def _say_job(report, done: int, total: int) -> None:
+    """One line per finished job: stdout when done, stderr when failed."""
+    from ..evaluation import shown
+
+    j = report.job
+    if report.status == "done":
+        s = report.metrics.get("summary") or {}
+        iou = f", mean IoU {shown(s['mean_iou'])}" if s else ""
+        console.print(f"[{done}/{total}] {j.name}: {report.objects} objects{iou} "
+                      f"({report.seconds:.1f} s{', ' + report.where if report.where != 'local' else ''})",
+                      highlight=False, markup=False)
+    else:
+        tries = f", {report.attempts} attempts" if report.attempts > 1 else ""
+        # plain, so that the error stays on one line whatever the terminal's width
+        typer.echo(f"[{done}/{total}] {j.name} failed ({report.stage}{tries}): {report.error}", err=True)
+
+
+def _run_jobs(jobs, out, ray, ray_address, workers, retries, overwrite):
+    """The jobs run (``experiments.run_batch``) with a line per job, batch.csv and
+    batch.json written: the reports."""
+    from ..experiments import run_batch, write_batch_report
+
+    for job in jobs:
+        _check_out(out / job.name, overwrite)
+    engine = _open_engine_options(ray, ray_address, workers, retries)
+    console.print(f"{len(jobs)} jobs on {engine.name}"
+                  + (f" ({engine.workers} CPUs)" if engine.name == "ray" else ""))
+    try:
+        reports = run_batch(jobs, out, engine, overwrite=overwrite, progress=_say_job)
+    finally:
+        engine.close()
+    try:
+        write_batch_report(out, reports, {"name": engine.name, "workers": engine.workers,
+                                          "retries": retries})
+    except OSError as e:
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    return reports
+
+
 @app.command()
 def compare(
     sequence: Path = typer.Argument(..., help="Sequence folder with object ground truth."),
     out: Path = typer.Option(Path("compare"), "--out", help="Output folder (one sub-folder per method)."),
     methods: str = typer.Option("quadric-slam,multi-rts,multi-spd", help="Methods to run."),
     overwrite: bool = typer.Option(False, help="Replace non-empty outputs."),
+    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray_address: str | None = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
+    workers: int | None = typer.Option(None, min=1, help=WORKERS_HELP),
+    retries: int = typer.Option(1, min=0, help=RETRIES_HELP),
 ) -> None:
-    """Run several methods on one sequence and write a Table-III-like OUT/table.md."""
+    """Run several methods on one sequence and write a Table-III-like OUT/table.md (and
+    OUT/batch.csv, a line per method run)."""
     from ..evaluation import FRONT_END_NAMES, table_iii
+    from ..experiments import Job
 
     names = _split("methods", methods, tuple(METHODS))
     check_output(out, [sequence])
@@ -421,18 +442,50 @@ def compare(
     if not seq.objects_gt:
         fail(f"{sequence}: expected object ground truth (objects_gt.txt) to compare methods, got none")
     _check_out(out, overwrite)
+    jobs = [Job(name, sequence, name, {"overlay": False}) for name in names]
+    reports = _run_jobs(jobs, out, ray, ray_address, workers, retries, overwrite)
+    failed = [r for r in reports if r.status != "done"]
+    if failed:
+        fail(f"{len(failed)} of {len(reports)} methods failed (first: {failed[0].job.name}: "
+             f"{failed[0].error}); see {out / 'batch.csv'}", code=1)
     rows, fronts = [], {}
-    for name in names:
-        result, metrics = _run_and_write(seq, name, out / name, overwrite, False, {}, 100,
-                                         source=sequence)
-        init = result.method.initialization
+    for r in reports:
+        init = METHODS[r.job.method].initialization
         if init not in fronts:
-            fronts[init] = metrics["front_end"]["summary"]
-        rows.append(("back end", name, metrics["summary"]))
+            fronts[init] = r.metrics["front_end"]["summary"]
+        rows.append(("back end", r.job.method, r.metrics["summary"]))
     front_rows = [("front end", FRONT_END_NAMES[k], v) for k, v in fronts.items()]
     table = f"# {seq.name}\n\n" + table_iii(front_rows + rows)
     (out / "table.md").write_text(table, encoding="utf-8")
     console.print(table)
+
+
+@app.command()
+def batch(
+    manifest: Path = typer.Argument(..., help="The manifest (YAML): jobs of sequence, method and settings (docs/scaling.md)."),
+    out: Path = typer.Option(Path("batch"), "--out", help="Output folder: a sub-folder per job, batch.csv and batch.json."),
+    overwrite: bool = typer.Option(False, help="Replace non-empty job folders."),
+    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray_address: str | None = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
+    workers: int | None = typer.Option(None, min=1, help=WORKERS_HELP),
+    retries: int = typer.Option(1, min=0, help=RETRIES_HELP),
+) -> None:
+    """Run many (sequence, method, settings) jobs of a manifest, each written to OUT/NAME as
+    spdslam run writes it; OUT/batch.csv and OUT/batch.json say how each ended. A job that
+    fails is reported and the others finish; the exit status is then 1."""
+    from ..experiments import read_manifest
+    from ..io import SequenceFormatError
+
+    try:
+        jobs = read_manifest(manifest)
+    except SequenceFormatError as e:
+        fail(str(e))
+    check_output(out, [manifest] + [j.sequence for j in jobs])
+    reports = _run_jobs(jobs, out, ray, ray_address, workers, retries, overwrite)
+    failed = [r for r in reports if r.status != "done"]
+    console.print(f"{len(reports) - len(failed)} of {len(reports)} jobs done; wrote {out / 'batch.csv'}")
+    if failed:
+        raise typer.Exit(1)
 
 
 DEMO_MARKER = ".spdslam-demo"

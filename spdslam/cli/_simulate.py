@@ -6,7 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ._app import app, check_output, console, fail
+from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
+                   console, fail, open_engine)
 
 __all__ = ["simulate"]
 
@@ -76,10 +77,19 @@ def simulate(
         "auto", help="XLA optimisation of the batched solver: auto (by work: off for small "
         "grids), yes (faster loops for a longer compile; worth it with the compilation "
         "cache warm: docs/performance.md), no."),
+    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray_address: str | None = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
+    workers: int | None = typer.Option(None, min=1, help=WORKERS_HELP),
+    trials_per_task: int | None = typer.Option(
+        None, min=1, help="--ray: problems per task (default: each method's problems in twice "
+        "as many tasks as there are workers, at least 16 each)."),
+    retries: int = typer.Option(1, min=0, help=RETRIES_HELP),
 ) -> None:
     """Reproduce the paper's simulation study (Table II, Fig. 12) with batched solves.
 
-    Writes OUT/trials.csv, OUT/table.md, OUT/convergence.png and OUT/summary.json.
+    Writes OUT/trials.csv, OUT/table.md, OUT/convergence.png and OUT/summary.json. With
+    --ray the grid is solved in tasks (cells x trial batches of one method) on Ray, with the
+    same trials.csv (docs/scaling.md).
     """
     cfg_kwargs = dict(
         trials=trials,
@@ -102,6 +112,10 @@ def simulate(
     if out.exists() and not out.is_dir():
         fail(f"--out: {out} exists and is not a folder")
     check_output(out)
+    ray = ray or ray_address is not None
+    if trials_per_task is not None and not ray:
+        fail("--trials-per-task: the grid is split into tasks only with --ray")
+    engine = open_engine(ray, ray_address, workers, retries) if ray else None
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -112,6 +126,7 @@ def simulate(
     console.print(
         f"simulate: {len(cfg.cells)} cells x {cfg.trials} trials x {n_struct} methods "
         f"= {len(cfg.cells) * cfg.trials * n_struct} solves"
+        + ("" if engine is None else f" on Ray ({engine.workers} CPUs)")
     )
     with Progress(
         TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
@@ -120,9 +135,17 @@ def simulate(
         task = bar.add_task("scenes", total=n_struct + 1)
 
         def progress(stage: str, done: int, total: int) -> None:
-            bar.update(task, completed=done, description=f"solved {stage}" if done > 1 else stage)
+            bar.update(task, completed=done, total=total, description=f"solved {stage}" if done > 1 else stage)
 
-        result = run_study(cfg, progress)
+        if engine is None:
+            result = run_study(cfg, progress)
+        else:
+            try:
+                result = run_study(cfg, progress, engine=engine, trials_per_task=trials_per_task)
+            except RuntimeError as e:
+                fail(f"simulate: {e}")
+            finally:
+                engine.close()
     try:
         summary = write_outputs(result, out)
     except OSError as e:

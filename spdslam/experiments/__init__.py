@@ -1,9 +1,25 @@
 """Experiments: the paper's simulation study (Table II, Fig. 12) as batched solves, its
 summaries beside the paper's numbers, its files, and an independent reference solver
-(SciPy's trust-region least squares on the same trials and residuals). Imports ``geometry``, ``factors``,
-``solver``, ``synthetic`` and ``evaluation``.
+(SciPy's trust-region least squares on the same trials and residuals), and the engines
+that run independent tasks here or on a Ray cluster: sharded studies and batches of sequence
+runs (manifests). Imports ``geometry``, ``factors``,
+``solver``, ``synthetic``, ``io``, ``mapping`` and ``evaluation``.
 """
 
+from ._batch import BATCH_COLUMNS as BATCH_COLUMNS
+from ._batch import JOB_SETTINGS as JOB_SETTINGS
+from ._batch import Job as Job
+from ._batch import JobReport as JobReport
+from ._batch import latency_writer as latency_writer
+from ._batch import map_sequence as map_sequence
+from ._batch import read_manifest as read_manifest
+from ._batch import run_batch as run_batch
+from ._batch import write_batch_report as write_batch_report
+from ._engines import RAY_MISSING as RAY_MISSING
+from ._engines import LocalEngine as LocalEngine
+from ._engines import RayEngine as RayEngine
+from ._engines import TaskOutcome as TaskOutcome
+from ._engines import make_engine as make_engine
 from ._outputs import plot_convergence as plot_convergence
 from ._outputs import write_outputs as write_outputs
 from ._paper import MODEL_NAMES as MODEL_NAMES

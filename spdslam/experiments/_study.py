@@ -262,16 +262,93 @@ def _ious_and_orientation(est: Ellipsoid, truth: Ellipsoid):
     return iou, orient, ratio
 
 
+def _evaluate(out: dict, truth: Ellipsoid, cfg: StudyConfig) -> dict:
+    """Per-trial arrays of one solved batch (``_solve_structure``'s ``out``): success,
+    first iteration within tolerance, relative cost history, IoU, orientation error, s₃/s₁."""
+    thr = (1 + cfg.success_rtol) * out["truth_cost"] + cfg.success_atol
+    hist = _forward_fill(out["cost_history"], out["initial_cost"])
+    below = hist <= thr[:, None]
+    reached = below.any(axis=1)
+    iou, orient, ratio = _ious_and_orientation(out["estimate"], truth)
+    return {
+        "success": out["final_cost"] <= thr,
+        "first": np.where(reached, below.argmax(axis=1), -1),
+        "history": hist / np.maximum(out["initial_cost"][:, None], 1e-300),
+        "iou": iou, "orientation": orient, "ratio": ratio,
+        "final_cost": out["final_cost"], "truth_cost": out["truth_cost"],
+        "initial_cost": out["initial_cost"], "iterations": out["iterations"],
+        "reason": np.asarray(out["reason"], dtype=object),
+    }  # fmt: skip
+
+
+def _rows(model, param, ev: dict, seconds: np.ndarray, angle_lab, noise_lab, trial_lab) -> list:
+    """The trials.csv records of one (model, param) from ``_evaluate``'s arrays."""
+    rows = []
+    for b in range(len(ev["success"])):
+        success = bool(ev["success"][b])
+        rows.append(
+            {
+                "angle": int(angle_lab[b]),
+                "noise": str(noise_lab[b]),
+                "model": model,
+                "param": param,
+                "trial": int(trial_lab[b]),
+                "success": success,
+                "iterations_to_tol": int(ev["first"][b]) if success else "",
+                "final_cost": float(ev["final_cost"][b]),
+                "iou": float(ev["iou"][b]),
+                "orientation_error_deg": float(ev["orientation"][b]),
+                "seconds": float(seconds[b]),
+                "truth_cost": float(ev["truth_cost"][b]),
+                "initial_cost": float(ev["initial_cost"][b]),
+                "iterations": int(ev["iterations"][b]),
+                "reason": str(ev["reason"][b]),
+                "min_radius_ratio": float(ev["ratio"][b]),
+            }
+        )
+    return rows
+
+
+def _finish_timings(timings: dict, rows: list, t_start: float) -> None:
+    timings["wall"] = time.perf_counter() - t_start
+    iters = sum(r["iterations"] for r in rows)
+    st = timings.get("structures", {}).values()
+    timings["solve_loops"] = sum(v.get("solve", 0.0) for v in st)
+    timings["problem_iterations"] = iters
+    # the batched LM loops alone (compile excluded), per iteration of each problem
+    timings["us_per_problem_iteration"] = 1e6 * timings["solve_loops"] / max(iters, 1)
+
+
+def _labels(cfg: StudyConfig):
+    """(angle, noise, trial) of every problem of the concatenated batch, in cells order."""
+    return (np.repeat([a for a, _ in cfg.cells], cfg.trials),
+            np.repeat([n for _, n in cfg.cells], cfg.trials),
+            np.tile(np.arange(cfg.trials), len(cfg.cells)))
+
+
 def run_study(
     cfg: StudyConfig = StudyConfig(),
     progress: Callable[[str, int, int], None] | None = None,
+    engine=None,
+    trials_per_task: int | None = None,
 ) -> StudyResult:
-    """Run the grid; ``progress(stage, done, total)`` is called as structures finish."""
+    """Run the grid; ``progress(stage, done, total)`` is called as structures (or tasks)
+    finish.
+
+    ``engine`` (``LocalEngine``, ``RayEngine``): shard the grid into tasks of
+    ``trials_per_task`` problems of one (model, param) (default: each structure in twice as
+    many tasks as the engine has workers, at least 16 problems each), one batched solve per
+    task; the trials, costs and estimates are those of the run without an engine (each
+    problem runs in a lane of its own, with the compile options the whole batch would get).
+    A task that fails every attempt raises ``RuntimeError`` naming it.
+    """
+    if engine is not None:
+        return _run_sharded(cfg, progress, engine, trials_per_task)
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]
     total = len(structures) + 1
-    scenes, angle_lab, noise_lab = _all_scenes(cfg)
-    trial_lab = np.tile(np.arange(cfg.trials), len(cfg.cells))
+    scenes, _, _ = _all_scenes(cfg)
+    labels = _labels(cfg)
     if progress:
         progress("scenes", 1, total)
     rows: list[dict] = []
@@ -290,36 +367,9 @@ def run_study(
     for k, (model, param) in enumerate(structures):
         out = _solve_structure(built[k], compiled[k])
         t_eval = time.perf_counter()
-        thr = (1 + cfg.success_rtol) * out["truth_cost"] + cfg.success_atol
-        hist = _forward_fill(out["cost_history"], out["initial_cost"])
-        below = hist <= thr[:, None]
-        reached = below.any(axis=1)
-        first = np.where(reached, below.argmax(axis=1), -1)
-        success = out["final_cost"] <= thr
-        iou, orient, ratio = _ious_and_orientation(out["estimate"], scenes.truth)
-        histories[(model, param)] = hist / np.maximum(out["initial_cost"][:, None], 1e-300)
-        per_trial_s = out["seconds"] / B
-        for b in range(B):
-            rows.append(
-                {
-                    "angle": int(angle_lab[b]),
-                    "noise": str(noise_lab[b]),
-                    "model": model,
-                    "param": param,
-                    "trial": int(trial_lab[b]),
-                    "success": bool(success[b]),
-                    "iterations_to_tol": int(first[b]) if success[b] else "",
-                    "final_cost": float(out["final_cost"][b]),
-                    "iou": float(iou[b]),
-                    "orientation_error_deg": float(orient[b]),
-                    "seconds": per_trial_s,
-                    "truth_cost": float(out["truth_cost"][b]),
-                    "initial_cost": float(out["initial_cost"][b]),
-                    "iterations": int(out["iterations"][b]),
-                    "reason": out["reason"][b],
-                    "min_radius_ratio": float(ratio[b]),
-                }
-            )
+        ev = _evaluate(out, scenes.truth, cfg)
+        histories[(model, param)] = ev["history"]
+        rows += _rows(model, param, ev, np.full(B, out["seconds"] / B), *labels)
         timings["solve"] += out["seconds"]
         timings.setdefault("structures", {})[f"{model}-{param}"] = {
             "seconds": out["seconds"], **{k2: float(v) for k2, v in out["timings"].items() if np.isscalar(v)}
@@ -327,11 +377,95 @@ def run_study(
         timings["evaluate"] += time.perf_counter() - t_eval
         if progress:
             progress(f"{model}-{param}", k + 2, total)
-    timings["wall"] = time.perf_counter() - t_start
-    iters = sum(r["iterations"] for r in rows)
-    st = timings.get("structures", {}).values()
-    timings["solve_loops"] = sum(v.get("solve", 0.0) for v in st)
-    timings["problem_iterations"] = iters
-    # the batched LM loops alone (compile excluded), per iteration of each problem
-    timings["us_per_problem_iteration"] = 1e6 * timings["solve_loops"] / max(iters, 1)
+    _finish_timings(timings, rows, t_start)
+    return StudyResult(cfg, rows, histories, timings)
+
+
+# --- the grid in tasks (an engine: local or Ray) -------------------------------------------
+def _scene_slice(scenes: Scenes, idx: np.ndarray) -> Scenes:
+    """The problems ``idx`` of a batch of scenes, as numpy arrays (cheap to send)."""
+    take = lambda tree: jax.tree.map(lambda a: np.asarray(a)[idx], tree)  # noqa: E731
+    return Scenes(take(scenes.truth), take(scenes.initial), take(scenes.poses),
+                  np.asarray(scenes.boxes)[idx], scenes.camera)
+
+
+def _solve_task(cfg: StudyConfig, model: str, param: str, scenes: Scenes, n: int) -> dict:
+    """One task: the batched solve of one (model, param) over ``scenes`` (its first ``n``
+    problems are real, the rest repeat the last to keep one shape per structure) and its
+    per-trial evaluation. Runs in a worker; ``cfg.optimize`` is decided by the driver."""
+    built = _build_structure(model, param, scenes, cfg)
+    compiled = built[0].compile(built[1], built[2])
+    out = _solve_structure(built, compiled)
+    t_eval = time.perf_counter()
+    ev = _evaluate(out, scenes.truth, cfg)
+    ev = {k: v[:n] for k, v in ev.items()}
+    ev["evaluate"] = time.perf_counter() - t_eval
+    ev["timings"] = {k: float(v) for k, v in out["timings"].items() if np.isscalar(v)}
+    ev["seconds"] = out["seconds"]
+    ev["B"] = len(scenes)
+    return ev
+
+
+def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
+    import dataclasses
+
+    from ..solver._batched import AUTO_OPTIMIZE_WORK, DEFAULT_LANES
+
+    t_start = time.perf_counter()
+    structures = [(m, p) for m in cfg.models for p in cfg.params]
+    scenes, _, _ = _all_scenes(cfg)
+    B = len(scenes)
+    if trials_per_task is None:
+        trials_per_task = max(DEFAULT_LANES, -(-B // (2 * max(1, engine.workers))))
+    if trials_per_task < 1:
+        raise ValueError(f"trials_per_task must be ≥ 1, got {trials_per_task}")
+    size = min(trials_per_task, B)
+    # the compile options the whole batch would get, so that each problem's arithmetic is
+    # that of the run without an engine
+    opt = cfg.optimize if cfg.optimize is not None else B * cfg.max_iters > AUTO_OPTIMIZE_WORK
+    task_cfg = dataclasses.replace(cfg, optimize=opt)
+    chunks = [(lo, min(lo + size, B)) for lo in range(0, B, size)]
+    tasks, owners = [], []
+    for m, p in structures:
+        for lo, hi in chunks:
+            idx = np.minimum(np.arange(lo, lo + size), hi - 1)  # the last chunk padded
+            tasks.append((task_cfg, m, p, _scene_slice(scenes, idx), hi - lo))
+            owners.append((m, p, lo, hi))
+    timings = {"scenes": time.perf_counter() - t_start, "engine": engine.name,
+               "workers": engine.workers, "tasks": len(tasks), "trials_per_task": size}
+    if progress:
+        progress("scenes", 1, len(tasks) + 1)
+
+    def on_done(done, total):
+        if progress:
+            progress(f"{done} of {total} tasks", done + 1, total + 1)
+
+    outcomes = engine.map(_solve_task, tasks, progress=on_done)
+    failed = [(owners[o.index], o) for o in outcomes if not o.ok]
+    if failed:
+        (m, p, lo, hi), o = failed[0]
+        raise RuntimeError(f"{len(failed)} of {len(tasks)} tasks failed; the first, {m}-{p} "
+                           f"problems {lo}-{hi - 1}, after {o.attempts} attempts: {o.error}")
+    labels = _labels(cfg)
+    rows: list[dict] = []
+    histories: dict = {}
+    structures_t = timings.setdefault("structures", {})
+    for m, p in structures:
+        parts = [o.value for o, own in zip(outcomes, owners) if own[:2] == (m, p)]
+        ev = {k: np.concatenate([q[k] for q in parts]) for k in parts[0] if k not in
+              ("timings", "seconds", "B", "evaluate")}
+        seconds = np.concatenate([np.full(len(q["success"]), q["seconds"] / q["B"]) for q in parts])
+        histories[(m, p)] = ev["history"]
+        rows += _rows(m, p, ev, seconds, *labels)
+        st = {"seconds": sum(q["seconds"] for q in parts)}
+        for q in parts:
+            for k, v in q["timings"].items():
+                st[k] = st.get(k, 0.0) + v
+        structures_t[f"{m}-{p}"] = st
+    # sums over the tasks (worker seconds), not wall time
+    timings["task_seconds"] = float(sum(o.seconds for o in outcomes))
+    timings["compile"] = sum(v.get("trace", 0.0) + v.get("compile", 0.0) for v in structures_t.values())
+    timings["solve"] = sum(v["seconds"] for v in structures_t.values()) + timings["compile"]
+    timings["evaluate"] = float(sum(o.value["evaluate"] for o in outcomes))
+    _finish_timings(timings, rows, t_start)
     return StudyResult(cfg, rows, histories, timings)

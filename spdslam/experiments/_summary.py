@@ -185,6 +185,9 @@ def table_markdown(summary: dict) -> str:
         f"Wall time {t['wall']:.2f} s: scenes {t['scenes']:.2f} s, solves {t['solve']:.2f} s "
         f"(of which tracing + XLA compilation {t['compile']:.2f} s, LM loops {t['solve_loops']:.2f} s), "
         f"evaluation {t['evaluate']:.2f} s; {t['us_per_problem_iteration']:.1f} µs per problem-iteration "
-        f"(LM loops / {t['problem_iterations']} problem-iterations).",
+        f"(LM loops / {t['problem_iterations']} problem-iterations)."
+        + (f" Solves, compilation and evaluation are sums over the {t['tasks']} tasks "
+           f"({t['trials_per_task']} problems each) on {t['workers']} {t['engine']} workers."
+           if "tasks" in t else ""),
     ]
     return "\n".join(lines) + "\n"

@@ -24,6 +24,8 @@ from ._methods import PARAMETERIZATIONS as PARAMETERIZATIONS
 from ._methods import ROBUST_KERNELS as ROBUST_KERNELS
 from ._methods import SHAPE_FORMS as SHAPE_FORMS
 from ._methods import Method as Method
+from ._methods import check_sigma as check_sigma
+from ._methods import parse_robust as parse_robust
 from ._methods import robust_kernel as robust_kernel
 from ._methods import sigma_units as sigma_units
 from ._online import FrameRecord as FrameRecord

@@ -33,6 +33,8 @@ from ..factors import (
 from ..geometry import OBJECT_SHAPES
 
 __all__ = [
+    "check_sigma",
+    "parse_robust",
     "PARAMETERIZATIONS",
     "BOX_MODELS",
     "INITIALIZATIONS",
@@ -189,3 +191,50 @@ METHODS = {
 def robust_kernel(name: str, k: float):
     """The kernel ``name`` ("none", "huber", "cauchy") with threshold k, None for "none"."""
     return {"huber": Huber, "cauchy": Cauchy}[name](k) if name != "none" else None
+
+
+def check_sigma(name: str, value) -> float:
+    """A run's sigma override (``--sigma NAME=VALUE``, a manifest's ``sigma``) as a float, or
+    ``ValueError``: NAME one of ``DEFAULT_MAPPING_SIGMAS``, VALUE finite and positive (0 allowed
+    for the additive relative terms)."""
+    import math
+
+    if name not in DEFAULT_MAPPING_SIGMAS:
+        raise ValueError(f"expected a sigma among {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got {name!r}")
+    v = float(value)
+    if not (math.isfinite(v) and (v > 0 or (v == 0 and name in ZERO_ALLOWED))):
+        raise ValueError(f"expected a finite positive value for {name}, got {value!r}")
+    return v
+
+
+def parse_robust(items, robust_k: float | None = None) -> dict:
+    """Robust kernels in the command line's syntax → ``Method`` overrides, or ``ValueError``:
+    each item KERNEL (box and measured-ellipsoid factors, threshold ``robust_k``, default 1)
+    or TYPE=KERNEL[:K] (one factor type of ``factors.robust_groups()``)."""
+    import math
+
+    groups = robust_groups()
+    out, by_type = {}, []
+    for item in items or []:
+        ftype, sep, rest = item.partition("=")
+        if not sep:
+            ftype, rest = None, item
+        name, colon, k = rest.partition(":")
+        try:
+            k = float(k) if colon else (robust_k if robust_k is not None else 1.0)
+        except ValueError:
+            raise ValueError(f"{k!r} is not a number (in {item!r})") from None
+        if (ftype is not None and ftype not in groups) or name not in ROBUST_KERNELS \
+                or not (math.isfinite(k) and k > 0):
+            raise ValueError(
+                f"expected KERNEL or TYPE=KERNEL[:K] with KERNEL one of {', '.join(ROBUST_KERNELS)}, "
+                f"TYPE one of {', '.join(groups)} and K > 0, got {item!r}")
+        if ftype is None:
+            out["robust"], out["robust_k"] = name, k
+        else:
+            by_type.append((ftype, name, k))
+    if by_type:
+        out["robust_by_type"] = tuple(by_type)
+    if robust_k is not None and "robust" not in out:
+        out["robust_k"] = robust_k
+    return out

@@ -1,0 +1,170 @@
+"""Batches of sequence runs without Ray: the manifest's reading and its errors (file:line),
+the local engine's failure handling, and ``spdslam batch`` in this process."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+from conftest import cli_invoke
+
+from spdslam.experiments import LocalEngine, read_manifest
+from spdslam.io import SequenceFormatError, write_sequence
+from spdslam.synthetic import make_room_sequence
+
+
+def _manifest(tmp_path, text: str):
+    p = tmp_path / "m.yaml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_a_manifest_expands_methods_and_applies_defaults(tmp_path):
+    (tmp_path / "seqs" / "a").mkdir(parents=True)
+    p = _manifest(tmp_path, """\
+defaults:
+  max_iterations: 40
+  sigma: {inverse_box: 3}
+jobs:
+  - sequence: seqs/a
+    methods: [multi-rts, multi-spd]
+  - sequence: seqs/a
+    name: a-online
+    robust: [huber]
+    online: {window: 12}
+    max_iterations: 7
+""")
+    jobs = read_manifest(p)
+    assert [j.name for j in jobs] == ["a-multi-rts", "a-multi-spd", "a-online"]
+    assert [j.method for j in jobs] == ["multi-rts", "multi-spd", "multi-spd"]
+    assert jobs[0].sequence == tmp_path / "seqs" / "a"
+    assert jobs[0].settings == {"max_iterations": 40, "sigma": {"inverse_box": 3.0}}
+    assert jobs[2].settings["max_iterations"] == 7
+    assert jobs[2].settings["online"] == {"window": 12, "every": 10, "iterations": 5, "final_batch": True}
+    assert jobs[2].settings["robust"] == ["huber"]
+    assert [j.line for j in jobs] == [5, 5, 7]
+
+
+@pytest.mark.parametrize(
+    "text, line, words",
+    [
+        ("jobs:\n  - sequence: a\n    method: nope\n", 3, "a method among"),
+        ("jobs:\n  - sequence: a\n    colour: red\n", 3, "a key of a job among"),
+        ("jobs:\n  - method: multi-spd\n", 2, "a sequence for the job"),
+        ("jobs:\n  - sequence: a\n  - sequence: a\n", 3, "unique job names"),
+        ("jobs:\n  - sequence: a\n    sigma: {inverse_box: -1}\n", 3, "a positive sigma inverse_box"),
+        ("jobs:\n  - sequence: a\n    sigma: {nonsense: 1}\n", 3, "a sigma among"),
+        ("jobs:\n  - sequence: a\n    online: true\n    keyframes: 3\n", 2, "keyframes all for an online job"),
+        ("jobs:\n  - sequence: a\n    name: x/y\n", 3, "a plain folder name"),
+        ("jobs:\n  - sequence: a\n    methods: [multi-spd, multi-rts]\n    name: n\n", 4, "no name for a job of several methods"),
+        ("jobs:\n  - sequence: a\n    max_iterations: 0\n", 3, "an integer ≥ 1"),
+        ("jobs:\n  - sequence: a\n    robust: [bogus]\n", 3, "robust: expected KERNEL"),
+        ("jobs:\n  - sequence: a\n    online: {window: 1}\n", 3, "online window: an integer ≥ 2"),
+        ("jobs: []\n", 1, "a non-empty list of jobs"),
+        ("defaults:\n  sequence: a\njobs:\n  - sequence: a\n", 2, "defaults without sequence or name"),
+        ("jobs:\n  - sequence: a\n    method: multi-spd\n    methods: [multi-rts]\n", 4, "method or methods, not both"),
+        ("jobz:\n  - sequence: a\n", 1, "a key of the manifest among defaults, jobs"),
+        ("jobs:\n  - sequence: a\n  bad indent\n", 4, "valid YAML"),  # the mark PyYAML gives
+    ],
+)
+def test_a_malformed_manifest_names_its_line(tmp_path, text, line, words):
+    p = _manifest(tmp_path, text)
+    with pytest.raises(SequenceFormatError) as e:
+        read_manifest(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}:{line}: "), msg
+    assert words in msg and "\n" not in msg
+
+
+def test_a_manifest_without_jobs_and_a_missing_manifest(tmp_path):
+    with pytest.raises(SequenceFormatError, match="a list of jobs"):
+        read_manifest(_manifest(tmp_path, "defaults: {max_iterations: 3}\n"))
+    with pytest.raises(SequenceFormatError, match="no such file"):
+        read_manifest(tmp_path / "absent.yaml")
+
+
+def _boom(x):
+    if x == 2:
+        raise ValueError("two\nis   bad")
+    return x * 10
+
+
+def test_the_local_engine_reports_a_failing_task_and_finishes_the_others():
+    seen = []
+    outcomes = LocalEngine(retries=2).map(_boom, [(1,), (2,), (3,)], on_outcome=seen.append)
+    assert [o.value for o in outcomes] == [10, None, 30]
+    bad = outcomes[1]
+    assert not bad.ok and bad.attempts == 3 and bad.error == "ValueError: two is bad"
+    assert [o.index for o in seen] == [0, 1, 2]
+
+
+@pytest.fixture(scope="module")
+def two_sequences(tmp_path_factory):
+    """A small demo room written twice: a good sequence and one with a malformed line."""
+    root = tmp_path_factory.mktemp("batch")
+    seq = make_room_sequence(3, 30, 2)
+    write_sequence(seq, root / "room")
+    write_sequence(seq, root / "broken")
+    det = root / "broken" / "detections.txt"
+    lines = det.read_text().splitlines()
+    lines[2] = "not a detection"
+    det.write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_batch_runs_the_good_jobs_and_reports_the_bad_ones(two_sequences, tmp_path):
+    m = _manifest(two_sequences, """\
+jobs:
+  - sequence: room
+    method: multi-spd
+  - sequence: broken
+  - sequence: room
+    name: full-online
+    parameterization: full
+    online: true
+""")
+    out = tmp_path / "out"
+    r = cli_invoke("batch", m, "--out", out, "--retries", "0")
+    assert r.exit_code == 1, r.output
+    rows = list(csv.DictReader(open(out / "batch.csv")))
+    assert [x["job"] for x in rows] == ["room-multi-spd", "broken-multi-spd", "full-online"]
+    assert [x["status"] for x in rows] == ["done", "failed", "failed"]
+    assert [x["stage"] for x in rows] == ["", "read", "map"]
+    assert "detections.txt:3:" in rows[1]["error"]
+    assert "Full" in rows[2]["error"] or "full" in rows[2]["error"]
+    assert (out / "room-multi-spd" / "map.json").is_file()
+    assert not (out / "broken-multi-spd").exists() and not (out / "full-online").exists()
+    report = json.loads((out / "batch.json").read_text())
+    assert report["engine"]["name"] == "local" and len(report["jobs"]) == 3
+    assert float(rows[0]["mean_iou"]) > 0.5
+    # the same run through spdslam run: the same map
+    single = tmp_path / "single"
+    r = cli_invoke("run", two_sequences / "room", "--out", single, "--no-overlay")
+    assert r.exit_code == 0, r.output
+    a = json.loads((single / "map.json").read_text())
+    b = json.loads((out / "room-multi-spd" / "map.json").read_text())
+    assert a["objects"] == b["objects"] and a["final_cost"] == b["final_cost"]
+
+
+def test_batch_refuses_bad_options_in_one_line(two_sequences, tmp_path):
+    m = _manifest(two_sequences, "jobs:\n  - sequence: room\n")
+    r = cli_invoke("batch", m, "--out", tmp_path / "o", "--workers", "2")
+    assert r.exit_code == 2 and "--workers" in r.stderr and "--ray" in r.stderr
+    bad = _manifest(tmp_path, "jobs:\n  - sequence: room\n    method: x\n")
+    r = cli_invoke("batch", bad, "--out", tmp_path / "o")
+    assert r.exit_code == 2 and f"{bad}:3:" in r.stderr
+    r = cli_invoke("simulate", "--trials", "2", "--trials-per-task", "4", "--out", tmp_path / "s")
+    assert r.exit_code == 2 and "--trials-per-task" in r.stderr
+
+
+def test_the_manifest_of_docs_scaling_md_reads(tmp_path):
+    """docs/scaling.md's example manifest is one the reader takes, with the jobs it says."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "scaling.md").read_text(encoding="utf-8")
+    block = text.split("```yaml\n", 1)[1].split("```", 1)[0]
+    jobs = read_manifest(_manifest(tmp_path, block))
+    assert [j.name for j in jobs] == ["room0-quadric-slam", "room0-multi-rts", "room0-multi-spd",
+                                      "room1-online"]
+    assert jobs[3].settings["online"]["window"] == 30 and jobs[3].settings["sigma"] == {"inverse_box": 3.0}
