@@ -226,7 +226,7 @@ def info() -> None:
     versions.add_column("value")
     versions.add_row("python", f"{platform.python_version()} ({sys.executable})")
     versions.add_row("spdslam", __version__)
-    for dist in ("jax", "jaxlib", "jaxlie", "numpy", "scipy", "cvxopt"):
+    for dist in ("jax", "jaxlib", "jaxlie", "numpy", "scipy", "cvxopt", "ray"):
         versions.add_row(dist, _dist_version(dist))
     has_cholmod = cholmod_available()
     versions.add_row(

@@ -106,7 +106,7 @@ def _progress(message: str) -> None:
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
 
 
-def _print_latency(seq, records, rate) -> None:
+def _print_latency(records, rate) -> None:
     import numpy as np
 
     ms = 1e3 * np.array([r.seconds for r in records])
@@ -132,7 +132,7 @@ def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations,
         fail(f"{seq.name}: {e}")
     if records is not None:
         extra, rate = latency_writer(seq, records)
-        _print_latency(seq, records, rate)
+        _print_latency(records, rate)
     try:
         metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source,
                             extra=extra)
