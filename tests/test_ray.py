@@ -136,6 +136,14 @@ def test_compare_on_ray_writes_the_local_table(engine, room, tmp_path):
     assert (a / "table.md").read_text() == (b / "table.md").read_text()
 
 
+def test_an_address_where_nothing_answers_is_refused_at_once(tmp_path):
+    r = cli_invoke("simulate", "--trials", "2", "--ray-address", "127.0.0.1:1", "--out", tmp_path / "s")
+    assert r.exit_code == 2 and "nothing answers at 127.0.0.1:1" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    r = cli_invoke("simulate", "--trials", "2", "--ray-address", "nonsense", "--out", tmp_path / "s")
+    assert r.exit_code == 2 and "expected auto, HOST:PORT or ray://HOST:PORT" in r.stderr
+
+
 def test_without_ray_installed_the_option_says_how_to_install_it(monkeypatch, tmp_path):
     import builtins
 

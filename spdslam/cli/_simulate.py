@@ -82,7 +82,7 @@ def simulate(
     workers: int | None = typer.Option(None, min=1, help=WORKERS_HELP),
     trials_per_task: int | None = typer.Option(
         None, min=1, help="--ray: problems per task (default: each method's problems in twice "
-        "as many tasks as there are workers, at least 16 each)."),
+        "as many tasks as there are workers, 16 to 10000 each)."),
     retries: int = typer.Option(1, min=0, help=RETRIES_HELP),
 ) -> None:
     """Reproduce the paper's simulation study (Table II, Fig. 12) with batched solves.

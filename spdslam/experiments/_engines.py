@@ -122,6 +122,8 @@ class RayEngine:
             raise ValueError(f"workers must be ≥ 1, got {workers}")
         if address is not None and workers is not None:
             raise ValueError("workers sets the size of a local Ray instance: not with an address")
+        if address is not None:
+            _check_reachable(address)
         self.retries = retries
         self.address = address
         self._ray = ray
@@ -184,6 +186,25 @@ class RayEngine:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """``ConnectionError`` (one line) when the HOST:PORT of ``address`` ("HOST:PORT" or
+    "ray://HOST:PORT"; "auto" is left to Ray) does not accept a TCP connection within
+    ``timeout`` seconds: Ray itself would retry for minutes."""
+    import socket
+
+    if address == "auto":
+        return
+    hostport = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"expected auto, HOST:PORT or ray://HOST:PORT, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise ConnectionError(f"nothing answers at {host}:{port} ({e.strerror or e}) within "
+                              f"{timeout:g} s") from None
 
 
 def _quiet_init(ray, **kwargs) -> None:

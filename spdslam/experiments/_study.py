@@ -337,8 +337,8 @@ def run_study(
 
     ``engine`` (``LocalEngine``, ``RayEngine``): shard the grid into tasks of
     ``trials_per_task`` problems of one (model, param) (default: each structure in twice as
-    many tasks as the engine has workers, at least 16 problems each), one batched solve per
-    task; the trials, costs and estimates are those of the run without an engine (each
+    many tasks as the engine has workers, at least 16 and at most ``MAX_TRIALS_PER_TASK``
+    problems each), one batched solve per task; the trials, costs and estimates are those of the run without an engine (each
     problem runs in a lane of its own, with the compile options the whole batch would get).
     A task that fails every attempt raises ``RuntimeError`` naming it.
     """
@@ -406,6 +406,11 @@ def _solve_task(cfg: StudyConfig, model: str, param: str, scenes: Scenes, n: int
     return ev
 
 
+#: The default task size's ceiling: a task's cost histories (problems × iterations × 6
+#: floats) stay under ~100 MB at the default 200 iterations.
+MAX_TRIALS_PER_TASK = 10_000
+
+
 def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
     import dataclasses
 
@@ -416,7 +421,8 @@ def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
     scenes, _, _ = _all_scenes(cfg)
     B = len(scenes)
     if trials_per_task is None:
-        trials_per_task = max(DEFAULT_LANES, -(-B // (2 * max(1, engine.workers))))
+        trials_per_task = min(MAX_TRIALS_PER_TASK,
+                              max(DEFAULT_LANES, -(-B // (2 * max(1, engine.workers)))))
     if trials_per_task < 1:
         raise ValueError(f"trials_per_task must be ≥ 1, got {trials_per_task}")
     size = min(trials_per_task, B)
