@@ -299,18 +299,21 @@ def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
     """Pinhole pixels (…, 2) of pixels ``uv`` measured through OpenCV's radial-tangential
     model, ``distortion`` = (k1, k2, p1, p2, k3): x_d = x·(1 + k1r² + k2r⁴ + k3r⁶) +
     (2p1xy + p2(r² + 2x²), p1(r² + 2y²) + 2p2xy) on normalised coordinates, inverted by
-    fixed-point iteration (as OpenCV's ``undistortPoints``). NumPy."""
+    fixed-point iteration (as OpenCV's ``undistortPoints``). Where the iteration diverges
+    (far outside the image, or extreme coefficients) the result is not finite, silently: the
+    callers refuse such boxes with their line. NumPy."""
     k1, k2, p1, p2, k3 = (float(v) for v in distortion)
     uv = np.asarray(uv, dtype=float)
     xd = (uv[..., 0] - camera.cx) / camera.fx
     yd = (uv[..., 1] - camera.cy) / camera.fy
     x, y = xd.copy(), yd.copy()
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x, y = (xd - dx) / radial, (yd - dy) / radial
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            x, y = (xd - dx) / radial, (yd - dy) / radial
     return np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], axis=-1)
 
 
