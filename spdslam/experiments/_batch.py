@@ -308,8 +308,9 @@ def map_sequence(seq, method: str, *, online: dict | None = None, max_iterations
 
 
 def latency_writer(seq, records):
-    """(``write_run``'s ``extra``: writes latency.csv and latency.png of an online run,
-    the frame rate of ``seq``, or None)."""
+    """(``extra``, ``rate``): ``write_run``'s ``extra``, which writes latency.csv and
+    latency.png of an online run's ``records``, and the frame rate of ``seq`` (None when its
+    timestamps give none)."""
     from ..evaluation import latency_csv, plot_latency
 
     dt = np.diff(np.asarray(seq.timestamps, float))

@@ -220,9 +220,9 @@ def _quiet_init(ray, **kwargs) -> None:
 def _thread_env(local: bool) -> dict:
     """``OMP_NUM_THREADS`` for the workers: this process's. Ray sets it to a task's CPUs (1)
     where it is unset, and a thread count changes the order of a BLAS or OpenMP library's sums:
-    maps then differ from the run without Ray in the last bits. A local instance's workers get
-    this process's value or, where unset, the cores (what those libraries use then); a cluster's get
-    this process's value only when it is set."""
+    maps then differ from the run without Ray in the last bits. A local instance's workers
+    get this process's value or, where unset, the cores (what those libraries use then); a
+    cluster's get this process's value only when it is set."""
     value = os.environ.get("OMP_NUM_THREADS")
     if value is None and local:
         value = str(os.cpu_count() or 1)
