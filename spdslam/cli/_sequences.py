@@ -377,10 +377,6 @@ def import_(
     console.print(f"imported {len(seq)} poses, {len(seq.detections)} detections into {dest}")
 
 
-def _open_engine_options(ray, ray_address, workers, retries):
-    return open_engine(ray or ray_address is not None, ray_address, workers, retries)
-
-
 def _say_job(report, done: int, total: int) -> None:
     """One line per finished job: stdout when done, stderr when failed."""
     from ..evaluation import shown
@@ -405,7 +401,7 @@ def _run_jobs(jobs, out, ray, ray_address, workers, retries, overwrite):
 
     for job in jobs:
         _check_out(out / job.name, overwrite)
-    engine = _open_engine_options(ray, ray_address, workers, retries)
+    engine = open_engine(ray, ray_address, workers, retries)
     console.print(f"{len(jobs)} jobs on {engine.name}"
                   + (f" ({engine.workers} CPUs)" if engine.name == "ray" else ""))
     try:

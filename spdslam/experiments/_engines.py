@@ -60,7 +60,20 @@ def _attempt(fn: Callable, args: tuple) -> tuple:
     return "ok", value, time.perf_counter() - t0, where
 
 
-class LocalEngine:
+class _Engine:
+    """What every engine has: ``close()`` and use as a context manager."""
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class LocalEngine(_Engine):
     """Tasks one after another in this process."""
 
     name = "local"
@@ -91,17 +104,8 @@ class LocalEngine:
                 progress(i + 1, len(tasks))
         return out
 
-    def close(self) -> None:
-        pass
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
-class RayEngine:
+class RayEngine(_Engine):
     """Tasks on Ray: the cluster at ``address`` (``"auto"``, ``"ray://host:10001"``, …), or,
     without one, a Ray instance started here with ``workers`` CPUs (default: this
     machine's cores) and stopped by :meth:`close`. Each task takes one CPU; a worker process
@@ -180,12 +184,6 @@ class RayEngine:
         if self._owned and self._ray.is_initialized():
             self._ray.shutdown()
         self._owned = False
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def _check_reachable(address: str, timeout: float = 5.0) -> None:

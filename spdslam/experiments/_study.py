@@ -431,11 +431,12 @@ def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
     opt = cfg.optimize if cfg.optimize is not None else B * cfg.max_iters > AUTO_OPTIMIZE_WORK
     task_cfg = dataclasses.replace(cfg, optimize=opt)
     chunks = [(lo, min(lo + size, B)) for lo in range(0, B, size)]
+    # each chunk's scenes sliced once, for every structure; the last chunk padded
+    slices = [_scene_slice(scenes, np.minimum(np.arange(lo, lo + size), hi - 1)) for lo, hi in chunks]
     tasks, owners = [], []
     for m, p in structures:
-        for lo, hi in chunks:
-            idx = np.minimum(np.arange(lo, lo + size), hi - 1)  # the last chunk padded
-            tasks.append((task_cfg, m, p, _scene_slice(scenes, idx), hi - lo))
+        for (lo, hi), part in zip(chunks, slices):
+            tasks.append((task_cfg, m, p, part, hi - lo))
             owners.append((m, p, lo, hi))
     timings = {"scenes": time.perf_counter() - t_start, "engine": engine.name,
                "workers": engine.workers, "tasks": len(tasks), "trials_per_task": size}

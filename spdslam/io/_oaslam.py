@@ -29,7 +29,6 @@ from scipy.spatial.transform import Rotation
 from ..geometry import Camera, Cuboid, undistort_boxes
 from ._parse import (
     CAMERA_KEYS,
-    MATCH_TOLERANCE,
     SequenceFormatError,
     _number,
     _rows,

@@ -67,7 +67,6 @@ from ._run import (
     _visible,
     initialize_objects,
     map_result,
-    overlapping_duplicates,
 )
 
 __all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "run_online"]
