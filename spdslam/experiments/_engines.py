@@ -131,7 +131,6 @@ class RayEngine(_Engine):
         self.retries = retries
         self.address = address
         self._ray = ray
-        self._started = False
         if ray.is_initialized():
             self._owned = False
         elif address is None:
