@@ -11,7 +11,9 @@ Then fr3_cabinet's cuboid model with and without the kernel (its cabinet is dete
 suitcase). Prints mean IoU over the 7 objects, per-object IoU, ATE and run time.
 
 ``--halves`` runs multi-spd on each half of the frames instead (the real-sequences check:
-no degenerate object, no failure) and prints what each maps and reports.
+no degenerate or implausibly flat object, no failure, the trajectory no worse than its input)
+and prints what each maps and reports, with the ATE of the input and of the optimised
+trajectory.
 
 ``--offsets`` prints instead what limits the thin objects: the constant rotation between
 ORB-SLAM2's camera orientations and the motion capture's (mean rotation vector in the
@@ -45,7 +47,7 @@ def _row(name, seq, r, dt, poses=None):
 def halves(seq) -> None:
     import numpy as np
 
-    from spdslam.mapping import degenerate
+    from spdslam.mapping import degenerate, implausibly_flat
 
     n = len(seq)
     for name, idx in (("first half", np.arange(n // 2)), ("second half", np.arange(n // 2, n))):
@@ -54,11 +56,15 @@ def halves(seq) -> None:
         r = run_sequence(part, "multi-spd", associate="auto")
         dt = time.perf_counter() - t
         m = evaluate_run(r.as_dict(), r.objects, r.initial_objects, r.poses_tum, part)
-        bad = [o.id for o in r.objects if degenerate(o.ellipsoid)]
+        bad = [o.id for o in r.objects if degenerate(o.ellipsoid) or implausibly_flat(o.ellipsoid)]
+        flat = sum("flat" in why for why in r.failed.values())
         finite = all(np.all(np.isfinite(np.asarray(o.ellipsoid.P))) for o in r.objects)
+        ate = m["ate"]
         print(f"{name}: {len(part)} frames, {len(part.detections)} boxes, {len(r.objects)} objects, "
-              f"{len(r.failed)} not mapped, degenerate mapped {len(bad)}, finite {finite}, "
-              f"mean IoU {m['summary']['mean_iou']:.3f} ({m['summary']['matched']}/7), {dt:.1f} s")
+              f"{len(r.failed)} not mapped ({flat} flat), degenerate or flat mapped {len(bad)}, "
+              f"finite {finite}, mean IoU {m['summary']['mean_iou']:.3f} ({m['summary']['matched']}/7), "
+              f"ATE input {1e3 * ate['input']['rmse']:.2f} mm, optimised {1e3 * ate['optimized']['rmse']:.2f} mm "
+              f"({ate['optimized']['pairs']} poses), {dt:.1f} s")
 
 
 def offsets(seq) -> None:

@@ -46,8 +46,12 @@ def run_all(seq, **kw) -> list:
         init = r.method.initialization
         if init not in fronts:
             fronts[init] = m["front_end"]["summary"]
+        # each ground-truth object's IoU (0 where it is missed), for paired comparisons
+        gt_iou = {str(g.id): 0.0 for g in seq.objects_gt}
+        gt_iou.update({str(o["gt_id"]): o["iou"] for o in m["objects"] if o["gt_id"] is not None})
         rows.append({"stage": "back end", "method": name, **m["summary"], "iterations": r.iterations,
-                     "seconds": dt, "objects_mapped": len(r.objects), "failed": len(r.failed)})
+                     "seconds": dt, "objects_mapped": len(r.objects), "failed": len(r.failed),
+                     "gt_iou": gt_iou, "ate": (m.get("ate") or {}).get("optimized")})
     front = [{"stage": "front end", "method": FRONT_END_NAMES[k], **v} for k, v in fronts.items()]
     return front + rows
 
@@ -91,6 +95,9 @@ def main() -> None:
                               for k in ("mean_iou", "mean_orientation_deg", "mean_center_error")}}
             for i in range(len(demo[0]))
         ]
+        for i, row in enumerate(mean):  # every room's objects, keyed by room and object
+            if "gt_iou" in row:
+                row["gt_iou"] = {f"{seed}/{k}": v for seed, d in zip(seeds, demo) for k, v in d[i]["gt_iou"].items()}
         show(f"demo rooms, mean over seeds {seeds}", mean)
         out["demo_mean"] = mean
     fr3 = Path(a.fr3)

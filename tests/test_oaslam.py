@@ -183,8 +183,9 @@ def test_the_shipped_fr2_desk_folder_imports():
 @pytest.mark.skipif(not FR2.is_dir(), reason="../shared/data/tum_fr2_desk is not on this machine")
 def test_fr2_desk_runs_end_to_end_without_a_degenerate_object(tmp_path, monkeypatch):
     """``spdslam run`` on the raw folder: no traceback, every output written, no object in
-    map.json with a radius below 1 mm or 1/1000 of its largest, failures listed with a
-    reason. (The IoU target of the real-sequences issue is not met yet: docs/sequences.md.)"""
+    map.json thinner than any object of its class, failures listed with a reason, and the
+    optimised trajectory no worse than ORB-SLAM2's. (The IoU target of issue 27 is not met:
+    docs/sequences.md says why.)"""
     from conftest import cli_subprocess
 
     monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path / "cache"))
@@ -196,8 +197,12 @@ def test_fr2_desk_runs_end_to_end_without_a_degenerate_object(tmp_path, monkeypa
         assert (out / f).is_file(), f
     m = json.loads((out / "map.json").read_text())
     assert m["objects"] and m["failed"]
-    for o in m["objects"]:
+    for o in m["objects"]:  # none thinner than the plausibility rule (3 mm, 0.03 of the largest)
         r = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(o["P"])), 0, None))
-        assert r[0] >= 1e-3 and r[0] >= 1e-3 * r[2], o
-        assert min(o["radii"]) >= 1e-3
+        assert r[0] >= 3e-3 and r[0] >= 0.03 * r[2], o
     assert all(isinstance(v, str) and v for v in m["failed"].values())
+    # the back end never makes its input worse: the trajectory's ATE against the motion capture
+    ate = json.loads((out / "metrics.json").read_text())["ate"]
+    assert ate["optimized"]["rmse"] <= ate["input"]["rmse"], ate
+    assert any(n.startswith("trajectory noise:") for n in m["notes"]), m["notes"]
+    assert m["settings"]["robust"] == "cauchy"  # automatic association: the robust box kernel

@@ -49,10 +49,15 @@ def _mean_iou(result, seq, by_id: bool = True) -> float:
     return evaluate_objects(result.objects, seq.objects_gt, by_id=by_id)[1]["mean_iou"]
 
 
-def test_a_final_batch_from_the_online_state_gives_the_batch_optimum(room, batch, replay):
+def test_a_final_batch_from_the_online_state_is_no_worse_than_the_batch(room, batch, replay):
     _, online, final = replay
     assert [o.id for o in final.objects] == [o.id for o in batch.objects]
-    assert final.final_cost == pytest.approx(batch.final_cost, rel=1e-6)
+    # the two optimisations start from different points and LM stops at a local minimum:
+    # since issue 27's tilted front end the batch run's start leads to one 0.1 % above the
+    # one the online state leads to (both stop on the step size); the online path must not
+    # end worse, and both must be the same map to within that
+    assert final.final_cost <= batch.final_cost * (1 + 1e-6)
+    assert final.final_cost == pytest.approx(batch.final_cost, rel=5e-3)
     # the online map alone is already near it, and as good as the batch map
     assert online.final_cost >= final.final_cost * (1 - 1e-9)
     assert abs(_mean_iou(online, room) - _mean_iou(batch, room)) <= 0.02

@@ -377,10 +377,12 @@ def test_overlapping_duplicates_and_merged_track():
     assert np.allclose(m.boxes[2], tracks[1].boxes[0]) and np.allclose(m.boxes[0], tracks[0].boxes[0])
 
 
-def test_a_doubly_detected_object_is_mapped_once():
+@pytest.mark.parametrize("screen", [True, False])
+def test_a_doubly_detected_object_is_mapped_once(screen):
     """Every box of the demo's plant detected twice (1 px apart, as a detector's duplicate
-    boxes are): automatic association keeps two tracks (they share every frame), the
-    optimisation puts them in one place, and the run maps one plant, with a note."""
+    boxes are): the screen leaves the second box out (a note says how many); without it,
+    automatic association keeps two tracks (they share every frame), the optimisation puts
+    them in one place, and the run maps one plant, with a note."""
     import dataclasses
 
     from spdslam.evaluation import evaluate_objects
@@ -391,8 +393,12 @@ def test_a_doubly_detected_object_is_mapped_once():
     dets = [dataclasses.replace(d, instance=None) for d in seq.detections]
     twice = [dataclasses.replace(d, box=np.asarray(d.box) + [1.0, -1.0, 1.0, 1.0])
              for d in dets if d.label == "plant"]
-    r = run_sequence(dataclasses.replace(seq, detections=dets + twice), "multi-spd", associate="auto")
+    r = run_sequence(dataclasses.replace(seq, detections=dets + twice), "multi-spd", associate="auto",
+                     screen=screen)
     assert [o.label for o in r.objects].count("plant") == 1
-    assert any("(plant) are one object" in n for n in r.notes)
+    if screen:
+        assert any(f"{len(twice)} duplicate" in n for n in r.notes), r.notes
+    else:
+        assert any("(plant) are one object" in n for n in r.notes)
     _, s = evaluate_objects(r.objects, seq.objects_gt, by_id=False)
     assert s["matched"] == len(seq.objects_gt) and s["duplicates"] == 0

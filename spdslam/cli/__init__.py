@@ -1,7 +1,7 @@
-"""The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``evaluate``, ``import``,
+"""The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``check``, ``evaluate``, ``import``,
 ``compare``, ``demo``, ``view``. The top layer: it may import every other package."""
 
-from . import _sequences, _simulate  # noqa: F401  (register the commands)
+from . import _check, _sequences, _simulate  # noqa: F401  (register the commands)
 from ._app import CACHE_ENV as CACHE_ENV
 from ._app import app as app
 from ._app import cache_dir as cache_dir

@@ -15,11 +15,13 @@ import typer
 from ..factors import DEFAULT_TRUNCATION_MARGIN, robust_groups
 from ..mapping import (
     ASSOCIATIONS,
+    AUTO_BOX_KERNEL,
     BOX_MODELS,
     DEFAULT_MAPPING_SIGMAS,
     METHODS,
     OBJECT_SHAPE_CHOICES,
     PARAMETERIZATIONS,
+    ROBUST_CHOICES,
     ROBUST_KERNELS,
     SUPPORT_PLANES,
     parse_keyframes,
@@ -35,9 +37,11 @@ _SIGMA_HELP = (
     f"{', '.join(sorted(DEFAULT_MAPPING_SIGMAS))} (units in docs/sequences.md)."
 )
 _ROBUST_HELP = (
-    f"Robust kernel, repeatable: KERNEL ({', '.join(ROBUST_KERNELS)}) on box and "
-    "measured-ellipsoid factors, or TYPE=KERNEL[:K] for one factor type "
-    f"({', '.join(robust_groups())})."
+    f"Robust kernel, repeatable: KERNEL ({', '.join(ROBUST_CHOICES)}) on box and "
+    f"measured-ellipsoid factors (default auto: {AUTO_BOX_KERNEL[0]} with threshold "
+    f"{AUTO_BOX_KERNEL[1]:g} when the detections are associated automatically, none with "
+    "instance ids), or TYPE=KERNEL[:K] for one factor type "
+    f"({', '.join(robust_groups())}; KERNEL one of {', '.join(ROBUST_KERNELS)})."
 )
 _METHOD_HELP = f"The back end: {', '.join(METHODS)}."
 

@@ -50,3 +50,13 @@ from ._stats import PairedComparison as PairedComparison
 from ._stats import bootstrap as bootstrap
 from ._stats import paired_comparison as paired_comparison
 from ._stats import wilson as wilson
+from ._check import BOX_CONVENTIONS as BOX_CONVENTIONS
+from ._check import CheckReference as CheckReference
+from ._check import box_iou as box_iou
+from ._check import camera_frame_offset as camera_frame_offset
+from ._check import check_findings as check_findings
+from ._check import check_sequence as check_sequence
+from ._check import interpolate_poses as interpolate_poses
+from ._check import match_detections as match_detections
+from ._check import pair_detections as pair_detections
+from ._check import reference_of_ground_truth as reference_of_ground_truth

@@ -303,6 +303,17 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
                   f"{shown(a['precision'])}, recall {shown(a['recall'])} (against the instance ids).", ""]
     if "ate" in metrics:
         lines += ["## Trajectory", "", ate_line(metrics["ate"]), ""]
+        a = metrics["ate"]
+        if a.get("input") and a.get("optimized") and a["optimized"]["rmse"] > a["input"]["rmse"]:
+            lines += [f"**The optimisation made the trajectory worse** (ATE {a['input']['rmse']:.4f} → "
+                      f"{a['optimized']['rmse']:.4f} m): the boxes moved the poses beyond the input's "
+                      "accuracy; see the trajectory noise note below and docs/sequences.md.", ""]
+    costs = map_dict.get("cost_by_factor") or {}
+    if costs:
+        total = sum(costs.values()) or 1.0
+        lines += ["## Cost at the optimum, by factor", "", "| factor | cost | share |", "| --- | --- | --- |"]
+        lines += [f"| {k} | {v:.6g} | {100 * v / total:.1f} % |" for k, v in costs.items()]
+        lines.append("")
     if "not_aligned" in metrics:
         lines += [f"Objects compared as mapped, not in the ground truth's frame: the alignment "
                   f"was not computed ({metrics['not_aligned']}).", ""]

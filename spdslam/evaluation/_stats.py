@@ -122,7 +122,10 @@ def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, see
     d = a - b
     diff = Interval(float(d.mean()), *map(float, np.quantile(ma - mb, q)), n)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = Interval(float(a.mean() / b.mean()), *map(float, np.quantile(ma / mb, q)), n)
+        r = ma / mb  # a resample whose mean of b is 0 has no ratio: left out
+        r = r[np.isfinite(r)]
+        ratio = Interval(float(a.mean() / b.mean()),
+                         *(map(float, np.quantile(r, q)) if r.size else (np.nan, np.nan)), n)
     if np.all(d == 0):
         p = 1.0
     else:

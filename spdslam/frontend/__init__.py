@@ -19,3 +19,8 @@ from ._initialization import triangulate_rays as triangulate_rays
 from ._scene import SupportPlanes as SupportPlanes
 from ._scene import estimate_support_planes as estimate_support_planes
 from ._scene import lowest_points as lowest_points
+from ._screening import SCREEN_REASONS as SCREEN_REASONS
+from ._screening import Screening as Screening
+from ._screening import screen_detections as screen_detections
+from ._screening import screen_frame as screen_frame
+from ._screening import screen_summary as screen_summary

@@ -22,6 +22,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import jaxlie
 import numpy as np
 
 from ..geometry import (
@@ -37,6 +38,7 @@ from ..geometry import (
 from ..geometry.se3 import as_pose, stack
 
 __all__ = [
+    "TILT_SIGMA",
     "InitializationError",
     "multi_initialize",
     "svd_initialize",
@@ -121,6 +123,10 @@ _YAW_STARTS = np.arange(6) * np.pi / 6
 _START_ASPECT = 1.4  # a/b of each start: a start with a = b has zero yaw gradient
 _MULTI_ITERS = 60
 _PX_SIGMA = 2.0
+#: σ (rad) of the prior that holds the multi-constraint start near upright once its tilt
+#: is set free (``multi_initialize``): of the order of the error of an up direction
+#: estimated from the cameras (docs/sequences.md gives the measurement and the choice).
+TILT_SIGMA = 0.02
 
 
 def _plane_frame(up, plane):
@@ -162,30 +168,37 @@ def _box_rays(boxes, poses, camera):
 
 
 def _multi_model(theta, frame, has_plane):
-    """θ = [u, v, w, log a, log b, log c, ψ] → Ellipsoid: axes (cosψ e1 + sinψ e2,
-    −sinψ e1 + cosψ e2, n), centre u e1 + v e2 + (w0 + c if on the plane else w) n."""
+    """θ = [u, v, w, log a, log b, log c, ψ, α, β] → Ellipsoid: axes R = Exp(α e1 + β e2)
+    [cosψ e1 + sinψ e2, −sinψ e1 + cosψ e2, n] (yaw ψ about n, then a tilt by the rotation
+    vector α e1 + β e2), centre u e1 + v e2 + h n with h = w, or on the plane
+    h = w0 + √(nᵀPn) (the object's lowest point on it)."""
     e1, e2, n, w0 = frame
-    u, v, w, la, lb, lc, psi = (theta[i] for i in range(7))
+    u, v, w, la, lb, lc, psi, alpha, beta = (theta[i] for i in range(9))
     r = jnp.exp(jnp.stack([la, lb, lc]))
     x1 = jnp.cos(psi) * e1 + jnp.sin(psi) * e2
     x2 = -jnp.sin(psi) * e1 + jnp.cos(psi) * e2
-    R = jnp.stack([x1, x2, n], axis=1)
-    h = jnp.where(has_plane, w0 + r[2], w)
+    tilt = jaxlie.SO3.exp(alpha * e1 + beta * e2).as_matrix()
+    R = tilt @ jnp.stack([x1, x2, n], axis=1)
+    half_height = jnp.sqrt(jnp.sum((r * (n @ R)) ** 2))
+    h = jnp.where(has_plane, w0 + half_height, w)
     return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
 
 
 @partial(jax.jit, static_argnames=("shape",))
-def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape):
+def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape,
+               tilt_w):
     """Batched (over starts) LM on the box residuals of the constrained model; ``mask``
-    (k, 4) weights each box edge (0: padding or truncated)."""
+    (k, 4) weights each box edge (0: padding or truncated). ``tilt_w``: the weight 1/σ of a
+    prior holding the tilt (α, β) at 0; 0 holds it exactly (the upright model)."""
     box_of = project_cuboid_box if shape == "cuboid" else project_box
+    free_tilt = tilt_w > 0
 
     def residual(theta):
         e = _multi_model(theta, frame, has_plane)
         r_box = jax.vmap(lambda T, b: box_of(e, T, camera) - b)(poses, boxes)
         r_box = (r_box / _PX_SIGMA) * mask
         r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
-        return jnp.concatenate([r_box.ravel(), r_prior])
+        return jnp.concatenate([r_box.ravel(), r_prior, tilt_w * theta[7:9]])
 
     def cost(theta):
         r = residual(theta)
@@ -197,10 +210,11 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
             r = residual(th)
             J = jax.jacfwd(residual)(th)
             J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
+            J = jnp.where(free_tilt, J, J.at[:, 7:9].set(0.0))
             H = J.T @ J
             g = J.T @ r
-            # damping isotropic per block of θ (centre, log radii, yaw), as the back end's
-            # LM (solver._lm, "isotropic"): Marquardt's diag(H) leaves a log radius whose
+            # damping isotropic per block of θ (centre, log radii, yaw and tilt), as the back
+            # end's LM (solver._lm, "isotropic"): Marquardt's diag(H) leaves a log radius whose
             # curvature vanishes undamped, and it runs to −∞ (a zero radius)
             d = jnp.diagonal(H)
             D = jnp.concatenate([jnp.full(3, jnp.max(d[:3])), jnp.full(3, jnp.max(d[3:6])), d[6:]])
@@ -227,6 +241,7 @@ def multi_initialize(
     min_views: int = 2,
     shape: str = "ellipsoid",
     truncation_margin: float | None = None,
+    tilt_sigma: float | None = TILT_SIGMA,
 ) -> Ellipsoid:
     """Multi-constraint ("Quadric-Multi") initial ellipsoid: one axis along ``up``, resting on
     ``support_plane`` (a·x + b·y + c·z + d = 0) when one is given, with the class size prior
@@ -239,6 +254,11 @@ def multi_initialize(
     ``shape="cuboid"`` fits the box of the circumscribed cuboid (box-like objects) instead of
     the ellipsoid's; the result is the cuboid's inscribed ellipsoid (radii = half-extents).
     With ``truncation_margin`` (px) box edges within it of the image border are ignored.
+
+    The fit is upright first (one axis exactly along ``up``); then, with ``tilt_sigma``
+    (rad, default ``TILT_SIGMA``), the tilt is set free under a prior of that σ and fitted
+    again from there, so that the axes are where the boxes put them rather than snapped to
+    ``up`` (None keeps the upright result).
     """
     boxes, poses = _views(boxes, poses, max(min_views, 2))
     if up is None:
@@ -271,7 +291,7 @@ def multi_initialize(
     for psi in _YAW_STARTS:
         starts.append(
             [c0 @ e1, c0 @ e2, w, np.log(r_h * np.sqrt(_START_ASPECT)),
-             np.log(r_h / np.sqrt(_START_ASPECT)), np.log(r_v), psi]
+             np.log(r_h / np.sqrt(_START_ASPECT)), np.log(r_v), psi, 0.0, 0.0]
         )
     bucket_n = 1 << int(np.ceil(np.log2(max(len(boxes), 4))))
     pad = bucket_n - len(boxes)
@@ -283,14 +303,19 @@ def multi_initialize(
     else:
         prior_log, prior_w = np.sort(np.log(np.asarray(prior_radii, dtype=float))), 1.0 / prior_sigma
     frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
-    thetas, costs = _multi_fit(
-        jnp.asarray(starts), frame_j, jnp.asarray(support_plane is not None), poses_b,
-        jnp.asarray(boxes_b), jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w,
-        shape=shape,
-    )
+    args = (frame_j, jnp.asarray(support_plane is not None), poses_b, jnp.asarray(boxes_b),
+            jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w)
+    thetas, costs = _multi_fit(jnp.asarray(starts), *args, shape=shape, tilt_w=0.0)
     costs = np.asarray(costs)
     if not np.any(np.isfinite(costs)):
         raise InitializationError("the constrained fit diverged from every start")
     best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
-    e = _multi_model(thetas[best], frame_j, support_plane is not None)
+    theta = thetas[best]
+    if tilt_sigma is not None:
+        if not (np.isfinite(tilt_sigma) and tilt_sigma > 0):
+            raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {tilt_sigma!r}")
+        tilted, tcost = _multi_fit(theta[None], *args, shape=shape, tilt_w=1.0 / float(tilt_sigma))
+        if np.isfinite(np.asarray(tcost)[0]):
+            theta = tilted[0]
+    e = _multi_model(theta, frame_j, support_plane is not None)
     return Ellipsoid(jnp.asarray(e.P), jnp.asarray(e.center))

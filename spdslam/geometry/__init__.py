@@ -33,6 +33,7 @@ from ._camera import project_dual_quadric as project_dual_quadric
 from ._camera import project_points as project_points
 from ._camera import projection_matrix as projection_matrix
 from ._camera import truncation_mask as truncation_mask
+from ._camera import distort_points as distort_points
 from ._camera import undistort_boxes as undistort_boxes
 from ._camera import undistort_points as undistort_points
 from ._cuboid import CORNER_SIGNS as CORNER_SIGNS

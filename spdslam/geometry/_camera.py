@@ -61,6 +61,7 @@ __all__ = [
     "cuboid_in_front",
     "truncation_mask",
     "undistort_points",
+    "distort_points",
     "undistort_boxes",
 ]
 
@@ -315,6 +316,20 @@ def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
             dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
             x, y = (xd - dx) / radial, (yd - dy) / radial
     return np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], axis=-1)
+
+
+def distort_points(uv, camera: Camera, distortion):
+    """The forward model of ``undistort_points``: pixels (…, 2) of a pinhole camera →
+    pixels measured through the radial-tangential distortion (k1, k2, p1, p2, k3). NumPy."""
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    uv = np.asarray(uv, dtype=float)
+    x = (uv[..., 0] - camera.cx) / camera.fx
+    y = (uv[..., 1] - camera.cy) / camera.fy
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=-1)
 
 
 def undistort_boxes(boxes, camera: Camera, distortion, samples: int = 16):

@@ -44,6 +44,7 @@ from ._readers import read_ellipsoids as read_ellipsoids
 from ._readers import read_objects_gt as read_objects_gt
 from ._readers import read_priors as read_priors
 from ._readers import read_sequence as read_sequence
+from ._readers import read_measured_boxes as read_measured_boxes
 from ._rosbag import import_rosbag as import_rosbag
 from ._sequence import ClassPrior as ClassPrior
 from ._sequence import Detection as Detection

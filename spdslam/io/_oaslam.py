@@ -62,11 +62,9 @@ COCO80 = (
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 #: Detections below this score are left out by default (YOLO's usual deployment threshold).
 DEFAULT_MIN_SCORE = 0.5
-#: σ of the trajectory's motion per frame step (m, rad) unless priors.yaml gives one: a
-#: visual SLAM's optimised trajectory (ORB-SLAM2 RGB-D on fr2_desk: about 8 mm ATE against
-#: the motion capture, ../shared/data/tum_fr2_desk/README.md), and motion capture (as the
-#: fr3_cabinet importer).
-ODOMETRY_SIGMA = (1e-3, 1e-3)
+#: σ of the trajectory's motion per frame step (m, rad) when it is the motion capture (as
+#: the fr3_cabinet importer), unless priors.yaml gives one. A visual SLAM's trajectory states
+#: none: the back end estimates it from the trajectory's jitter (``mapping._noise``).
 GROUNDTRUTH_SIGMA = (1e-4, 1e-4)
 
 
@@ -238,8 +236,8 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     ground-truth poses nearest to the images with detections).
     Detections of frames without a pose within 0.02 s are left out; boxes are undistorted;
     ``priors.yaml`` is read when present; ``up`` is estimated from the cameras
-    (``estimate_up``) and ``trajectory_sigma`` is ``ODOMETRY_SIGMA`` or
-    ``GROUNDTRUTH_SIGMA`` unless it gives them. ``undistort=False`` keeps the measured boxes
+    (``estimate_up``) and, for the ground-truth trajectory, ``trajectory_sigma`` is
+    ``GROUNDTRUTH_SIGMA`` unless it gives one. ``undistort=False`` keeps the measured boxes
     (to measure what the distortion does). The ground truth (trajectory and objects) stays
     in its own frame: the evaluation aligns the trajectory to it
     (``evaluation.to_groundtruth``)."""
@@ -283,9 +281,10 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
     objects = read_quadrics_gt(folder / "objects_gt.txt") if optional(folder, "objects_gt.txt") else None
     priors = read_priors(folder / "priors.yaml") if optional(folder, "priors.yaml") else None
-    if priors is None or priors.trajectory_sigma is None:
-        ts = ODOMETRY_SIGMA if trajectory == "odometry" else GROUNDTRUTH_SIGMA
-        priors = Priors([], None, {}, ts) if priors is None else priors.replace(trajectory_sigma=ts)
+    if priors is None:
+        priors = Priors([], None, {})
+    if priors.trajectory_sigma is None and trajectory == "groundtruth":
+        priors = priors.replace(trajectory_sigma=GROUNDTRUTH_SIGMA)
     if priors.up is None:
         try:
             up = estimate_up(traj[:, 1:])

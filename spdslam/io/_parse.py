@@ -304,7 +304,7 @@ def _scalar(node):
     return yaml.SafeLoader("").construct_object(node, deep=True)
 
 
-def _ynumber(name, node, what: str) -> float:
+def _ynumber(name, node, what: str, allow_inf: bool = False) -> float:
     import yaml
 
     if isinstance(node, yaml.ScalarNode) and node.style in ("'", '"'):
@@ -318,18 +318,19 @@ def _ynumber(name, node, what: str) -> float:
             pass
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SequenceFormatError(name, _line(node), f"a number for {what}", _kind(node))
-    if not math.isfinite(v):
-        raise SequenceFormatError(name, _line(node), f"a finite number for {what}", repr(v))
+    if not (math.isfinite(v) or (allow_inf and v == math.inf)):
+        raise SequenceFormatError(name, _line(node), f"a finite number for {what}"
+                                  + (" (or .inf)" if allow_inf else ""), repr(v))
     return float(v)
 
 
-def _yvector(name, node, n: int, what: str) -> np.ndarray:
+def _yvector(name, node, n: int, what: str, allow_inf: bool = False) -> np.ndarray:
     import yaml
 
     if not isinstance(node, yaml.SequenceNode) or len(node.value) != n:
         got = f"a list of {len(node.value)}" if isinstance(node, yaml.SequenceNode) else _kind(node)
         raise SequenceFormatError(name, _line(node), f"a list of {n} numbers for {what}", got)
-    return np.array([_ynumber(name, v, what) for v in node.value])
+    return np.array([_ynumber(name, v, what, allow_inf) for v in node.value])
 
 
 def _unknown_key(name, knode, key, allowed, where):

@@ -58,6 +58,7 @@ from ._sequence import (
 )
 
 __all__ = [
+    "read_measured_boxes",
     "read_sequence",
     "read_camera",
     "read_priors",
@@ -86,12 +87,14 @@ def read_camera(path, name: str | None = None) -> Camera:
 
 
 def read_priors(path, name: str | None = None) -> Priors:
-    """``priors.yaml``: optional keys support_planes, up, classes, trajectory_sigma."""
+    """``priors.yaml``: optional keys support_planes, up, classes, builtin_classes,
+    trajectory_sigma, trajectory_absolute_sigma."""
     path = Path(path)
     name = name or str(path)
     root = _yaml_root(path, name)
-    planes, up, classes, tsig, builtin = [], None, {}, None, True
-    allowed = ("support_planes", "up", "classes", "builtin_classes", "trajectory_sigma")
+    planes, up, classes, tsig, tabs, builtin = [], None, {}, None, None, True
+    allowed = ("support_planes", "up", "classes", "builtin_classes", "trajectory_sigma",
+               "trajectory_absolute_sigma")
     import yaml
 
     for key, knode, vnode in _mapping(name, root, "the priors"):
@@ -111,6 +114,11 @@ def read_priors(path, name: str | None = None) -> Priors:
             tsig = _yvector(name, vnode, 2, "trajectory_sigma [metres, radians]")
             if not np.all(tsig > 0):
                 raise SequenceFormatError(name, _line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
+        elif key == "trajectory_absolute_sigma":
+            tabs = _yvector(name, vnode, 2, "trajectory_absolute_sigma [metres, radians]", allow_inf=True)
+            if not np.all(tabs > 0):
+                raise SequenceFormatError(name, _line(vnode), "a positive trajectory_absolute_sigma (.inf: none)",
+                                          str(tabs.tolist()))
         elif key == "builtin_classes":
             builtin = _scalar(vnode)
             if not isinstance(builtin, bool):
@@ -145,7 +153,7 @@ def read_priors(path, name: str | None = None) -> Priors:
                 classes[label] = ClassPrior(radii, sigma, shape)
         else:
             _unknown_key(name, knode, key, allowed, "priors.yaml")
-    return Priors(planes, up, classes, tsig, builtin)
+    return Priors(planes, up, classes, tsig, builtin, tabs)
 
 
 def read_detections(path, timestamps, name: str | None = None, camera: Camera | None = None) -> list:
@@ -238,3 +246,21 @@ def read_sequence(folder) -> Sequence:
     images = read_optional("rgb.txt", read_images, folder)
     ell = read_optional("ellipsoids.txt", read_ellipsoids, traj[:, 0])
     return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images, ell)
+
+
+def read_measured_boxes(folder):
+    """(the sequence with its boxes as measured, the lens distortion (k1, k2, p1, p2, k3))
+    of a folder whose reader undistorts its boxes (the OA-SLAM layout), else None: what
+    ``spdslam check`` compares the undistorted boxes with."""
+    folder = Path(folder)
+    if not (is_oaslam_layout(folder) and not (folder / "trajectory.txt").exists()):
+        return None
+    from ._oaslam import _camera_files, read_opencv_camera
+
+    cams = _camera_files(folder)
+    if len(cams) != 1:
+        return None
+    _, dist = read_opencv_camera(cams[0])
+    if not np.any(dist):
+        return None
+    return import_oaslam(folder, undistort=False), dist

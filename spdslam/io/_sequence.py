@@ -180,8 +180,11 @@ class ClassPrior:
 @dataclass(frozen=True, eq=False)
 class Priors:
     """Scene priors: support planes ``[a, b, c, d]`` (ax + by + cz + d = 0), the up
-    direction, per-class size priors, and the accuracy of the trajectory's relative motion
-    per frame step ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: the back end's default).
+    direction, per-class size priors, and the trajectory's accuracy: of its relative motion
+    per frame step, ``trajectory_sigma = (σ_t m, σ_r rad)`` (None: estimated from the
+    trajectory itself), and of each pose, ``trajectory_absolute_sigma`` (a globally
+    consistent trajectory, e.g. a SLAM's with loop closures; None: the back end's default;
+    infinite: a free random walk, e.g. odometry that drifts).
 
     ``builtin_classes``: classes without an entry in ``classes`` take the built-in table's
     (``spdslam.io.BUILTIN_CLASSES``, typical sizes of the indoor COCO-80 classes); see
@@ -192,6 +195,7 @@ class Priors:
     classes: dict = field(default_factory=dict)
     trajectory_sigma: np.ndarray | None = None
     builtin_classes: bool = True
+    trajectory_absolute_sigma: np.ndarray | None = None
 
     def __post_init__(self):
         if self.trajectory_sigma is not None:
@@ -199,6 +203,11 @@ class Priors:
             if not (np.all(np.isfinite(ts)) and np.all(ts > 0)):
                 raise ValueError(f"trajectory_sigma must be 2 positive numbers, got {ts.tolist()}")
             object.__setattr__(self, "trajectory_sigma", ts)
+        if self.trajectory_absolute_sigma is not None:
+            ta = _frozen_array(self.trajectory_absolute_sigma, (2,))
+            if not (np.all(~np.isnan(ta)) and np.all(ta > 0)):
+                raise ValueError(f"trajectory_absolute_sigma must be 2 positive numbers (inf allowed), got {ta.tolist()}")
+            object.__setattr__(self, "trajectory_absolute_sigma", ta)
         object.__setattr__(
             self, "support_planes", [_frozen_array(p, (4,)) for p in self.support_planes]
         )
@@ -254,6 +263,10 @@ class Priors:
         if (self.trajectory_sigma is None) != (other.trajectory_sigma is None):
             return False
         if self.trajectory_sigma is not None and not _close(self.trajectory_sigma, other.trajectory_sigma):
+            return False
+        a, b = self.trajectory_absolute_sigma, other.trajectory_absolute_sigma
+        if (a is None) != (b is None) or (a is not None and not (
+                np.array_equal(np.isinf(a), np.isinf(b)) and _close(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b)))):
             return False
         return self.classes == other.classes and self.builtin_classes == other.builtin_classes
 

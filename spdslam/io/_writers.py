@@ -26,7 +26,9 @@ def _f(x) -> str:
 
 
 def _yf(x) -> str:
-    """A float PyYAML reads back as a float (it needs a dot before an exponent)."""
+    """A float PyYAML reads back as a float (it needs a dot before an exponent; .inf)."""
+    if np.isinf(x):
+        return ".inf" if x > 0 else "-.inf"
     r = _f(x)
     if "e" in r and "." not in r:
         m, e = r.split("e")
@@ -102,6 +104,8 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
             text += "builtin_classes: false\n"
         if p.trajectory_sigma is not None:
             text += f"trajectory_sigma: {_ylist(p.trajectory_sigma)}\n"
+        if p.trajectory_absolute_sigma is not None:
+            text += f"trajectory_absolute_sigma: {_ylist(p.trajectory_absolute_sigma)}\n"
         (out / "priors.yaml").write_text(text, encoding="utf-8")
     if seq.images is not None:
         lines = ["# timestamp path\n"]

@@ -13,6 +13,7 @@ from ._graph import support_plane as support_plane
 from ._keyframes import KEYFRAME_MODES as KEYFRAME_MODES
 from ._keyframes import parse_keyframes as parse_keyframes
 from ._keyframes import select_keyframes as select_keyframes
+from ._methods import AUTO_BOX_KERNEL as AUTO_BOX_KERNEL
 from ._methods import BOX_MODELS as BOX_MODELS
 from ._methods import DEFAULT_MAPPING_SIGMAS as DEFAULT_MAPPING_SIGMAS
 from ._methods import INITIALIZATIONS as INITIALIZATIONS
@@ -21,6 +22,7 @@ from ._methods import METHODS as METHODS
 from ._methods import OBJECT_SHAPE_CHOICES as OBJECT_SHAPE_CHOICES
 from ._methods import ORIENTATIONS as ORIENTATIONS
 from ._methods import PARAMETERIZATIONS as PARAMETERIZATIONS
+from ._methods import ROBUST_CHOICES as ROBUST_CHOICES
 from ._methods import ROBUST_KERNELS as ROBUST_KERNELS
 from ._methods import SHAPE_FORMS as SHAPE_FORMS
 from ._methods import Method as Method
@@ -38,13 +40,17 @@ from ._run import MAX_LOG_RADIUS_SIGMA as MAX_LOG_RADIUS_SIGMA
 from ._run import MIN_DETECTION_RATE as MIN_DETECTION_RATE
 from ._run import MIN_RADIUS as MIN_RADIUS
 from ._run import MIN_RADIUS_RATIO as MIN_RADIUS_RATIO
+from ._run import MIN_PLAUSIBLE_RADIUS as MIN_PLAUSIBLE_RADIUS
+from ._run import MIN_PLAUSIBLE_RATIO as MIN_PLAUSIBLE_RATIO
 from ._run import SUPPORT_PLANES as SUPPORT_PLANES
 from ._run import Association as Association
 from ._run import Initialization as Initialization
 from ._run import MapResult as MapResult
 from ._run import associate_tracks as associate_tracks
+from ._run import cost_by_factor as cost_by_factor
 from ._run import degenerate as degenerate
 from ._run import detection_rate as detection_rate
+from ._run import implausibly_flat as implausibly_flat
 from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects

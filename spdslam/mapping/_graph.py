@@ -3,10 +3,12 @@
 Variables: one pose T_wc per trajectory frame, key ``X(i)``, and one landmark per object,
 key ``L(id)``. Factors, in this order:
 
-- odometry: a ``PriorFactor`` on the first pose (σ ``first_pose``) and a
+- odometry: a ``PriorFactor`` on the first pose (σ ``first_pose``), a
   ``BetweenFactor(X(i), X(i+1))`` with the relative motion T_i⁻¹ T_{i+1} of the input
-  trajectory (σ per step: ``odometry_translation`` m, ``odometry_rotation`` rad): the
-  trajectory is both the odometry and the initial values;
+  trajectory (σ per step: ``odometry_translation`` m, ``odometry_rotation`` rad) and a
+  ``PriorFactor`` on every other pose at its input value (σ ``absolute_translation``,
+  ``absolute_rotation``; none when both are infinite): the trajectory is the odometry, its
+  global accuracy and the initial values (``_noise``);
 - per object, per detection, a box factor (inverse or semi-inverse) of the object's
   silhouette model, its ellipsoid or (box-like classes, ``Method.object_shape``) its
   circumscribed cuboid; inverse boxes have σ = ``inverse_box`` + ``inverse_box_relative`` ×
@@ -52,13 +54,16 @@ from ..solver import L, NonlinearFactorGraph, X
 from ._context import SequenceContext, as_context, object_shape
 from ._methods import (
     DEFAULT_MAPPING_SIGMAS,
+    INF_ALLOWED,
     RADIUS_FLOOR,
     ZERO_ALLOWED,
     Method,
     robust_kernel,
 )
+from ._noise import estimate_step_sigma
 
-__all__ = ["build_graph", "mapping_sigmas", "measured_objects", "support_plane"]
+__all__ = ["absolute_sigma", "build_graph", "mapping_sigmas", "measured_objects", "support_plane",
+           "trajectory_noise_note"]
 
 #: Cauchy threshold (whitened units) of the shape and size factors of a built-in class
 #: prior (``io.BUILTIN_CLASSES``): typical of a class, not certain for an object, and wrong
@@ -75,23 +80,60 @@ BOX_FACTORS = {
 }
 
 
-def mapping_sigmas(seq, sigmas: dict | None = None) -> dict:
-    """The sigmas in use: defaults, then the sequence's ``trajectory_sigma`` prior, then
-    ``sigmas``; unknown names are an error."""
+STEP_SIGMAS = ("odometry_translation", "odometry_rotation")
+ABSOLUTE_SIGMAS = ("absolute_translation", "absolute_rotation")
+
+
+def mapping_sigmas(seq, sigmas: dict | None = None, sources: dict | None = None) -> dict:
+    """The sigmas in use: the table's (``DEFAULT_MAPPING_SIGMAS``); for the trajectory, the
+    sequence's ``trajectory_sigma`` and ``trajectory_absolute_sigma`` priors, else σ_step
+    estimated from the trajectory's jitter (``_noise``); then ``sigmas``. Unknown names are
+    an error; the absolute sigmas may be infinite (no prior). ``sources``, when given, is
+    filled with where each trajectory sigma came from."""
     s = dict(DEFAULT_MAPPING_SIGMAS)
-    priors = as_context(seq).priors
+    ctx = as_context(seq)
+    src = dict.fromkeys(STEP_SIGMAS + ABSOLUTE_SIGMAS, "default")
+    priors = ctx.priors
     ts = None if priors is None else getattr(priors, "trajectory_sigma", None)
+    ta = None if priors is None else getattr(priors, "trajectory_absolute_sigma", None)
     if ts is not None:
         s["odometry_translation"], s["odometry_rotation"] = (float(x) for x in ts)
+        src.update(dict.fromkeys(STEP_SIGMAS, "priors.yaml"))
+    else:
+        est = estimate_step_sigma(ctx.seq.timestamps, ctx.seq.poses_tum)
+        if est is not None:
+            s["odometry_translation"], s["odometry_rotation"] = est
+            src.update(dict.fromkeys(STEP_SIGMAS, "estimated from the trajectory's jitter"))
+    if ta is not None:
+        s["absolute_translation"], s["absolute_rotation"] = (float(x) for x in ta)
+        src.update(dict.fromkeys(ABSOLUTE_SIGMAS, "priors.yaml"))
     unknown = sorted(set(sigmas or {}) - set(s))
     if unknown:
         raise ValueError(f"unknown sigma {', '.join(unknown)}; known: {', '.join(sorted(s))}")
     s.update({k: float(v) for k, v in (sigmas or {}).items()})
+    src.update({k: "--sigma" for k in (sigmas or {}) if k in src})
     bad = [k for k, v in s.items()
-           if not (np.isfinite(v) and (v > 0 or (k in ZERO_ALLOWED and v == 0)))]
+           if not ((np.isfinite(v) or (k in INF_ALLOWED and v == np.inf))
+                   and (v > 0 or (k in ZERO_ALLOWED and v == 0)))]
     if bad:
         raise ValueError(f"sigmas must be finite and positive: {', '.join(bad)}")
+    if sources is not None:
+        sources.update(src)
     return s
+
+
+def trajectory_noise_note(seq, sigmas: dict | None = None) -> str:
+    """One line: the trajectory's noise model in use and where it came from."""
+    src: dict = {}
+    s = mapping_sigmas(seq, sigmas, src)
+    step = (f"each frame step within {1e3 * s['odometry_translation']:.3g} mm and "
+            f"{1e3 * s['odometry_rotation']:.3g} mrad ({src['odometry_translation']})")
+    if np.isinf(s["absolute_translation"]) and np.isinf(s["absolute_rotation"]):
+        pose = "no bound on each pose (a drifting odometry)"
+    else:
+        pose = (f"each pose within {1e3 * s['absolute_translation']:.3g} mm and "
+                f"{1e3 * s['absolute_rotation']:.3g} mrad of the input ({src['absolute_translation']})")
+    return f"trajectory noise: {step}; {pose}"
 
 
 def measured_objects(seq) -> dict:
@@ -117,6 +159,15 @@ def support_plane(priors, e):
     return best
 
 
+def absolute_sigma(s: dict):
+    """The σ (6,) of the absolute prior on each pose, or None when both are infinite."""
+    t, r = s["absolute_translation"], s["absolute_rotation"]
+    if np.isinf(t) and np.isinf(r):
+        return None
+    big = 1e6  # an infinite component: a prior that does not hold it
+    return np.r_[np.full(3, big if np.isinf(t) else t), np.full(3, big if np.isinf(r) else r)]
+
+
 def _odometry(ctx: SequenceContext, s: dict) -> list:
     q = ctx.wxyz_xyz
     steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # T_i⁻¹ T_{i+1}
@@ -124,6 +175,9 @@ def _odometry(ctx: SequenceContext, s: dict) -> list:
     odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
     out += [BetweenFactor(X(i), X(i + 1), jaxlie.SE3(step), sigma=odo)
             for i, step in enumerate(steps)]
+    pose_sigma = absolute_sigma(s)
+    if pose_sigma is not None:
+        out += [PriorFactor(X(i), T, sigma=pose_sigma) for i, T in enumerate(ctx.poses) if i > 0]
     return out
 
 
@@ -207,16 +261,17 @@ def _with_robust_by_type(factors: list, method: Method) -> list:
 
 def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
                 sigmas: dict | None = None, measured: dict | None = None,
-                planes=None) -> NonlinearFactorGraph:
+                planes=None, odometry: bool = True) -> NonlinearFactorGraph:
     """The factor graph of a sequence (a ``Sequence`` or a ``SequenceContext``) for the
     landmarks {id: landmark value} of the tracks, with the "inverse" or "semi" box model
     (module docstring); ``measured`` the measured ellipsoids per object id (default: by
     instance id); ``planes`` the estimated ``frontend.SupportPlanes`` (each object on its
-    own plane, or on none) instead of the priors' planes."""
+    own plane, or on none) instead of the priors' planes; ``odometry=False`` leaves out the
+    trajectory's factors (poses held fixed by the caller)."""
     ctx = as_context(seq)
     s = mapping_sigmas(ctx, sigmas)
     robust = robust_kernel(method.robust, method.robust_k)
-    factors = _odometry(ctx, s)
+    factors = _odometry(ctx, s) if odometry else []
     for tr in tracks:
         if tr.id in landmarks:
             factors += _object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,

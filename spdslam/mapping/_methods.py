@@ -41,6 +41,8 @@ __all__ = [
     "ORIENTATIONS",
     "SHAPE_FORMS",
     "ROBUST_KERNELS",
+    "ROBUST_CHOICES",
+    "AUTO_BOX_KERNEL",
     "OBJECT_SHAPE_CHOICES",
     "MAPPING_SIGMAS",
     "DEFAULT_MAPPING_SIGMAS",
@@ -60,6 +62,13 @@ ORIENTATIONS = ("improved", "classic", "classic-nearest", "none")
 #: landmark's stored scales against the class's radii in their stated order).
 SHAPE_FORMS = ("sorted", "classic")
 ROBUST_KERNELS = ("none", "huber", "cauchy")
+#: ``Method.robust``: a kernel, or "auto": ``AUTO_BOX_KERNEL`` on the box factors when the
+#: detections are associated automatically, none when instance ids group them (the paper's
+#: setting). The threshold is the 95th percentile of the whitened box residuals ‖W r‖ of
+#: correctly associated boxes at the optimum (docs/sequences.md, ``benchmarks/fr2_ablation.py``):
+#: beyond it a box is more likely a wrong association, a truncation or an occlusion.
+ROBUST_CHOICES = ("auto", *ROBUST_KERNELS)
+AUTO_BOX_KERNEL = ("cauchy", 6.0)
 #: The silhouette model of every object, or "priors": per class from priors.yaml.
 OBJECT_SHAPE_CHOICES = ("priors", *OBJECT_SHAPES)
 
@@ -75,17 +84,25 @@ MAPPING_SIGMAS = {
     "classic_orientation": (0.005, "per component of ±n × m (≈ rad)"),
     "axis_orientation": (0.005, "per component of (nᵢ × m)(nᵢ·m) (≈ rad), cuboid objects"),
     "support_plane": (0.001, "m² (πᵀQ*π)"),
-    # Accuracy of the input trajectory (visual-odometry keyframes) unless the sequence's
-    # priors.yaml states its own (``trajectory_sigma``).
+    # Accuracy of the input trajectory's motion per frame step when the sequence's
+    # priors.yaml does not state it (``trajectory_sigma``) and it cannot be estimated from
+    # the trajectory's jitter (fewer than ``_noise.MIN_JITTER_TRIPLETS`` frames).
     "odometry_translation": (0.005, "m per frame step"),
     "odometry_rotation": (0.003, "rad per frame step"),
+    # Accuracy of each input pose (a loop-closed SLAM trajectory) unless priors.yaml states
+    # it (``trajectory_absolute_sigma``); inf: no bound (odometry that drifts). The value is
+    # measured (docs/sequences.md, "The trajectory's noise model").
+    "absolute_translation": (0.002, "m, each pose against its input value (inf: none)"),
+    "absolute_rotation": (0.002, "rad, each pose against its input value (inf: none)"),
     "first_pose": (1e-4, "m and rad (prior on the first pose)"),
 }
 #: The smallest floor of ``Method.radius_floor`` (m): twice the radius below which an object
 #: is reported degenerate (``mapping.MIN_RADIUS``).
-RADIUS_FLOOR = 2e-3
+RADIUS_FLOOR = 4e-3
 #: Sigmas that may be 0 (an additive relative term).
 ZERO_ALLOWED = ("inverse_box_relative", "inverse_cuboid_box_relative")
+#: Sigmas that may be infinite (a prior that is not there).
+INF_ALLOWED = ("absolute_translation", "absolute_rotation")
 
 #: The default sigmas of a run, by name (``spdslam run --sigma NAME=VALUE``).
 DEFAULT_MAPPING_SIGMAS = {
@@ -115,7 +132,9 @@ class Method:
     size: bool = True
     #: The form of the shape prior (``SHAPE_FORMS``).
     shape_form: str = "sorted"
-    robust: str = "none"
+    #: The kernel of the box and measured-ellipsoid factors (``ROBUST_CHOICES``); "auto" is
+    #: resolved by the run (``resolved``), and means none to ``build_graph`` alone.
+    robust: str = "auto"
     robust_k: float = 1.0
     #: Kernels per factor group, overriding ``robust`` (which covers box and measured-ellipsoid
     #: factors): ((group, kernel, k), ...) with group a key of ``factors.robust_groups()``.
@@ -139,7 +158,7 @@ class Method:
             ("initialization", INITIALIZATIONS),
             ("box_model", BOX_MODELS),
             ("orientation", ORIENTATIONS),
-            ("robust", ROBUST_KERNELS),
+            ("robust", ROBUST_CHOICES),
             ("object_shape", OBJECT_SHAPE_CHOICES),
             ("shape_form", SHAPE_FORMS),
         ):
@@ -175,6 +194,15 @@ class Method:
     def replace(self, **overrides) -> Method:
         return dataclasses.replace(self, **{k: v for k, v in overrides.items() if v is not None})
 
+    def resolved(self, automatic_association: bool) -> Method:
+        """The method with ``robust="auto"`` made concrete: ``AUTO_BOX_KERNEL`` with automatic
+        association, "none" with instance ids."""
+        if self.robust != "auto":
+            return self
+        if automatic_association:
+            return dataclasses.replace(self, robust=AUTO_BOX_KERNEL[0], robust_k=AUTO_BOX_KERNEL[1])
+        return dataclasses.replace(self, robust="none")
+
 
 METHODS = {
     "quadric-slam": Method(
@@ -189,20 +217,22 @@ METHODS = {
 
 
 def robust_kernel(name: str, k: float):
-    """The kernel ``name`` ("none", "huber", "cauchy") with threshold k, None for "none"."""
-    return {"huber": Huber, "cauchy": Cauchy}[name](k) if name != "none" else None
+    """The kernel ``name`` ("none", "huber", "cauchy") with threshold k, None for "none" (and
+    for an unresolved "auto", ``Method.resolved``)."""
+    return {"huber": Huber, "cauchy": Cauchy}[name](k) if name not in ("none", "auto") else None
 
 
 def check_sigma(name: str, value) -> float:
     """A run's sigma override (``--sigma NAME=VALUE``, a manifest's ``sigma``) as a float, or
     ``ValueError``: NAME one of ``DEFAULT_MAPPING_SIGMAS``, VALUE finite and positive (0 allowed
-    for the additive relative terms)."""
+    for the additive relative terms, inf for the absolute trajectory sigmas)."""
     import math
 
     if name not in DEFAULT_MAPPING_SIGMAS:
         raise ValueError(f"expected a sigma among {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got {name!r}")
     v = float(value)
-    if not (math.isfinite(v) and (v > 0 or (v == 0 and name in ZERO_ALLOWED))):
+    if not ((math.isfinite(v) or (v == math.inf and name in INF_ALLOWED))
+            and (v > 0 or (v == 0 and name in ZERO_ALLOWED))):
         raise ValueError(f"expected a finite positive value for {name}, got {value!r}")
     return v
 
@@ -224,7 +254,8 @@ def parse_robust(items, robust_k: float | None = None) -> dict:
             k = float(k) if colon else (robust_k if robust_k is not None else 1.0)
         except ValueError:
             raise ValueError(f"{k!r} is not a number (in {item!r})") from None
-        if (ftype is not None and ftype not in groups) or name not in ROBUST_KERNELS \
+        if (ftype is not None and ftype not in groups) \
+                or name not in (ROBUST_KERNELS if ftype is not None else ROBUST_CHOICES) \
                 or not (math.isfinite(k) and k > 0):
             raise ValueError(
                 f"expected KERNEL or TYPE=KERNEL[:K] with KERNEL one of {', '.join(ROBUST_KERNELS)}, "

@@ -45,7 +45,7 @@ import numpy as np
 import scipy.sparse
 
 from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
-from ..frontend import AssociationSettings, OnlineTracker, Track
+from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
 from ..io import Detection, EllipsoidDetection, Sequence
@@ -57,6 +57,7 @@ from ._graph import (
     _measurement_factors,
     _object_factors,
     _with_robust_by_type,
+    absolute_sigma,
     build_graph,
     mapping_sigmas,
 )
@@ -153,7 +154,7 @@ class OnlineMapper:
                  associate: str = "auto", window: int = 30, every: int = 10,
                  max_iterations: int = 5, min_views: int = 3, sigmas: dict | None = None,
                  association: AssociationSettings | None = None, name: str = "online",
-                 **overrides):
+                 screen: bool = True, **overrides):
         if isinstance(method, str):
             if method not in METHODS:
                 raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -169,6 +170,7 @@ class OnlineMapper:
                          ("min_views", min_views, 1)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ValueError(f"{k} must be an integer >= {lo}, got {v!r}")
+        method = method.resolved(associate == "auto")
         self.method, self.associate = method, associate
         self.window, self.every, self.min_views = int(window), int(every), int(min_views)
         self.name = name
@@ -180,6 +182,9 @@ class OnlineMapper:
         self._optimizer = LevenbergMarquardt(max_iterations=int(max_iterations))
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
+        self._screen = bool(screen)
+        self._screened: dict = {}  # reason -> [(detection number, text)], as the batch run's screen
+        self._n_detections = 0
         self._timestamps: list = []
         self._input = _Poses()  # input poses (jaxlie parameters)
         self._est = _Poses()  # current estimates
@@ -252,6 +257,13 @@ class OnlineMapper:
             if missing:
                 raise ValueError(f"frame {f}: {len(missing)} detections without an instance id "
                                  "(association by instance ids needs one on every detection)")
+        if self._screen:  # the batch run's screen (frontend.screen_detections), frame by frame
+            whys = screen_frame(dets, self._ctx0.camera, self._ctx0.priors, self.method.margin)
+            for j, why in enumerate(whys):
+                if why is not None:
+                    self._screened.setdefault(why[0], []).append((self._n_detections + j, why[1]))
+            self._n_detections += len(dets)
+            dets = [d for d, why in zip(dets, whys) if why is None]
         if f == 0:
             est = wxyz
         else:
@@ -461,6 +473,9 @@ class OnlineMapper:
         for i in range(max(start, 1), n):
             step = self._input[i - 1].inverse() @ self._input[i]
             factors.append(BetweenFactor(X(i - 1), X(i), step, sigma=odo))
+        pose_sigma = absolute_sigma(self._sigmas)
+        if pose_sigma is not None:
+            factors += [PriorFactor(X(i), self._input[i], sigma=pose_sigma) for i in range(max(start, 1), n)]
         active = sorted(k for k in self.landmarks if self._pending.get(k) or self._pending_meas.get(k))
         for k in active:
             factors += self._object_graph(k, self._pending.get(k, []) + self._pending_meas.get(k, []), True)
@@ -628,9 +643,12 @@ class OnlineMapper:
         labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
         notes = list(self.notes) + ([f"{short} tentative tracks with fewer than {need} detections "
                                      "discarded"] if short else [])
+        if self._screened:
+            notes.append(screen_summary(self._screened, self._n_detections))
         record = {"mode": "online-" + self.associate}
         return map_result(self.method, graph, values, labels, dict(self._initial), seq.timestamps,
-                          failed, notes, record, res.iterations, res.initial_cost, res)
+                          failed, notes, record, res.iterations, res.initial_cost, res,
+                          priors=seq.priors)
 
 
 class _Unchanged:

@@ -30,6 +30,7 @@ from ..frontend import (
     association_scores,
     estimate_support_planes,
     multi_initialize,
+    screen_detections,
     svd_initialize,
     tracks_from_instances,
 )
@@ -45,10 +46,10 @@ from ..geometry import (
 )
 from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
-from ..io import MapObject, Sequence
+from ..io import MapObject, Sequence, class_prior
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
-from ._graph import build_graph, measured_objects, support_plane
+from ._graph import build_graph, measured_objects, support_plane, trajectory_noise_note
 from ._keyframes import parse_keyframes, select_keyframes
 from ._methods import METHODS, Method
 
@@ -58,6 +59,8 @@ __all__ = [
     "Initialization",
     "MapResult",
     "associate_tracks",
+    "cost_by_factor",
+    "implausibly_flat",
     "initialize",
     "initialize_objects",
     "initialize_from_measurements",
@@ -92,6 +95,9 @@ class MapResult:
     #: how detections were grouped: {"mode": "instances" | "auto" | "given"}, with automatic
     #: association's precision and recall against the instance ids when they exist
     association: dict = field(default_factory=lambda: {"mode": "instances"})
+    #: the final cost of each factor kind, {kind: ½ Σ ρ(‖W r‖²)}: which constraint the
+    #: optimum pays for
+    costs: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """The content of map.json."""
@@ -108,6 +114,7 @@ class MapResult:
             "failed": {str(k): v for k, v in self.failed.items()},
             "notes": list(self.notes),
             "association": dict(self.association),
+            "cost_by_factor": {k: float(v) for k, v in self.costs.items()},
         }
 
 
@@ -236,14 +243,14 @@ def _summary_jacobian(lm):
     return jax.jacfwd(lambda d: _summary(lm, d))(jnp.zeros(manifold.tangent_dim(lm)))
 
 
-def object_uncertainty(graph, values, ids) -> dict:
+def object_uncertainty(graph, values, ids, fixed=()) -> dict:
     """{id: {"center_sigma": [3] (m, along the world axes), "center_sigma_max" (m, along
     the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first)}}
     from the marginal covariance Σ of each landmark L(id) at ``values``
     (``solver.marginal_covariances``), propagated as J Σ Jᵀ with J the Jacobian of
     (centre, log sorted radii) in the landmark's chart. An object whose block
-    is not determined gets ``inf``."""
-    cov = marginal_covariances(graph, values, [L(k) for k in ids])
+    is not determined gets ``inf``. ``fixed`` keys are held (the poses of a held trajectory)."""
+    cov = marginal_covariances(graph, values, [L(k) for k in ids], fixed=fixed)
     out = {}
     for k in ids:
         lm, S = values[L(k)], cov[L(k)]
@@ -262,7 +269,7 @@ def object_uncertainty(graph, values, ids) -> dict:
     return out
 
 
-def mapped_uncertainty(graph, values, ids) -> dict:
+def mapped_uncertainty(graph, values, ids, fixed=()) -> dict:
     """``object_uncertainty`` of the objects that are not degenerate (``degenerate``), from
     the graph without the degenerate ones and their factors: a degenerate object (reported,
     not mapped) can make the joint information singular, which would leave every object's
@@ -271,7 +278,7 @@ def mapped_uncertainty(graph, values, ids) -> dict:
     return object_uncertainty(
         NonlinearFactorGraph([f for f in graph if not flat.intersection(f.keys)]),
         Values({k: values[k] for k in values if k not in flat}),
-        [k for k in ids if L(k) not in flat])
+        [k for k in ids if L(k) not in flat], fixed)
 
 
 def poorly_observed(u: dict | None) -> str:
@@ -309,6 +316,31 @@ def degenerate(e, min_radius: float = MIN_RADIUS, min_ratio: float = MIN_RADIUS_
     r = np.sqrt(np.clip(np.linalg.eigvalsh(0.5 * (P + P.T)), 0.0, None))
     if r[0] < min_radius or r[0] < min_ratio * r[2]:
         return f"radii {r[0]:.3g}, {r[1]:.3g}, {r[2]:.3g} m"
+    return ""
+
+
+#: An object is implausibly flat when its smallest radius is below this (m) …
+MIN_PLAUSIBLE_RADIUS = 3e-3
+#: … or below this fraction of its largest, unless its class prior is itself that flat
+#: (``implausibly_flat``).
+MIN_PLAUSIBLE_RATIO = 0.03
+
+
+def implausibly_flat(e, prior=None) -> str:
+    """Why the ellipsoid ``e`` is thinner than any object of its class ("" if it is not):
+    its smallest radius below ``MIN_PLAUSIBLE_RADIUS`` or below ``MIN_PLAUSIBLE_RATIO`` of its
+    largest. A class prior (``ClassPrior``, semi-axes a ≥ b ≥ c) that is flatter allows half
+    of its own c and c/a: a sheet of paper may be thinner than 3 mm."""
+    P = np.asarray(e.P, float)
+    r = np.sqrt(np.clip(np.linalg.eigvalsh(0.5 * (P + P.T)), 0.0, None))
+    min_r, min_ratio = MIN_PLAUSIBLE_RADIUS, MIN_PLAUSIBLE_RATIO
+    if prior is not None:
+        c = np.sort(np.asarray(prior.radii, float))
+        min_r, min_ratio = min(min_r, 0.5 * c[0]), min(min_ratio, 0.5 * c[0] / c[2])
+    if r[0] < min_r or r[0] < min_ratio * r[2]:
+        return (f"flat (radii {r[2]:.3g}, {r[1]:.3g}, {r[0]:.3g} m: the smallest below "
+                f"{1e3 * min_r:.3g} mm or {min_ratio:.3g} of the largest), thinner than any object "
+                "of its class: the boxes do not fix its thickness")
     return ""
 
 
@@ -528,6 +560,8 @@ def run_sequence(
     verbose: bool = False,
     progress: Callable[[str], Any] | None = None,
     tolerance: float = 1e-6,
+    hold_trajectory: bool = False,
+    screen: bool = True,
     **overrides,
 ) -> MapResult:
     """Initialise and jointly optimise a sequence with a named method (or a :class:`Method`);
@@ -544,7 +578,10 @@ def run_sequence(
     from the initial objects or from the objects optimised without planes
     (``frontend.estimate_support_planes``; then optimised again with them).
     ``progress(message)`` is called at each stage and after each LM iteration; ``tolerance``:
-    LM's relative decrease at which it stops.
+    LM's relative decrease at which it stops. ``hold_trajectory``: the poses are held at
+    their input values (objects only; no odometry factors). ``screen``: detections that
+    cannot be a box of an object are left out first (``frontend.screen_detections``), with
+    a note. A method's ``robust="auto"`` is resolved by the association (``Method.resolved``).
     """
     say = progress or (lambda message: None)
     if isinstance(method, str):
@@ -558,13 +595,24 @@ def run_sequence(
         kept = select_keyframes(seq.poses_tum, keyframes)
         say(f"keyframes ({keyframes}): {kept.size} of {len(seq)} frames")
         seq = seq.subset(kept)
+    screened = None
+    if screen and tracks is None:
+        screened = screen_detections(seq, method.margin)
+        seq = screened.sequence
+        say(screened.summary())
     ctx = SequenceContext.of(seq)
     say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
     association = associate_tracks(ctx, tracks, associate)
+    method = method.resolved(association.record.get("mode") == "auto")
     say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
     if support_planes not in SUPPORT_PLANES:
         raise ValueError(f"support_planes must be one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
     front = initialize(ctx, association, method, min_views, support_planes)
+    front.notes.insert(0, "trajectory held at the input poses" if hold_trajectory
+                       else trajectory_noise_note(ctx, sigmas))
+    if screened is not None and screened.counts():
+        front.notes.insert(1, screened.summary())
+    say(front.notes[0])
     say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
     landmarks = {k: _landmark(e, method) for k, e in front.ellipsoids.items()}
@@ -584,14 +632,15 @@ def run_sequence(
                                    callback=each_iteration if progress else None)
     total_it, first_cost, res, graph = 0, None, None, None
     planes = front.planes
+    fixed = [X(i) for i in range(len(ctx.poses))] if hold_trajectory else []
 
     def optimise(stage: str, what: str) -> None:
         """Build the graph of the current tracks, landmarks and planes; optimise ``values``."""
         nonlocal graph, res, values, total_it, first_cost, landmarks
         graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                            planes)
+                            planes, odometry=not hold_trajectory)
         say(f"optimisation ({what}): {len(values)} variables, {len(graph)} factors")
-        res = optimizer.optimize(graph, values)
+        res = optimizer.optimize(graph, values, fixed=fixed)
         values = res.values
         total_it += res.iterations
         first_cost = res.initial_cost if first_cost is None else first_cost
@@ -618,19 +667,20 @@ def run_sequence(
 
     say("uncertainty: marginal covariances of the objects")
     return map_result(method, graph, values, labels, front.ellipsoids, seq.timestamps,
-                      front.failed, front.notes, association.record, total_it, first_cost, res)
+                      front.failed, front.notes, association.record, total_it, first_cost, res,
+                      fixed=fixed, priors=ctx.priors)
 
 
 def map_result(method: Method, graph, values, labels: dict, initial: dict, timestamps,
                failed: dict, notes: list, association: dict, iterations: int,
-               initial_cost: float, res) -> MapResult:
+               initial_cost: float, res, fixed=(), priors=None) -> MapResult:
     """The ``MapResult`` of an optimised graph: the objects L(id) of ``labels`` {id: label}
     in ``values`` with their uncertainty (``mapped_uncertainty``), those degenerate or
     poorly observed moved to the failures; the poses X(0…) as TUM rows with ``timestamps``;
     ``initial`` {id: Ellipsoid} the front end's objects; ``res`` the last optimisation's
     result (final cost, convergence)."""
     ids = sorted(k for k in labels if L(k) in values)
-    spread = mapped_uncertainty(graph, values, ids)
+    spread = mapped_uncertainty(graph, values, ids, fixed)
     objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k)) for k in ids]
     first = [MapObject(k, labels[k], initial[k]) for k in sorted(initial)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(timestamps))])
@@ -639,13 +689,24 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
     kept = []
     for o in objects:  # reported, not mapped: an object whose extent the data do not fix
         why = degenerate(o.ellipsoid)
+        flat = implausibly_flat(o.ellipsoid, class_prior(priors, o.label))
         if why:
             failed[o.id] = f"degenerate after the optimisation ({why}): the boxes do not fix its extent"
+        elif flat:
+            failed[o.id] = f"poorly observed: {flat}"
         elif poorly_observed(o.uncertainty):
             failed[o.id] = f"poorly observed ({poorly_observed(o.uncertainty)})"
         else:
             kept.append(o)
     return MapResult(
         method, kept, first, poses_out, iterations, initial_cost, res.final_cost,
-        res.converged, res.reason, failed, list(notes), association,
+        res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values),
     )
+
+
+def cost_by_factor(graph, values) -> dict:
+    """{factor kind: its part of the cost at ``values``}, in the graph's order of kinds."""
+    kinds: dict = {}
+    for f in graph:
+        kinds.setdefault(f.kind, []).append(f)
+    return {k: float(NonlinearFactorGraph(fs).error(values)) for k, fs in kinds.items()}

@@ -590,8 +590,10 @@ def make_room_sequence(
         support_planes=[[0.0, 0.0, 1.0, 0.0]],
         up=[0.0, 0.0, 1.0],
         classes={n: ClassPrior(ROOM_CLASSES[n], PRIOR_SIGMA, object_shape) for n in present},
-        # the generator knows how accurate its odometry is (a floor keeps σ > 0 at drift 0)
+        # the generator knows how accurate its odometry is (a floor keeps σ > 0 at drift 0):
+        # a random walk with no loop closure, so no bound on each pose
         trajectory_sigma=[max(drift, 1e-4), max(drift / 2, 1e-4)],
+        trajectory_absolute_sigma=[np.inf, np.inf],
     )
     return Sequence(
         name=name,
