@@ -250,7 +250,7 @@ def ate_line(ate: dict) -> str:
 
     def one(key):
         a = ate.get(key)
-        return f"{a['rmse']:.4f} m" if a else f"not computed ({why.get(key, 'no ground truth')})"
+        return f"{1e3 * a['rmse']:.2f} mm" if a else f"not computed ({why.get(key, 'no ground truth')})"
 
     opt = ate.get("optimized")
     pairs = f" ({opt['pairs']} poses)" if opt else ""
@@ -305,8 +305,8 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
         lines += ["## Trajectory", "", ate_line(metrics["ate"]), ""]
         a = metrics["ate"]
         if a.get("input") and a.get("optimized") and a["optimized"]["rmse"] > a["input"]["rmse"]:
-            lines += [f"**The optimisation made the trajectory worse** (ATE {a['input']['rmse']:.4f} → "
-                      f"{a['optimized']['rmse']:.4f} m): the boxes moved the poses beyond the input's "
+            lines += [f"**The optimisation made the trajectory worse** (ATE {1e3 * a['input']['rmse']:.2f} → "
+                      f"{1e3 * a['optimized']['rmse']:.2f} mm): the boxes moved the poses beyond the input's "
                       "accuracy; see the trajectory noise note below and docs/sequences.md.", ""]
     costs = map_dict.get("cost_by_factor") or {}
     if costs:
