@@ -179,7 +179,7 @@ def test_demo_ate_equals_evo(demo, key, est):
 def test_demo_report_quotes_the_evo_figure(demo):
     theirs, _, _ = evo_ate(demo / "sequence/groundtruth.txt", demo / "run/trajectory.txt")
     report = (demo / "run" / "report.md").read_text(encoding="utf-8")
-    assert f"optimised {theirs['rmse']:.4f} m ({FRAMES} poses)" in report
+    assert f"optimised {1e3 * theirs['rmse']:.2f} mm ({FRAMES} poses)" in report
 
 
 def test_demo_alignment_equals_evo(demo):
@@ -247,7 +247,7 @@ def test_evaluate_against_gappy_ground_truth_at_another_rate(demo, tmp_path, rng
         assert ate[key]["pairs"] == ia.size
         assert_same_ate(ate[key], theirs)
     report = (run / "report.md").read_text(encoding="utf-8")
-    assert f"optimised {ate['optimized']['rmse']:.4f} m ({ia.size} poses)" in report
+    assert f"optimised {1e3 * ate['optimized']['rmse']:.2f} mm ({ia.size} poses)" in report
 
 
 # --------------------------------------------------------------------------- synthetic
