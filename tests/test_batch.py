@@ -41,7 +41,8 @@ jobs:
     assert jobs[0].sequence == tmp_path / "seqs" / "a"
     assert jobs[0].settings == {"max_iterations": 40, "sigma": {"inverse_box": 3.0}}
     assert jobs[2].settings["max_iterations"] == 7
-    assert jobs[2].settings["online"] == {"window": 12, "every": 10, "iterations": 5, "final_batch": True}
+    assert jobs[2].settings["online"] == {"window": 12, "every": 10, "iterations": 5, "final_batch": True,
+                                          "warmup": False}
     assert jobs[2].settings["robust"] == ["huber"]
     assert [j.line for j in jobs] == [5, 5, 7]
 

@@ -231,3 +231,20 @@ def test_run_online_cli_refuses_what_it_cannot_do(tmp_path, room, args, message)
     r = cli_invoke("run", str(seq_dir), "--online", "--out", str(out), *args)
     assert_cli_error(r, message)
     assert not out.exists()
+
+
+def test_warmup_compiles_ahead_and_leaves_the_mapper_unchanged():
+    """``OnlineMapper.warmup`` replays another sequence through a twin mapper: the mapper
+    itself has no frames afterwards, and the twin's factor kinds have programs for the
+    sizes reached and two doublings beyond."""
+    from spdslam.solver._problem import group_kernels
+
+    seq = make_room_sequence(1, 40, 4)
+    mapper = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="auto", window=10, every=5)
+    before = {id(gk): set(gk.sizes) for gk in group_kernels()}
+    seconds = mapper.warmup(make_room_sequence(2, 40, 6, camera=seq.camera))
+    assert seconds > 0 and len(mapper) == 0 and not mapper.landmarks and not mapper.records
+    grown = [gk for gk in group_kernels() if "box" in gk.cost.__name__
+             and gk.sizes - before.get(id(gk), set())]
+    assert grown  # the replay's box programs, and two doublings of the largest size
+    assert any(max(gk.sizes) // 2 in gk.sizes and max(gk.sizes) // 4 in gk.sizes for gk in grown)

@@ -166,3 +166,30 @@ def test_simulate_protocol_options(tmp_path):
         lines = res.stderr.splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"spdslam: error: {option}:"), res.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_a_study_in_chunks_is_the_study_in_one_batch(monkeypatch):
+    """``run_study(chunk=…)`` solves a few problems at a time (bounded memory) and gives the
+    same columns, histories and trials.csv fields as one batch; histories are kept for the
+    first ``HISTORY_TRIALS`` trials of each cell only."""
+    from spdslam.experiments import _study
+
+    cfg = StudyConfig(trials=5, angles=(60.0, 120.0), noise=("M",), models=("inv",),
+                      params=("O", "S"), max_iters=30)
+    whole = run_study(cfg)
+    parts = run_study(cfg, chunk=3)
+    assert whole.timings["chunks"] == 1 and parts.timings["chunks"] == 4
+    for k in _study.CSV_COLUMNS:
+        if k != "seconds":
+            np.testing.assert_array_equal(whole.columns[k], parts.columns[k], err_msg=k)
+    for key in whole.histories:
+        np.testing.assert_array_equal(whole.histories[key], parts.histories[key])
+    monkeypatch.setattr(_study, "HISTORY_TRIALS", 2)
+    capped = run_study(cfg, chunk=4)
+    angle, _ = _study.history_labels(cfg)
+    assert capped.histories[("inv", "O")].shape == (4, cfg.max_iters + 1) and len(angle) == 4
+    np.testing.assert_array_equal(capped.histories[("inv", "O")],
+                                  whole.histories[("inv", "O")][[0, 1, 5, 6]])
+    assert len(capped) == len(whole) == 20
+    with pytest.raises(ValueError, match="chunk"):
+        run_study(cfg, chunk=0)

@@ -2,7 +2,7 @@
 
 A single typer application, :data:`app`. Commands are plain functions registered with
 ``@app.command()`` in the modules of this package (``_simulate``: ``simulate``;
-``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``, ``view``).
+``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``, ``view``, ``warmup``).
 Conventions:
 
 * bad user input -> :func:`fail` (one line on stderr, exit status 2);
@@ -28,16 +28,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from .._cache import CACHE_ENV, CACHE_OFF, DEFAULT_CACHE_DIR, cache_dir, enable_compilation_cache  # noqa: F401
 from .._version import __version__
-
-#: Environment variable naming the JAX compilation-cache directory; ``off`` turns it off.
-CACHE_ENV = "SPDSLAM_CACHE_DIR"
-#: Values of :data:`CACHE_ENV` that turn the persistent cache off.
-CACHE_OFF = ("off", "0", "none", "false")
-#: Default JAX compilation-cache directory.
-DEFAULT_CACHE_DIR = Path("~/.cache/spdslam/jax")
-#: Only compilations that took at least this long are written to the persistent cache.
-CACHE_MIN_COMPILE_SECS = 0.1
 
 app = typer.Typer(
     name="spdslam",
@@ -122,39 +114,6 @@ def check_output(out: Path, inputs=(), option: str = "--out") -> None:
             os.rmdir(tempfile.mkdtemp(prefix=".spdslam-probe-", dir=anc))
         except OSError as e:
             fail(f"{option}: cannot write {out}: {anc} does not let a folder be made ({e.strerror or e})")
-
-
-def cache_dir() -> Path:
-    """The configured JAX compilation-cache directory (not necessarily existing)."""
-    raw = os.environ.get(CACHE_ENV) or str(DEFAULT_CACHE_DIR)
-    return Path(raw).expanduser()
-
-
-def enable_compilation_cache(path: Path | None = None) -> Path | None:
-    """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`).
-
-    Returns the directory used, or ``None`` when it is turned off (``SPDSLAM_CACHE_DIR=off``)
-    or could not be created or configured; never raises.
-    """
-    if path is None:
-        if os.environ.get(CACHE_ENV, "").strip().lower() in CACHE_OFF:
-            return None
-        path = cache_dir()
-    path = Path(path).expanduser()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        if not os.access(path, os.W_OK):
-            return None
-    except OSError:
-        return None
-    try:
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", str(path))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_SECS)
-    except Exception:  # noqa: BLE001 - the cache is an optimisation, never fatal
-        return None
-    return path
 
 
 def cholmod_available() -> bool:

@@ -30,7 +30,7 @@ from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, 
                    console, err_console, fail, open_engine)
 from ._simulate import _split
 
-__all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "DEMO_MARKER"]
+__all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup", "DEMO_MARKER"]
 
 _SIGMA_HELP = (
     "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); NAME one of "
@@ -218,6 +218,7 @@ def run(
     window: int = typer.Option(30, min=2, help="--online: frames whose poses the fixed-lag problem keeps free."),
     every: int = typer.Option(10, min=1, help="--online: frames between optimisations."),
     online_iterations: int = typer.Option(5, min=1, help="--online: LM iterations per optimisation."),
+    warmup_first: bool = typer.Option(False, "--warmup", help="--online: compile before the first frame (a synthetic room replayed with this camera; OnlineMapper.warmup), as a live mapper would, so that latency.csv holds no compilation."),
     final_batch: bool = typer.Option(True, "--final-batch/--no-final-batch", help="--online: after the last frame, one batch optimisation of every frame and view from the online state (--max-iterations); without it the map is the online estimates."),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
@@ -251,7 +252,7 @@ def run(
         if support_planes != "priors":
             fail("--online: support planes come from the priors only; --support-planes must be priors")
         online_settings = {"window": window, "every": every, "iterations": online_iterations,
-                           "final_batch": final_batch}
+                           "final_batch": final_batch, "warmup": warmup_first}
     check_output(out, [sequence])
     if rerun is not None:
         _check_recording(rerun, "--rerun")
@@ -596,3 +597,40 @@ def view(
     if seq is None:
         err_console.print("no --sequence: the recording has no camera image view, detections or ground truth")
     _write_recording(recording, "--out", objects, poses, seq, m.get("to_groundtruth"), images)
+
+
+@app.command()
+def warmup(
+    sequence: Path | None = typer.Argument(None, help="A sequence whose camera and priors to warm up for (default: the demo room's)."),
+    method: str = typer.Option("multi-spd", help=_METHOD_HELP),
+    frames: int = typer.Option(300, min=3, help="Frames of the synthetic room replayed online."),
+    objects: int = typer.Option(40, min=1, help="Objects in that room."),
+) -> None:
+    """Compile ahead, into the compilation cache (SPDSLAM_CACHE_DIR): the batch run of the
+    demo room (`spdslam run`'s programs) and an online replay of a synthetic room with the
+    camera and priors of SEQUENCE (`spdslam run --online` and OnlineMapper's). A later
+    process loads the programs instead of compiling them (docs/performance.md, "Compilation")."""
+    import time
+
+    from .._cache import ensure_compilation_cache
+    from ..mapping import OnlineMapper, run_sequence
+    from ..synthetic import make_room_sequence
+
+    if method not in METHODS:
+        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    where = ensure_compilation_cache()
+    if where is None:
+        fail("the compilation cache is off (SPDSLAM_CACHE_DIR=off) or cannot be written: nothing to warm up")
+    t0 = time.perf_counter()
+    demo = make_room_sequence(0)
+    base = _load_sequence(sequence) if sequence is not None else demo
+    run_sequence(demo, method)
+    console.print(f"warmup: batch run of the demo room, {time.perf_counter() - t0:.1f} s")
+    room = make_room_sequence(0, frames, objects, camera=base.camera, truncation=True)
+    try:
+        mapper = OnlineMapper(base.camera, base.priors, method, associate="auto")
+    except ValueError as e:
+        fail(f"--method: {e}")
+    seconds = mapper.warmup(room)
+    console.print(f"warmup: online replay of a {frames}-frame room with {objects} objects, {seconds:.1f} s; "
+                  f"cache {where}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import typer
@@ -134,8 +135,14 @@ def simulate(
     ) as bar:  # fmt: skip
         task = bar.add_task("scenes", total=n_struct + 1)
 
+        said = [0.0]
+
         def progress(stage: str, done: int, total: int) -> None:
             bar.update(task, completed=done, total=total, description=f"solved {stage}" if done > 1 else stage)
+            # without a terminal the bar is not drawn: a line at most every 30 s instead
+            if not console.is_terminal and (time.monotonic() - said[0] >= 30 or done == total):
+                said[0] = time.monotonic()
+                console.print(f"simulate: {done}/{total} ({'solved ' if done > 1 else ''}{stage})")
 
         if engine is None:
             result = run_study(cfg, progress)

@@ -54,6 +54,20 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> Interval:
     return Interval(p, low, high, n)
 
 
+#: Resampled indices drawn at a time (``_resamples``): about 32 MB.
+_RESAMPLE_BLOCK = 4_000_000
+
+
+def _resamples(n: int, resamples: int, seed: int):
+    """The bootstrap's index arrays (k, n), ``resamples`` rows in all, in blocks of at most
+    ``_RESAMPLE_BLOCK`` entries: the same indices as one (resamples, n) draw from
+    ``default_rng(seed)``, in bounded memory."""
+    rng = np.random.default_rng(seed)
+    rows = max(1, _RESAMPLE_BLOCK // max(n, 1))
+    for lo in range(0, resamples, rows):
+        yield rng.integers(0, n, size=(min(rows, resamples - lo), n))
+
+
 def bootstrap(
     x,
     statistic=np.mean,
@@ -69,9 +83,7 @@ def bootstrap(
     x = x[np.isfinite(x)]
     if x.size == 0:
         return Interval(float("nan"), float("nan"), float("nan"), 0)
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, x.size, size=(resamples, x.size))
-    boot = statistic(x[idx], axis=1)
+    boot = np.concatenate([statistic(x[idx], axis=1) for idx in _resamples(x.size, resamples, seed)])
     a = (1 - confidence) / 2
     lo, hi = np.quantile(boot, [a, 1 - a])
     return Interval(float(statistic(x)), float(lo), float(hi), int(x.size))
@@ -115,9 +127,8 @@ def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, see
     nan = Interval(float("nan"), float("nan"), float("nan"), n)
     if n == 0:
         return PairedComparison(0, np.nan, np.nan, nan, nan, np.nan, np.nan, np.nan)
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, n, size=(resamples, n))
-    ma, mb = a[idx].mean(axis=1), b[idx].mean(axis=1)
+    means = [(a[idx].mean(axis=1), b[idx].mean(axis=1)) for idx in _resamples(n, resamples, seed)]
+    ma, mb = (np.concatenate(m) for m in zip(*means))
     q = [(1 - confidence) / 2, (1 + confidence) / 2]
     d = a - b
     diff = Interval(float(d.mean()), *map(float, np.quantile(ma - mb, q)), n)

@@ -46,10 +46,13 @@ JOB_SETTINGS = {
     "robust_k": "a positive number",
     "class_table": "true or false",
     "overlay": "true or false",
-    "online": "false, true or a mapping window/every/iterations/final_batch",
+    "online": "false, true or a mapping window/every/iterations/final_batch/warmup",
 }
 #: ``online``'s keys and defaults (``spdslam run --online``'s).
-ONLINE_DEFAULTS = {"window": 30, "every": 10, "iterations": 5, "final_batch": True}
+ONLINE_DEFAULTS = {"window": 30, "every": 10, "iterations": 5, "final_batch": True, "warmup": False}
+#: The synthetic room an online run with ``warmup`` replays first (``OnlineMapper.warmup``):
+#: frames and objects, seen with the sequence's camera.
+WARMUP_ROOM = (300, 40)
 
 
 @dataclass(frozen=True)
@@ -169,8 +172,8 @@ def _settings(name, pairs, where: str) -> dict:
             if isinstance(v, yaml.MappingNode):
                 on = dict(ONLINE_DEFAULTS)
                 for ok, okn, ov in _mapping(name, v, "online"):
-                    if ok == "final_batch":
-                        on[ok] = boolean(ov, "online final_batch")
+                    if ok in ("final_batch", "warmup"):
+                        on[ok] = boolean(ov, f"online {ok}")
                     elif ok in ONLINE_DEFAULTS:
                         on[ok] = positive_int(ov, f"online {ok}", 2 if ok == "window" else 1)
                     else:
@@ -291,7 +294,7 @@ def map_sequence(seq, method: str, *, online: dict | None = None, max_iterations
                  **overrides):
     """Map a sequence as ``spdslam run`` does: (``MapResult``, the online run's
     ``FrameRecord``s or None). ``online``: ``run_online``'s window, every, iterations
-    (per optimisation) and final_batch; without it one batch optimisation
+    (per optimisation), final_batch and warmup (a ``WARMUP_ROOM`` replayed first); without it one batch optimisation
     (``run_sequence``). The other keywords are ``Method`` overrides (None: the method's)."""
     from ..mapping import run_online, run_sequence
 
@@ -301,10 +304,15 @@ def map_sequence(seq, method: str, *, online: dict | None = None, max_iterations
                             associate=associate, keyframes=keyframes,
                             support_planes=support_planes, progress=progress, **overrides), None
     on = {**ONLINE_DEFAULTS, **online}
+    warmup = None
+    if on["warmup"]:
+        from ..synthetic import make_room_sequence
+
+        warmup = make_room_sequence(0, *WARMUP_ROOM, camera=seq.camera, truncation=True)
     return run_online(seq, method, associate=associate, sigmas=sigma or {},
                       final_iterations=max_iterations, progress=progress, window=on["window"],
                       every=on["every"], max_iterations=on["iterations"],
-                      final_batch=on["final_batch"], **overrides)
+                      final_batch=on["final_batch"], warmup=warmup, **overrides)
 
 
 def latency_writer(seq, records):

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluation import dumps_strict
-from ._study import StudyResult
+from ._study import StudyResult, history_labels
 from ._summary import CSV_COLUMNS, summarize, table_markdown
 
 __all__ = ["plot_convergence", "write_outputs"]
@@ -20,8 +20,7 @@ def plot_convergence(result: StudyResult, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     cfg = result.config
-    angle_lab = np.repeat([a for a, _ in cfg.cells], cfg.trials)
-    noise_lab = np.repeat([n for _, n in cfg.cells], cfg.trials)
+    angle_lab, noise_lab = history_labels(cfg)
     fig, axes = plt.subplots(
         len(cfg.angles), len(cfg.noise), figsize=(4.2 * len(cfg.noise), 3.4 * len(cfg.angles)),
         squeeze=False, sharex=True,
@@ -74,14 +73,34 @@ def write_outputs(result: StudyResult, out: Path) -> dict:
     def csv(path):
         with open(path, "w") as f:
             f.write(",".join(CSV_COLUMNS) + "\n")
-            for r in result.rows:
-                f.write(",".join(_fmt(r[c]) for c in CSV_COLUMNS) + "\n")
+            C, n = result.columns, len(result)
+            for lo in range(0, n, _CSV_BLOCK):  # formatted a block of rows at a time
+                cols = [_format_column(C[c][lo:lo + _CSV_BLOCK], C["success"][lo:lo + _CSV_BLOCK], c)
+                        for c in CSV_COLUMNS]
+                f.writelines(",".join(fields) + "\n" for fields in zip(*cols))
 
     atomic("trials.csv", csv)
     atomic("table.md", lambda p: p.write_text(table_markdown(summary)))
     atomic("convergence.png", lambda p: plot_convergence(result, p))
     atomic("summary.json", lambda p: p.write_text(dumps_strict(summary)))
     return summary
+
+
+_CSV_BLOCK = 65536
+
+
+def _format_column(values: np.ndarray, success: np.ndarray, name: str) -> list[str]:
+    """One column of trials.csv as text (``_fmt`` of each value; a failed trial's
+    ``iterations_to_tol`` is empty)."""
+    if name == "success":
+        return ["1" if v else "0" for v in values]
+    if name == "iterations_to_tol":
+        return [str(int(v)) if ok else "" for v, ok in zip(values, success)]
+    if values.dtype.kind == "f":
+        return [_fmt(float(v)) for v in values]
+    if values.dtype.kind in "iu":
+        return [str(int(v)) for v in values]
+    return [str(v) for v in values]
 
 
 def _fmt(v) -> str:

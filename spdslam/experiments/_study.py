@@ -18,6 +18,7 @@ Summaries, tables and figures: ``_summary``, ``_outputs``; the paper's numbers: 
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -35,7 +36,7 @@ from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, sorted_axes
 from ..solver import Dogleg, L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ..synthetic import NOISE_LEVELS, Protocol, Scenes, get_protocol, make_scenes
 
-__all__ = ["StudyConfig", "StudyResult", "run_study"]
+__all__ = ["CSV_COLUMNS", "HISTORY_TRIALS", "STUDY_CHUNK", "StudyConfig", "StudyResult", "history_labels", "run_study"]
 
 _PARAM_TYPES = {"F": EllipsoidFull, "S": EllipsoidRTS, "O": Ellipsoid}
 _MODEL_FACTORS = {"inv": InverseBoxFactor, "semi": SemiInverseBoxFactor}
@@ -106,15 +107,59 @@ class StudyConfig:
         return [(a, n) for a in self.angles for n in self.noise]
 
 
+#: trials.csv's columns, in order.
+CSV_COLUMNS = [
+    "angle", "noise", "model", "param", "trial", "success", "iterations_to_tol", "final_cost",
+    "iou", "orientation_error_deg", "seconds", "truth_cost", "initial_cost", "iterations", "reason",
+    "min_radius_ratio",
+]  # fmt: skip
+#: Problems solved at a time by ``run_study`` without an engine: the memory a study holds
+#: beyond its columns (scenes of a chunk, cost histories, compiled buffers) is bounded by
+#: this, whatever the number of trials.
+STUDY_CHUNK = 8192
+#: Cost histories kept per (cell, model, param): those of the first this many trials, which
+#: convergence.png summarises (every trial's history would be 1.6 kB per solve).
+HISTORY_TRIALS = 1000
+
+
 @dataclass
 class StudyResult:
     config: StudyConfig
-    #: One record per (trial, model, param): the columns of trials.csv.
-    rows: list[dict]
-    #: (model, param) → relative cost history (B, max_iters + 1), cost / initial cost,
-    #: forward-filled after the run stopped; B = cells × trials in config.cells order.
+    #: trials.csv's columns (``CSV_COLUMNS``), one entry per (trial, model, param): NumPy
+    #: arrays; ``iterations_to_tol`` is −1 where the trial failed (an empty field).
+    columns: dict[str, np.ndarray]
+    #: (model, param) → relative cost history (B', max_iters + 1), cost / initial cost,
+    #: forward-filled after the run stopped, of the first ``HISTORY_TRIALS`` trials of each
+    #: cell (B' = cells × min(trials, HISTORY_TRIALS), in config.cells order).
     histories: dict[tuple[str, str], np.ndarray]
     timings: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.columns["trial"])
+
+    @property
+    def rows(self) -> list[dict]:
+        """The records as dicts (built on each call: for small studies)."""
+        c = self.columns
+        out = []
+        for b in range(len(self)):
+            success = bool(c["success"][b])
+            out.append({
+                "angle": int(c["angle"][b]), "noise": str(c["noise"][b]), "model": str(c["model"][b]),
+                "param": str(c["param"][b]), "trial": int(c["trial"][b]), "success": success,
+                "iterations_to_tol": int(c["iterations_to_tol"][b]) if success else "",
+                **{k: float(c[k][b]) for k in ("final_cost", "iou", "orientation_error_deg", "seconds",
+                                               "truth_cost", "initial_cost")},
+                "iterations": int(c["iterations"][b]), "reason": str(c["reason"][b]),
+                "min_radius_ratio": float(c["min_radius_ratio"][b]),
+            })  # fmt: skip
+        return out
+
+
+def history_labels(cfg: StudyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(angle, noise) of each row of ``StudyResult.histories``."""
+    k = min(cfg.trials, HISTORY_TRIALS)
+    return (np.repeat([a for a, _ in cfg.cells], k), np.repeat([n for _, n in cfg.cells], k))
 
 
 # --- scenes and problems -----------------------------------------------------------------
@@ -281,37 +326,39 @@ def _evaluate(out: dict, truth: Ellipsoid, cfg: StudyConfig) -> dict:
     }  # fmt: skip
 
 
-def _rows(model, param, ev: dict, seconds: np.ndarray, angle_lab, noise_lab, trial_lab) -> list:
-    """The trials.csv records of one (model, param) from ``_evaluate``'s arrays."""
-    rows = []
-    for b in range(len(ev["success"])):
-        success = bool(ev["success"][b])
-        rows.append(
-            {
-                "angle": int(angle_lab[b]),
-                "noise": str(noise_lab[b]),
-                "model": model,
-                "param": param,
-                "trial": int(trial_lab[b]),
-                "success": success,
-                "iterations_to_tol": int(ev["first"][b]) if success else "",
-                "final_cost": float(ev["final_cost"][b]),
-                "iou": float(ev["iou"][b]),
-                "orientation_error_deg": float(ev["orientation"][b]),
-                "seconds": float(seconds[b]),
-                "truth_cost": float(ev["truth_cost"][b]),
-                "initial_cost": float(ev["initial_cost"][b]),
-                "iterations": int(ev["iterations"][b]),
-                "reason": str(ev["reason"][b]),
-                "min_radius_ratio": float(ev["ratio"][b]),
-            }
-        )
-    return rows
+_INTERNED: dict[str, str] = {}
 
 
-def _finish_timings(timings: dict, rows: list, t_start: float) -> None:
+def _interned(values) -> np.ndarray:
+    """An object array of the strings ``values``, each distinct string stored once."""
+    return np.array([_INTERNED.setdefault(str(v), str(v)) for v in values], dtype=object)
+
+
+def _columns(model, param, ev: dict, seconds: np.ndarray, angle_lab, noise_lab, trial_lab) -> dict:
+    """trials.csv's columns of one (model, param) from ``_evaluate``'s arrays."""
+    n = len(ev["success"])
+    success = np.asarray(ev["success"], bool)
+    return {
+        "angle": np.asarray(angle_lab, dtype=np.int64), "noise": _interned(noise_lab),
+        "model": _interned([model] * n), "param": _interned([param] * n),
+        "trial": np.asarray(trial_lab, dtype=np.int64), "success": success,
+        "iterations_to_tol": np.where(success, np.asarray(ev["first"]), -1).astype(np.int64),
+        "final_cost": np.asarray(ev["final_cost"], float), "iou": np.asarray(ev["iou"], float),
+        "orientation_error_deg": np.asarray(ev["orientation"], float),
+        "seconds": np.asarray(seconds, float), "truth_cost": np.asarray(ev["truth_cost"], float),
+        "initial_cost": np.asarray(ev["initial_cost"], float),
+        "iterations": np.asarray(ev["iterations"], dtype=np.int64), "reason": _interned(ev["reason"]),
+        "min_radius_ratio": np.asarray(ev["ratio"], float),
+    }  # fmt: skip
+
+
+def _concat_columns(parts: list[dict]) -> dict:
+    return {k: np.concatenate([q[k] for q in parts]) for k in CSV_COLUMNS}
+
+
+def _finish_timings(timings: dict, columns: dict, t_start: float) -> None:
     timings["wall"] = time.perf_counter() - t_start
-    iters = sum(r["iterations"] for r in rows)
+    iters = int(np.sum(columns["iterations"]))
     st = timings.get("structures", {}).values()
     timings["solve_loops"] = sum(v.get("solve", 0.0) for v in st)
     timings["problem_iterations"] = iters
@@ -331,9 +378,17 @@ def run_study(
     progress: Callable[[str, int, int], None] | None = None,
     engine=None,
     trials_per_task: int | None = None,
+    chunk: int | None = None,
 ) -> StudyResult:
     """Run the grid; ``progress(stage, done, total)`` is called as structures (or tasks)
     finish.
+
+    Without an engine the problems are solved ``chunk`` (default ``STUDY_CHUNK``) at a time,
+    every structure on the same chunk, and each chunk is reduced to its trials.csv columns
+    (and the first ``HISTORY_TRIALS`` cost histories per cell) before the next: the memory
+    held grows with the columns only (about 130 bytes per solve). The results do not
+    depend on ``chunk`` (each problem runs in a lane of its own, with the compile options
+    the whole batch would get).
 
     ``engine`` (``LocalEngine``, ``RayEngine``): shard the grid into tasks of
     ``trials_per_task`` problems of one (model, param) (default: each structure in twice as
@@ -344,41 +399,67 @@ def run_study(
     """
     if engine is not None:
         return _run_sharded(cfg, progress, engine, trials_per_task)
+    from ..solver._batched import AUTO_OPTIMIZE_WORK
+
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]
-    total = len(structures) + 1
     scenes, _, _ = _all_scenes(cfg)
+    B = len(scenes)
+    size = min(B, STUDY_CHUNK if chunk is None else int(chunk))
+    if size < 1:
+        raise ValueError(f"chunk must be ≥ 1, got {chunk}")
+    # the compile options the whole batch would get, so that chunking changes no arithmetic
+    opt = cfg.optimize if cfg.optimize is not None else B * cfg.max_iters > AUTO_OPTIMIZE_WORK
+    run_cfg = dataclasses.replace(cfg, optimize=opt)
     labels = _labels(cfg)
+    keep_history = labels[2] < HISTORY_TRIALS
+    chunks = [(lo, min(lo + size, B)) for lo in range(0, B, size)]
+    total = len(chunks) * len(structures) + 1
     if progress:
         progress("scenes", 1, total)
-    rows: list[dict] = []
-    histories: dict = {}
-    timings = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0}
-    B = len(scenes)
-    # every structure compiled first, two at a time (XLA compiles in parallel threads),
-    # then solved one after the other
-    t_compile = time.perf_counter()
-    built = [_build_structure(m, p, scenes, cfg) for m, p in structures]
-    with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:
-        compiled = list(pool.map(lambda b: b[0].compile(b[1], b[2]), built))
-    # wall time of tracing and compiling (in parallel: less than the structures' sum)
-    timings["compile"] = time.perf_counter() - t_compile
-    timings["solve"] += timings["compile"]
-    for k, (model, param) in enumerate(structures):
-        out = _solve_structure(built[k], compiled[k])
-        t_eval = time.perf_counter()
-        ev = _evaluate(out, scenes.truth, cfg)
-        histories[(model, param)] = ev["history"]
-        rows += _rows(model, param, ev, np.full(B, out["seconds"] / B), *labels)
-        timings["solve"] += out["seconds"]
-        timings.setdefault("structures", {})[f"{model}-{param}"] = {
-            "seconds": out["seconds"], **{k2: float(v) for k2, v in out["timings"].items() if np.isscalar(v)}
-        }
-        timings["evaluate"] += time.perf_counter() - t_eval
-        if progress:
-            progress(f"{model}-{param}", k + 2, total)
-    _finish_timings(timings, rows, t_start)
-    return StudyResult(cfg, rows, histories, timings)
+    parts: dict = {s_: [] for s_ in structures}
+    hist: dict = {s_: [] for s_ in structures}
+    timings = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0,
+               "chunks": len(chunks), "chunk": size}
+    done = 1
+    for c, (lo, hi) in enumerate(chunks):
+        n = hi - lo
+        part = scenes if n == B else _scene_slice(scenes, np.minimum(np.arange(lo, lo + size), hi - 1))
+        built = [_build_structure(m, p, part, run_cfg) for m, p in structures]
+        compiled = [None] * len(built)
+        if c == 0:
+            # every structure compiled first, two at a time (XLA compiles in parallel
+            # threads), then solved one after the other; later chunks reuse the programs
+            t_compile = time.perf_counter()
+            with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:
+                compiled = list(pool.map(lambda b: b[0].compile(b[1], b[2]), built))
+            # wall time of tracing and compiling (in parallel: less than the structures' sum)
+            timings["compile"] = time.perf_counter() - t_compile
+            timings["solve"] += timings["compile"]
+        for k, (model, param) in enumerate(structures):
+            out = _solve_structure(built[k], compiled[k])
+            t_eval = time.perf_counter()
+            ev = {key: v[:n] for key, v in _evaluate(out, part.truth, run_cfg).items()}
+            hist[(model, param)].append(ev["history"][keep_history[lo:hi]])
+            parts[(model, param)].append(_columns(
+                model, param, ev, np.full(n, out["seconds"] / len(part)),
+                *(lab[lo:hi] for lab in labels)))
+            timings["solve"] += out["seconds"]
+            st = timings.setdefault("structures", {}).setdefault(f"{model}-{param}", {"seconds": 0.0})
+            st["seconds"] += out["seconds"]
+            for k2, v in out["timings"].items():
+                if np.isscalar(v):
+                    st[k2] = st.get(k2, 0.0) + float(v)
+            timings["evaluate"] += time.perf_counter() - t_eval
+            done += 1
+            if progress:
+                progress(f"{model}-{param}" if len(chunks) == 1 else
+                         f"{model}-{param}, problems {lo}-{hi - 1} of {B}", done, total)
+        del built, part
+    columns = _concat_columns([q for s_ in structures for q in parts.pop(s_)])
+    histories = {s_: np.concatenate(h) for s_, h in hist.items()}
+    _finish_timings(timings, columns, t_start)
+    return StudyResult(cfg, columns, histories, timings)
 
 
 # --- the grid in tasks (an engine: local or Ray) -------------------------------------------
@@ -412,8 +493,6 @@ MAX_TRIALS_PER_TASK = 10_000
 
 
 def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
-    import dataclasses
-
     from ..solver._batched import AUTO_OPTIMIZE_WORK, DEFAULT_LANES
 
     t_start = time.perf_counter()
@@ -454,7 +533,8 @@ def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
         raise RuntimeError(f"{len(failed)} of {len(tasks)} tasks failed; the first, {m}-{p} "
                            f"problems {lo}-{hi - 1}, after {o.attempts} attempts: {o.error}")
     labels = _labels(cfg)
-    rows: list[dict] = []
+    keep_history = labels[2] < HISTORY_TRIALS
+    cols: list[dict] = []
     histories: dict = {}
     structures_t = timings.setdefault("structures", {})
     for m, p in structures:
@@ -462,8 +542,8 @@ def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
         ev = {k: np.concatenate([q[k] for q in parts]) for k in parts[0] if k not in
               ("timings", "seconds", "B", "evaluate")}
         seconds = np.concatenate([np.full(len(q["success"]), q["seconds"] / q["B"]) for q in parts])
-        histories[(m, p)] = ev["history"]
-        rows += _rows(m, p, ev, seconds, *labels)
+        histories[(m, p)] = ev["history"][keep_history]
+        cols.append(_columns(m, p, ev, seconds, *labels))
         st = {"seconds": sum(q["seconds"] for q in parts)}
         for q in parts:
             for k, v in q["timings"].items():
@@ -474,5 +554,6 @@ def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
     timings["compile"] = sum(v.get("trace", 0.0) + v.get("compile", 0.0) for v in structures_t.values())
     timings["solve"] = sum(v["seconds"] for v in structures_t.values()) + timings["compile"]
     timings["evaluate"] = float(sum(o.value["evaluate"] for o in outcomes))
-    _finish_timings(timings, rows, t_start)
-    return StudyResult(cfg, rows, histories, timings)
+    columns = _concat_columns(cols)
+    _finish_timings(timings, columns, t_start)
+    return StudyResult(cfg, columns, histories, timings)

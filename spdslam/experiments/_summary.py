@@ -13,32 +13,48 @@ import numpy as np
 from .._version import __version__
 from ..evaluation import bootstrap, paired_comparison, wilson
 from ._paper import PAPER_IOU_H, PAPER_SUCCESS, PAPER_SUCCESS_IOU
-from ._study import StudyResult
+from ._study import CSV_COLUMNS, StudyResult
 
 __all__ = ["COLLAPSED_RATIO", "CSV_COLUMNS", "pooled_success_iou", "summarize", "table_markdown"]
 
 #: An estimate whose smallest radius is below this fraction of its largest has collapsed.
 COLLAPSED_RATIO = 1e-3
 
-CSV_COLUMNS = [
-    "angle", "noise", "model", "param", "trial", "success", "iterations_to_tol", "final_cost",
-    "iou", "orientation_error_deg", "seconds", "truth_cost", "initial_cost", "iterations", "reason",
-    "min_radius_ratio",
-]  # fmt: skip
+def _mask(C: dict, **kw) -> np.ndarray:
+    """The entries of the columns ``C`` whose fields equal ``kw``."""
+    m = np.ones(len(C["trial"]), bool)
+    for k, v in kw.items():
+        m &= C[k] == v
+    return m
 
 
-def _select(rows, **kw):
-    return [r for r in rows if all(r[k] == v for k, v in kw.items())]
+def _columns_of(data) -> dict:
+    """Columns from a ``StudyResult``, a columns dict or a list of row dicts."""
+    if hasattr(data, "columns"):
+        return data.columns
+    if isinstance(data, dict):
+        return data
+    rows = list(data)
+    C = {k: np.array([r[k] for r in rows], dtype=object) for k in CSV_COLUMNS}
+    C["success"] = C["success"].astype(bool)
+    for k in ("angle", "trial", "iterations"):
+        C[k] = C[k].astype(np.int64)
+    C["iterations_to_tol"] = np.array([-1 if v == "" else v for v in C["iterations_to_tol"]], np.int64)
+    for k in ("final_cost", "iou", "orientation_error_deg", "seconds", "truth_cost", "initial_cost",
+              "min_radius_ratio"):
+        C[k] = C[k].astype(float)
+    return C
 
 
-def pooled_success_iou(rows, cells, models) -> list[dict]:
+def pooled_success_iou(data, cells, models) -> list[dict]:
     """The paper's "Average Success IoU": per (range, noise, model) the mean IoU of the
     successful trials of every parameterisation pooled (bootstrap interval), beside the
-    paper's figure and the difference."""
+    paper's figure and the difference. ``data``: a ``StudyResult``, its columns or rows."""
+    C = _columns_of(data)
     out = []
     for a, n in cells:
         for m in models:
-            ious = [r["iou"] for r in _select(rows, angle=int(a), noise=n, model=m) if r["success"]]
+            ious = C["iou"][_mask(C, angle=int(a), noise=n, model=m) & C["success"]]
             paper = PAPER_SUCCESS_IOU.get((n, m, int(a)))
             est = bootstrap(ious).as_dict()
             out.append({"angle": int(a), "noise": n, "model": m, "successes": len(ious), "iou": est,
@@ -49,49 +65,46 @@ def pooled_success_iou(rows, cells, models) -> list[dict]:
 
 
 def summarize(result: StudyResult) -> dict:
-    cfg, rows = result.config, result.rows
+    cfg, C = result.config, result.columns
+    collapsed = ~(C["min_radius_ratio"] >= COLLAPSED_RATIO)
     cells = []
     for a, n in cfg.cells:
         for m in cfg.models:
             for p in cfg.params:
-                rs = _select(rows, angle=int(a), noise=n, model=m, param=p)
-                succ = [r for r in rs if r["success"]]
-                collapsed = [not r["min_radius_ratio"] >= COLLAPSED_RATIO for r in rs]
-                its = [r["iterations_to_tol"] for r in succ]
+                sel = _mask(C, angle=int(a), noise=n, model=m, param=p)
+                succ = sel & C["success"]
                 cells.append(
                     {
                         "angle": int(a), "noise": n, "model": m, "param": p,
-                        "trials": len(rs), "successes": len(succ),
-                        "failures_collapsed": sum(c and not r["success"] for c, r in zip(collapsed, rs)),
-                        "successes_collapsed": sum(c and r["success"] for c, r in zip(collapsed, rs)),
-                        "success_rate": wilson(len(succ), len(rs)).as_dict(),
-                        "iou_all": bootstrap([r["iou"] for r in rs]).as_dict(),
-                        "iou_success": bootstrap([r["iou"] for r in succ]).as_dict(),
-                        "iterations_to_tol": bootstrap(np.array(its, dtype=float)).as_dict(),
+                        "trials": int(sel.sum()), "successes": int(succ.sum()),
+                        "failures_collapsed": int((collapsed & sel & ~C["success"]).sum()),
+                        "successes_collapsed": int((collapsed & succ).sum()),
+                        "success_rate": wilson(int(succ.sum()), int(sel.sum())).as_dict(),
+                        "iou_all": bootstrap(C["iou"][sel]).as_dict(),
+                        "iou_success": bootstrap(C["iou"][succ]).as_dict(),
+                        "iterations_to_tol": bootstrap(C["iterations_to_tol"][succ].astype(float)).as_dict(),
                         "orientation_error_deg_success": bootstrap(
-                            [r["orientation_error_deg"] for r in succ]).as_dict(),
+                            C["orientation_error_deg"][succ]).as_dict(),
                     }
                 )  # fmt: skip
     paired = {}
     if "O" in cfg.params and "S" in cfg.params:
         for m in cfg.models:
             for scope, filt in [("all", {}), *[(f"noise {n}", {"noise": n}) for n in cfg.noise]]:
-                o = _select(rows, model=m, param="O", **filt)
-                s = _select(rows, model=m, param="S", **filt)
-                key = lambda r: (r["angle"], r["noise"], r["trial"])  # noqa: E731
-                s_by = {key(r): r for r in s}
-                a_it, b_it = [], []
-                for r in o:
-                    q = s_by[key(r)]
-                    if r["success"] and q["success"]:
-                        a_it.append(r["iterations_to_tol"])
-                        b_it.append(q["iterations_to_tol"])
-                paired[f"{m} {scope}"] = paired_comparison(a_it, b_it).as_dict()
+                o = np.flatnonzero(_mask(C, model=m, param="O", **filt))
+                s = np.flatnonzero(_mask(C, model=m, param="S", **filt))
+                # every structure's entries are in the same (angle, noise, trial) order
+                for k in ("angle", "noise", "trial"):
+                    if not np.array_equal(C[k][o], C[k][s]):
+                        raise ValueError("the O and S trials are not paired")
+                both = C["success"][o] & C["success"][s]
+                paired[f"{m} {scope}"] = paired_comparison(
+                    C["iterations_to_tol"][o][both].tolist(), C["iterations_to_tol"][s][both].tolist()).as_dict()
     return {
         "config": asdict(result.config),
         "cells": cells,
         "paired_iterations_O_vs_S": paired,
-        "pooled_success_iou": pooled_success_iou(rows, cfg.cells, cfg.models),
+        "pooled_success_iou": pooled_success_iou(C, cfg.cells, cfg.models),
         "timings": result.timings,
         "versions": {"spdslam": __version__, "jax": jax.__version__, "python": platform.python_version()},
         "machine": {"platform": platform.platform(), "processor": platform.processor()},

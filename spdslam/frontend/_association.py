@@ -268,19 +268,23 @@ class _Scene:
         A_rng = w_rng[:, None, None] * ddT
         return dict(
             frame=frame, box=b, label=label, w_ok=w_ok, h_ok=h_ok, ray=ray, origin=origin,
-            radius0=radius, A_perp=A_perp, b_perp=np.einsum("nij,nj->ni", A_perp, origin),
-            A_rng=A_rng, b_rng=(w_rng * (np.einsum("ni,ni->n", ray, origin) + range0))[:, None] * ray,
+            radius0=radius,
+            # the centre fit's terms, side by side (n, 24): A_perp (9), b_perp (3), A_rng (9),
+            # b_rng (3); ``_normal`` sums them with one matrix product
+            terms=np.concatenate([
+                A_perp.reshape(-1, 9), np.einsum("nij,nj->ni", A_perp, origin), A_rng.reshape(-1, 9),
+                (w_rng * (np.einsum("ni,ni->n", ray, origin) + range0))[:, None] * ray], axis=1),
         )
 
     # -- landmark fit and prediction --------------------------------------------------------
 
     def _normal(self, idx, W, plane=None, r_v=None):
         """Normal equations (A, b) (leading axes of W (…, n) batch) of the centre fit."""
-        A = np.einsum("...n,nij->...ij", W, self.A_perp[idx])
-        b = np.einsum("...n,ni->...i", W, self.b_perp[idx])
         tot = np.maximum(W.sum(-1), 1e-300)[..., None]
-        A = A + np.einsum("...n,nij->...ij", W, self.A_rng[idx]) / tot[..., None]
-        b = b + np.einsum("...n,ni->...i", W, self.b_rng[idx]) / tot
+        # one matrix product per sum (W (…, n) against the stacked terms (n, 9 + 3 + 9 + 3))
+        S = W @ self.terms[idx]
+        A = (S[..., :9] + S[..., 12:21] / tot).reshape(S.shape[:-1] + (3, 3))
+        b = S[..., 9:12] + S[..., 21:] / tot
         if plane is not None:
             nrm, delta = plane[:3], plane[3]
             w_pl = 1.0 / (0.25 * r_v + 0.02) ** 2
@@ -288,8 +292,9 @@ class _Scene:
             b = b + w_pl * (r_v - delta) * nrm
         return A, b
 
-    def _radii(self, idx, X, fallback):
-        """(r_h, r_v) from the untruncated box sizes at the depths of X."""
+    def _radii(self, idx, X):
+        """(r_h, r_v) from the untruncated box sizes at the depths of X (the detections'
+        median prior radius where no box side is whole)."""
         f = self.frame[idx]
         z = np.einsum("ni,ni->n", self.R[f][:, :, 2], X - self.C[f])
         front = z > _MIN_DEPTH
@@ -300,7 +305,9 @@ class _Scene:
         hz = ((b[:, 3] - b[:, 1]) * z / (2 * self.fy))[front & self.h_ok[idx]]
         r_h = float(np.median(wz)) if wz.size else None
         r_v = float(np.median(hz)) if hz.size else None
-        r_h = r_h if r_h is not None else (r_v if r_v is not None else fallback)
+        if r_h is None and r_v is None:
+            r_h = float(np.median(self.radius0[idx]))
+        r_h = r_h if r_h is not None else r_v
         r_v = r_v if r_v is not None else r_h
         return r_h, r_v
 
@@ -308,7 +315,6 @@ class _Scene:
         """The coarse landmark of detections ``idx`` (see the class docstring)."""
         idx = np.asarray(idx, dtype=int)
         W = np.ones(idx.size)
-        fallback = float(np.median(self.radius0[idx]))
         plane, r_v = None, None
         for _ in range(2 if self.planes is not None else 1):
             A, b = self._normal(idx, W, plane, r_v)
@@ -316,7 +322,7 @@ class _Scene:
                 X = np.linalg.solve(A, b)
             except np.linalg.LinAlgError:
                 return _BAD_FIT
-            radii = self._radii(idx, X, fallback) if np.all(np.isfinite(X)) else None
+            radii = self._radii(idx, X) if np.all(np.isfinite(X)) else None
             if radii is None:
                 return _BAD_FIT
             r_h, r_v = radii
@@ -654,7 +660,7 @@ class OnlineTracker:
     def _sync(self) -> None:
         sc = self._sc
         for name in ("frame", "box", "label", "w_ok", "h_ok", "ray", "origin", "radius0",
-                     "A_perp", "b_perp", "A_rng", "b_rng"):
+                     "terms"):
             setattr(sc, name, self._dets.view(name))
 
     def add_frame(self, R_wc, centre, boxes, labels) -> np.ndarray:

@@ -123,10 +123,14 @@ _YAW_STARTS = np.arange(6) * np.pi / 6
 _START_ASPECT = 1.4  # a/b of each start: a start with a = b has zero yaw gradient
 _MULTI_ITERS = 60
 _PX_SIGMA = 2.0
-#: σ (rad) of the prior that holds the multi-constraint start near upright once its tilt
-#: is set free (``multi_initialize``): of the order of the error of an up direction
+#: σ (rad) of the prior that holds the multi-constraint start's tilt near upright
+#: (``multi_initialize``): of the order of the error of an up direction
 #: estimated from the cameras (docs/sequences.md gives the measurement and the choice).
 TILT_SIGMA = 0.02
+#: The multi-constraint fit uses at most this many views, evenly spread over the track, and
+#: pads fewer to it: one compiled program per object shape whatever the track's length (the
+#: start only has to be near the optimum; the back end refines it with every box).
+MULTI_FIT_VIEWS = 64
 
 
 def _plane_frame(up, plane):
@@ -187,30 +191,31 @@ def _multi_model(theta, frame, has_plane):
 @partial(jax.jit, static_argnames=("shape",))
 def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape,
                tilt_w):
-    """Batched (over starts) LM on the box residuals of the constrained model; ``mask``
-    (k, 4) weights each box edge (0: padding or truncated). ``tilt_w``: the weight 1/σ of a
-    prior holding the tilt (α, β) at 0; 0 holds it exactly (the upright model)."""
+    """LM on the box residuals of the constrained model, batched over the starts ``theta0``
+    (upright, α = β = 0): with ``tilt_w`` > 0 the tilt (α, β) is free under a prior of weight
+    ``tilt_w`` (1/σ) towards upright, with 0 it is held at 0 (the upright model). ``mask``
+    (k, 4) weights each box edge (0: padding or truncated). Returns per start the cost and
+    the fitted ellipsoid's (P, centre)."""
     box_of = project_cuboid_box if shape == "cuboid" else project_box
-    free_tilt = tilt_w > 0
 
-    def residual(theta):
+    def residual(theta, tw):
         e = _multi_model(theta, frame, has_plane)
         r_box = jax.vmap(lambda T, b: box_of(e, T, camera) - b)(poses, boxes)
         r_box = (r_box / _PX_SIGMA) * mask
         r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
-        return jnp.concatenate([r_box.ravel(), r_prior, tilt_w * theta[7:9]])
+        return jnp.concatenate([r_box.ravel(), r_prior, tw * theta[7:9]])
 
-    def cost(theta):
-        r = residual(theta)
+    def cost(theta, tw):
+        r = residual(theta, tw)
         return jnp.sum(jnp.where(jnp.isfinite(r), r**2, jnp.inf))
 
-    def lm(theta):
+    def lm(theta, tw):
         def body(_, state):
             th, lam, c = state
-            r = residual(th)
-            J = jax.jacfwd(residual)(th)
+            r = residual(th, tw)
+            J = jax.jacfwd(residual)(th, tw)
             J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
-            J = jnp.where(free_tilt, J, J.at[:, 7:9].set(0.0))
+            J = jnp.where(tw > 0, J, J.at[:, 7:9].set(0.0))
             H = J.T @ J
             g = J.T @ r
             # damping isotropic per block of θ (centre, log radii, yaw and tilt), as the back
@@ -220,14 +225,19 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
             D = jnp.concatenate([jnp.full(3, jnp.max(d[:3])), jnp.full(3, jnp.max(d[3:6])), d[6:]])
             step = -jnp.linalg.solve(H + lam * jnp.diag(D + 1e-9), g)
             cand = th + step
-            cc = cost(cand)
+            cc = cost(cand, tw)
             ok = cc < c
             return (jnp.where(ok, cand, th), jnp.where(ok, lam * 0.3, lam * 10.0), jnp.where(ok, cc, c))
 
-        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta)))
+        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta, tw)))
         return th, c
 
-    return jax.vmap(lm)(theta0)
+    def fit(th):
+        th, c = lm(th, tilt_w)
+        e = _multi_model(th, frame, has_plane)
+        return c, e.P, e.center
+
+    return jax.vmap(fit)(theta0)
 
 
 def multi_initialize(
@@ -250,17 +260,20 @@ def multi_initialize(
     Unknowns: the centre on the plane (2, or 3 without a plane), the yaw about ``up`` and the
     three radii (the centre sits one vertical radius above the plane). They are fitted to the
     boxes (inverse box model, 2 px) by LM from several yaws; the centre and radii start from
-    the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views.
+    the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views;
+    of more than :data:`MULTI_FIT_VIEWS`, that many evenly spread over the track are used.
     ``shape="cuboid"`` fits the box of the circumscribed cuboid (box-like objects) instead of
     the ellipsoid's; the result is the cuboid's inscribed ellipsoid (radii = half-extents).
     With ``truncation_margin`` (px) box edges within it of the image border are ignored.
 
-    The fit is upright first (one axis exactly along ``up``); then, with ``tilt_sigma``
-    (rad, default ``TILT_SIGMA``), the tilt is set free under a prior of that σ and fitted
-    again from there, so that the axes are where the boxes put them rather than snapped to
-    ``up`` (None keeps the upright result).
+    Each start is upright (one axis along ``up``); with ``tilt_sigma`` (rad, default
+    ``TILT_SIGMA``) the tilt is free under a prior of that σ towards upright, so that the
+    axes end where the boxes put them rather than snapped to ``up``; None holds them upright.
     """
     boxes, poses = _views(boxes, poses, max(min_views, 2))
+    if len(boxes) > MULTI_FIT_VIEWS:
+        pick = np.unique(np.linspace(0, len(boxes) - 1, MULTI_FIT_VIEWS).round().astype(int))
+        boxes, poses = boxes[pick], [poses[i] for i in pick]
     if up is None:
         raise ValueError("multi-constraint initialisation needs the up direction")
     if shape not in OBJECT_SHAPES:
@@ -293,8 +306,7 @@ def multi_initialize(
             [c0 @ e1, c0 @ e2, w, np.log(r_h * np.sqrt(_START_ASPECT)),
              np.log(r_h / np.sqrt(_START_ASPECT)), np.log(r_v), psi, 0.0, 0.0]
         )
-    bucket_n = 1 << int(np.ceil(np.log2(max(len(boxes), 4))))
-    pad = bucket_n - len(boxes)
+    pad = MULTI_FIT_VIEWS - len(boxes)
     poses_b = stack(poses + [poses[0]] * pad)
     boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
     mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
@@ -305,17 +317,12 @@ def multi_initialize(
     frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
     args = (frame_j, jnp.asarray(support_plane is not None), poses_b, jnp.asarray(boxes_b),
             jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w)
-    thetas, costs = _multi_fit(jnp.asarray(starts), *args, shape=shape, tilt_w=0.0)
+    if tilt_sigma is not None and not (np.isfinite(tilt_sigma) and tilt_sigma > 0):
+        raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {tilt_sigma!r}")
+    tilt_w = 0.0 if tilt_sigma is None else 1.0 / float(tilt_sigma)
+    costs, Ps, centers = _multi_fit(jnp.asarray(starts), *args, shape=shape, tilt_w=tilt_w)
     costs = np.asarray(costs)
     if not np.any(np.isfinite(costs)):
         raise InitializationError("the constrained fit diverged from every start")
     best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
-    theta = thetas[best]
-    if tilt_sigma is not None:
-        if not (np.isfinite(tilt_sigma) and tilt_sigma > 0):
-            raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {tilt_sigma!r}")
-        tilted, tcost = _multi_fit(theta[None], *args, shape=shape, tilt_w=1.0 / float(tilt_sigma))
-        if np.isfinite(np.asarray(tcost)[0]):
-            theta = tilted[0]
-    e = _multi_model(theta, frame_j, support_plane is not None)
-    return Ellipsoid(jnp.asarray(e.P), jnp.asarray(e.center))
+    return Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))

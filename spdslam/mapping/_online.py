@@ -38,19 +38,20 @@ import dataclasses
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import jaxlie
 import numpy as np
 import scipy.sparse
 
+from .._cache import ensure_compilation_cache
 from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
-from ..io import Detection, EllipsoidDetection, Sequence
+from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
-from ..solver._problem import Problem, bucket
+from ..solver._problem import Problem, group_kernels
 from ._context import SequenceContext
 from ._graph import (
     _box_factors,
@@ -123,6 +124,11 @@ class _Poses:
         return self.n
 
 
+def _power_of_two(n: int) -> int:
+    """The smallest power of two ≥ max(n, 8)."""
+    return 1 << int(np.ceil(np.log2(max(int(n), 8))))
+
+
 def _detection(d, frame: int, timestamp: float) -> Detection:
     """A ``Detection`` of this frame from a Detection or (label, box[, score[, instance]])."""
     if isinstance(d, Detection):
@@ -147,14 +153,16 @@ class OnlineMapper:
     its object's id; negative ids are false detections) or "auto". ``window``: frames whose
     poses are free; ``every``: frames between optimisations; ``max_iterations``: LM
     iterations per optimisation; ``min_views``: views before an object is created;
-    ``sigmas``: as ``run_sequence``'s.
+    ``sigmas``: as ``run_sequence``'s. ``compilation_cache``: turn on JAX's persistent
+    compilation cache (``SPDSLAM_CACHE_DIR``, as the CLI does) unless the process already
+    has one; ``warmup`` compiles before the first frame.
     """
 
     def __init__(self, camera, priors=None, method: str | Method = "multi-spd", *,
                  associate: str = "auto", window: int = 30, every: int = 10,
                  max_iterations: int = 5, min_views: int = 3, sigmas: dict | None = None,
                  association: AssociationSettings | None = None, name: str = "online",
-                 screen: bool = True, **overrides):
+                 screen: bool = True, compilation_cache: bool = True, **overrides):
         if isinstance(method, str):
             if method not in METHODS:
                 raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -170,6 +178,11 @@ class OnlineMapper:
                          ("min_views", min_views, 1)):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
                 raise ValueError(f"{k} must be an integer >= {lo}, got {v!r}")
+        self._config = dict(method=method, associate=associate, window=window, every=every,
+                            max_iterations=max_iterations, min_views=min_views, sigmas=sigmas,
+                            association=association, screen=screen, **overrides)
+        if compilation_cache:
+            ensure_compilation_cache()
         method = method.resolved(associate == "auto")
         self.method, self.associate = method, associate
         self.window, self.every, self.min_views = int(window), int(every), int(min_views)
@@ -213,6 +226,40 @@ class OnlineMapper:
     # --- input ------------------------------------------------------------------------------
     def __len__(self) -> int:
         return len(self._timestamps)
+
+    def warmup(self, sequence: Sequence, progress: Callable[[int, int], Any] | None = None) -> float:
+        """Compile (or load from the compilation cache) what a replay needs, before the
+        first frame: ``sequence`` (a synthetic room, ``synthetic.make_room_sequence``, or a
+        recording of the same kind) is replayed through a mapper of this one's method and
+        settings (its priors; the sequence's labels renamed to their classes), then
+        discarded (``finish`` is not run); this mapper is unchanged. Programs are kept per factor kind and padded
+        size (powers of two, ``_padding``), so those compiled here serve any sequence whose
+        fixed-lag problems reach the same sizes; each kind's programs are also compiled for
+        two doublings of the largest size the replay reached. Returns the seconds it took;
+        ``progress(frame, frames)`` after each frame."""
+        t0 = time.perf_counter()
+        # this mapper's priors (they decide which factors exist: class size and shape priors,
+        # the trajectory's noise model), with the sequence's labels renamed to its classes
+        priors = self._ctx0.priors
+        classes = [] if priors is None else list(priors.classes) or (
+            sorted(BUILTIN_CLASSES) if priors.builtin_classes else [])
+        rename = {lab: classes[i % len(classes)] for i, lab in
+                  enumerate(sorted({d.label for d in sequence.detections}))} if classes else {}
+        twin = OnlineMapper(sequence.camera, priors, compilation_cache=False, **self._config)
+        by_frame: dict = {}
+        for d in sequence.detections:
+            by_frame.setdefault(d.frame, []).append(dataclasses.replace(d, label=rename.get(d.label, d.label)))
+        for i in range(len(sequence)):
+            twin.add_frame(sequence.timestamps[i], sequence.poses_tum[i], detections=by_frame.get(i, ()))
+            if progress:
+                progress(i + 1, len(sequence))
+        # each factor kind's programs for the next two doublings of its largest size, which
+        # a longer or busier recording reaches
+        for gk in group_kernels():
+            if gk.sizes:
+                top = max(gk.sizes)
+                gk.compile_sizes([top * 2, top * 4])
+        return time.perf_counter() - t0
 
     def add_frame(self, timestamp: float, pose: Any = None, *, odometry: Any = None,
                   detections: Iterable = (), ellipsoids: Iterable = ()) -> FrameRecord:
@@ -359,7 +406,7 @@ class OnlineMapper:
                 self._tried[k] = len(tr.frames)
                 continue
             e = init[k]
-            ok = np.asarray(_visible(e, jaxlie.SE3(self._est.array[tr.frames])))
+            ok = _visible(e, self._est.array[tr.frames])
             if ok.sum() < self.min_views:
                 self._tried[k] = len(tr.frames)
                 continue
@@ -505,16 +552,18 @@ class OnlineMapper:
         return len(factors), free, res.iterations
 
     def _padding(self, factors, values, rows: dict) -> dict:
-        """Rows to pad each factor kind and variable type to (``rows`` is updated): a quarter
-        more than the count, and never fewer than before, so that the shapes (and compilations) change
-        only when the problem outgrows them (a few times per run), not at every update."""
+        """Rows to pad each factor kind and variable type to (``rows`` is updated): the power
+        of two at or above a quarter more than the count, and never fewer than before, so
+        that the shapes (and compilations) change only when the problem outgrows them (a
+        few times per run, each kind's programs at most once per doubling), not at every
+        update."""
         counts = Counter(f.kind for f in factors)
         counts.update(type(values[k]).__name__ for k in values)
         for name, c in counts.items():
-            floor = rows.get(name) or bucket(
+            floor = rows.get(name) or _power_of_two(
                 4 * self.window if "box" in name else
                 self.window + self.every + 8 if name in ("between", "SE3") else 16)
-            rows[name] = max(floor, bucket(int(np.ceil(1.25 * c))))
+            rows[name] = max(floor, _power_of_two(int(np.ceil(1.25 * c))))
         return dict(rows)
 
     def _marginalise(self, start: int) -> None:
@@ -664,11 +713,13 @@ def run_online(seq: Sequence, method: str | Method = "multi-spd", *, associate: 
                sigmas: dict | None = None, window: int = 30, every: int = 10,
                max_iterations: int = 5, min_views: int = 3, final_batch: bool = True,
                final_iterations: int = 100, final_tolerance: float = 1e-6, progress=None,
-               **overrides):
+               warmup: Sequence | None = None, **overrides):
     """Replay a sequence through an ``OnlineMapper``, frame by frame in timestamp order:
     (``MapResult``, the ``FrameRecord`` of every frame). ``associate`` as
     ``run_sequence``'s (None: by instance id when every detection has one, else auto);
     ``final_batch``, ``final_iterations``, ``final_tolerance``: ``OnlineMapper.finish``'s.
+    ``warmup``: a sequence for ``OnlineMapper.warmup`` before the first frame (as a live
+    mapper would, so that the frames' times do not include compilation).
     ``progress(message)`` every 100 frames."""
     say = progress or (lambda message: None)
     if associate is None:
@@ -677,6 +728,9 @@ def run_online(seq: Sequence, method: str | Method = "multi-spd", *, associate: 
     mapper = OnlineMapper(seq.camera, seq.priors, method, associate=associate, window=window,
                           every=every, max_iterations=max_iterations, min_views=min_views,
                           sigmas=sigmas, name=seq.name, **overrides)
+    if warmup is not None:
+        say(f"online: warm-up on {warmup.name} ({len(warmup)} frames)")
+        say(f"online: warm-up took {mapper.warmup(warmup):.1f} s")
     by_frame: dict = {}
     for d in seq.detections:
         by_frame.setdefault(d.frame, []).append(d)

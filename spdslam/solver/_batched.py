@@ -475,6 +475,8 @@ def clear_caches() -> None:
     from . import _problem
 
     _problem._KERNELS.clear()
+    _problem._GROUP_KERNELS.clear()
+    _problem._RETRACT.clear()
     _CACHE.clear()
     _EXECUTABLES.clear()
     _BUILT.clear()

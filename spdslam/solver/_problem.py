@@ -17,11 +17,14 @@ Linearisation of a group is one vmapped computation: for each factor,
 
     r̃(δ) = W r(x₁ ⊞ δ₁, …, x_k ⊞ δ_k, args),   J = ∂r̃/∂δ |_{δ=0}  (jax.jacfwd),
 
-with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. The whole
-problem (all groups, plus the scatter of JᵀJ and Jᵀr̃ into their slots) is one jitted call.
+with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. Each group is
+one jitted call (its per-factor JᵀJ and Jᵀr̃ are scattered into their slots on the host).
 
-Compilation. The jitted functions are cached on the static structure (residual functions,
-variable types, data tree structures, kernels) and JAX caches them per array shape. To keep
+Compilation. A group's jitted functions are cached on its static description (residual
+function, variable types, data tree structure, kernel) and see only the variable stacks of
+the types it touches, so that JAX compiles one program per group and padded shape: a
+problem whose set of groups changes (the fixed-lag window of online mapping, where kinds of
+factors come and go) reuses each group's programs. To keep
 the number of shapes small, the counts of variables per type and of factors per group are
 padded up to a ``bucket`` (2ᵏ·{1, 1.25, 1.5, 1.75}): pad variables repeat row 0 and are held
 fixed, pad factors repeat factor 0 with zero weight and scatter into a discarded slot (H and
@@ -33,7 +36,7 @@ grows by a few factors therefore usually reuses the compiled code. The per-facto
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Hashable, Iterable
 
 import jax
@@ -42,7 +45,7 @@ import numpy as np
 
 from ..factors import CustomFactor, RobustKernel
 from ..geometry import manifold
-from ._linearize import finish, retract_rows, violates, whitened
+from ._linearize import finish, retract_rows, whitened
 
 __all__ = ["Problem", "bucket", "CHUNK"]
 
@@ -114,12 +117,9 @@ def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 
 
-def _gather(tree, idx):
-    return jax.tree.map(lambda a: a[idx], tree)
-
-
-def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
-    """Per-factor terms of one group, mapped over its factors in chunks.
+def _group_map(spec: _GroupSpec, tspecs, xs, mask, data, mode: str):
+    """Per-factor terms of one group, mapped over its factors in chunks; ``xs``: per key
+    position, the variables of each factor (gathered on the host, ``_Kernels``).
 
     mode "cost":   (½ρ(s) (nf,), valid, finite)
     mode "sparse": (JᵀJ upper triangle (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)
@@ -128,10 +128,8 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
     r and J are whitened and IRLS-weighted: r ← √ρ'(s) W r, J ← √ρ'(s) W ∂r/∂δ, s = ‖W r‖².
     ½ρ(s) is zero on pad rows. ``valid`` is None when the group has no validity function.
     """
-    idx, mask = gidx
     leaves, W = data
     args = jax.tree.unflatten(spec.args_treedef, leaves)
-    xs = [_gather(vars_[t], idx[:, p]) for p, t in enumerate(spec.var_types)]
     ops = [manifold.ops(tspecs[t].cls) for t in spec.var_types]
     offs = np.concatenate([[0], np.cumsum(spec.dims)]).tolist()
     D = spec.D
@@ -161,7 +159,7 @@ def _group_map(spec: _GroupSpec, tspecs, vars_, gidx, data, mode: str):
             return r, J, half_rho, valid, finite
         return (J.T @ J)[iu, ju], J.T @ r, half_rho, valid, finite
 
-    nf = idx.shape[0]
+    nf = mask.shape[0]
     batch = _chunk(nf, D)
     if batch >= nf:
         return jax.vmap(one)((xs, args, W, mask))
@@ -180,19 +178,6 @@ def _chunk(nf: int, D: int) -> int:
     return b
 
 
-def _retract_all(tspecs, vars_, deltas, free):
-    """x ⊞ δ for every free variable, then the type's ``regularize`` (other rows unchanged).
-    ``deltas``: per type, (rows, tangent dim)."""
-    out = []
-    for ts, x, d, fr in zip(tspecs, vars_, deltas, free):
-        y = retract_rows(ts.cls, x, d)
-        y = jax.tree.map(
-            lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x
-        )
-        out.append(y)
-    return tuple(out)
-
-
 def split_delta(delta, tan_idx):
     """Per-type (rows, dim) blocks of δ (NumPy); ``tan_idx`` rows of non-free variables
     point past the end of δ and get zeros."""
@@ -200,40 +185,136 @@ def split_delta(delta, tan_idx):
     return tuple(dext[ti] for ti in tan_idx)
 
 
+class _GroupKernels:
+    """The jitted functions of one factor group, on its factors' variables gathered on the
+    host: its compiled shapes are its own padded count only, whatever else is in the
+    problem (``_Kernels``)."""
+
+    def __init__(self, spec: _GroupSpec, tspecs: tuple[_TypeSpec, ...]):
+        def program(mode, n_out):
+            def f(xs, m, d):
+                return _group_map(spec, tspecs, xs, m, d, mode)[:n_out]
+
+            # named after the residual, as JAX's compile log and profiles show it
+            f.__name__ = f.__qualname__ = f"{getattr(spec.residual, '__name__', 'residual')}_{mode}"
+            return jax.jit(f)
+
+        self.cost, self.sparse, self.terms = program("cost", 2), program("sparse", 5), program("terms", 5)
+        #: padded sizes called so far, and the inputs of the first call (``compile_sizes``)
+        self.sizes: set[int] = set()
+        self.example = None
+
+    def note(self, xs, mask, data) -> None:
+        self.sizes.add(int(mask.shape[0]))
+        if self.example is None:
+            self.example = (xs, mask, data)
+
+    def compile_sizes(self, sizes) -> int:
+        """Compile the cost and linearisation programs for each padded factor count in
+        ``sizes`` (by calling them on the first call's inputs, rows repeated): the in-process
+        cache holds them afterwards, and the persistent cache when it is on. Returns the
+        number of sizes compiled."""
+        if self.example is None:
+            return 0
+        xs, mask, data = self.example
+        done = 0
+        for n in sorted(set(int(k) for k in sizes) - self.sizes):
+            grow = lambda a, n=n: a if a is None else _pad_rows(np.asarray(a), n)  # noqa: E731
+            args = (jax.tree.map(grow, xs), np.zeros(n, bool), jax.tree.map(grow, data))
+            jax.block_until_ready((self.cost(*args), self.sparse(*args)))
+            self.sizes.add(n)
+            done += 1
+        return done
+
+
+def group_kernels() -> list:
+    """Every factor group's kernels built in this process (``_GroupKernels``)."""
+    return list(_GROUP_KERNELS.values())
+
+
+#: Group kernels by their static description.
+_GROUP_KERNELS: dict[Any, _GroupKernels] = {}
+#: Retractions by variable type.
+_RETRACT: dict[_TypeSpec, Callable] = {}
+
+
+def _retract_kernel(ts: _TypeSpec):
+    """The jitted x ⊞ δ of one variable type (rows where ``free``; others unchanged)."""
+    k = _RETRACT.get(ts)
+    if k is None:
+        def retract(x, d, fr):
+            y = retract_rows(ts.cls, x, d)
+            return jax.tree.map(lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x)
+
+        k = _RETRACT[ts] = jax.jit(retract)
+    return k
+
+
+def _host(tree):
+    return jax.tree.map(np.asarray, tree)
+
+
 class _Kernels:
-    """The jitted functions of one static structure."""
+    """The compiled functions of one static structure: one program per factor group and
+    padded count, one retraction per variable type and padded rows. Each group's variables
+    are gathered on the host (NumPy), so that a group's programs do not depend on the other
+    groups or on the number of variables: a problem whose set of groups or variables
+    changes (online mapping's window) reuses them, and the programs a run compiles are
+    bounded by the groups' padded sizes (``bucket``), not by their combinations. Costs and
+    validity are reduced on the host too."""
 
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
+        self.groups = []
+        for spec in gspecs:
+            used = tuple(dict.fromkeys(spec.var_types))  # the types, in order of first use
+            local = replace(spec, var_types=tuple(used.index(t) for t in spec.var_types))
+            key = (local, tuple(tspecs[t] for t in used))
+            gk = _GROUP_KERNELS.get(key)
+            if gk is None:
+                gk = _GROUP_KERNELS[key] = _GroupKernels(*key)
+            self.groups.append(gk)
+        self.retract = [_retract_kernel(ts) for ts in tspecs]
 
-        def evaluate(vars_, gdata, gidx):
-            cost, valids = jnp.zeros(()), []
-            for spec, d, ix in zip(gspecs, gdata, gidx):
-                hr, v, _ = _group_map(spec, tspecs, vars_, ix, d, "cost")
-                cost, valids = cost + jnp.sum(hr), valids + [v]
-            return cost, tuple(valids)
+    def _inputs(self, k, vars_host, gidx, data):
+        """(variables of each key position of group k's factors, pad mask, data)."""
+        idx, mask = gidx
+        idx = np.asarray(idx)
+        xs = [jax.tree.map(lambda a, p=p: a[idx[:, p]], vars_host[t])
+              for p, t in enumerate(self.gspecs[k].var_types)]
+        self.groups[k].note(xs, mask, data)
+        return xs, mask, data
 
-        def linearize_sparse(vars_, gdata, gidx):
-            terms, cost, valids, finite = [], jnp.zeros(()), [], jnp.ones((), bool)
-            for spec, d, ix in zip(gspecs, gdata, gidx):
-                hc, gc, hr, v, fin = _group_map(spec, tspecs, vars_, ix, d, "sparse")
-                terms.append((hc, gc))
-                cost, valids, finite = cost + jnp.sum(hr), valids + [v], finite & jnp.all(fin)
-            return tuple(terms), cost, tuple(valids), finite
+    def evaluate(self, vars_, gdata, gidx):
+        """(F = Σ ½ρ, validity per group)."""
+        vh = _host(vars_)
+        out = [gk.cost(*self._inputs(k, vh, ix, d))
+               for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx))]
+        cost = float(sum(np.sum(np.asarray(hr)) for hr, _ in out))
+        return cost, tuple(None if v is None else np.asarray(v) for _, v in out)
 
-        def step(vars_, deltas, free, gdata, gidx, valid_cur):
-            new = _retract_all(tspecs, vars_, deltas, free)
-            cost, valid_new = evaluate(new, gdata, gidx)
-            return new, cost, violates(valid_cur, valid_new)
+    def linearize_sparse(self, vars_, gdata, gidx):
+        """(per group (JᵀJ upper triangles, Jᵀr), F, validity per group, all finite)."""
+        vh = _host(vars_)
+        out = [gk.sparse(*self._inputs(k, vh, ix, d))
+               for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx))]
+        terms = tuple((hc, gc) for hc, gc, _, _, _ in out)
+        cost = float(sum(np.sum(np.asarray(hr)) for _, _, hr, _, _ in out))
+        valids = tuple(None if v is None else np.asarray(v) for _, _, _, v, _ in out)
+        finite = all(bool(np.all(np.asarray(fin))) for *_, fin in out)
+        return terms, cost, valids, finite
 
-        def group_terms(k, vars_, data, gidx):
-            r, J, _, _, fin = _group_map(gspecs[k], tspecs, vars_, gidx, data, "terms")
-            return r, J, fin
+    def step(self, vars_, deltas, free, gdata, gidx, valid_cur):
+        """(x ⊞ δ, its cost, whether a factor valid at x is invalid there)."""
+        new = tuple(r(x, d, fr) for r, x, d, fr in zip(self.retract, vars_, deltas, free))
+        cost, valid_new = self.evaluate(new, gdata, gidx)
+        bad = any(bool(np.any(np.asarray(vc) & ~vn)) for vc, vn in zip(valid_cur, valid_new)
+                  if vc is not None)
+        return new, cost, bad
 
-        self.evaluate = jax.jit(evaluate)
-        self.linearize_sparse = jax.jit(linearize_sparse)
-        self.step = jax.jit(step)
-        self.group_terms = jax.jit(group_terms, static_argnums=0)
+    def group_terms(self, k, vars_, data, gidx):
+        r, J, _, _, fin = self.groups[k].terms(*self._inputs(k, _host(vars_), gidx, data))
+        return r, J, fin
 
 
 _KERNELS: dict[Any, _Kernels] = {}
