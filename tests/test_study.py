@@ -193,3 +193,24 @@ def test_a_study_in_chunks_is_the_study_in_one_batch(monkeypatch):
     assert len(capped) == len(whole) == 20
     with pytest.raises(ValueError, match="chunk"):
         run_study(cfg, chunk=0)
+
+
+def test_a_stalled_compilation_ends_in_an_error_naming_the_setting(monkeypatch, tmp_path):
+    """The watchdog on the study's compilation: past ``SPDSLAM_COMPILE_TIMEOUT`` seconds
+    ``run_study`` raises, and ``spdslam simulate`` says so on one line with exit status 2,
+    instead of hanging (the stalled compile thread is a daemon)."""
+    import time
+
+    from spdslam.solver._batched import BatchedProblem
+
+    monkeypatch.setenv("SPDSLAM_COMPILE_TIMEOUT", "0.5")
+    monkeypatch.setattr(BatchedProblem, "compile", lambda self, *a, **k: time.sleep(30))
+    cfg = StudyConfig(trials=1, angles=(120.0,), noise=("L",), models=("inv",), params=("O",), max_iters=5)
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="optimize"):
+        run_study(cfg)
+    assert time.perf_counter() - t0 < 10
+    res = cli_runner().invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--trials", "1",
+                                    "--angles", "120", "--noise", "L", "--models", "inv", "--params", "O"])
+    assert res.exit_code == 2 and "did not finish" in res.output, res.output
+    assert not (tmp_path / "x").exists()

@@ -145,7 +145,10 @@ def simulate(
                 console.print(f"simulate: {done}/{total} ({'solved ' if done > 1 else ''}{stage})")
 
         if engine is None:
-            result = run_study(cfg, progress)
+            try:
+                result = run_study(cfg, progress)
+            except RuntimeError as e:
+                fail(f"simulate: {e}")
         else:
             try:
                 result = run_study(cfg, progress, engine=engine, trials_per_task=trials_per_task)

@@ -21,7 +21,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -431,8 +432,7 @@ def run_study(
             # every structure compiled first, two at a time (XLA compiles in parallel
             # threads), then solved one after the other; later chunks reuse the programs
             t_compile = time.perf_counter()
-            with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:
-                compiled = list(pool.map(lambda b: b[0].compile(b[1], b[2]), built))
+            compiled = _compile_all(built)
             # wall time of tracing and compiling (in parallel: less than the structures' sum)
             timings["compile"] = time.perf_counter() - t_compile
             timings["solve"] += timings["compile"]
@@ -460,6 +460,48 @@ def run_study(
     histories = {s_: np.concatenate(h) for s_, h in hist.items()}
     _finish_timings(timings, columns, t_start)
     return StudyResult(cfg, columns, histories, timings)
+
+
+#: Seconds the compilation of a study's structures may take before ``run_study`` gives up
+#: with an error (``SPDSLAM_COMPILE_TIMEOUT`` overrides): a stalled XLA compilation would
+#: otherwise hang the process without a word (docs/performance.md, "Compile stress").
+COMPILE_TIMEOUT = 900.0
+
+
+def _compile_all(built) -> list:
+    """Compile every structure (``BatchedProblem.compile``), two at a time in daemon threads
+    (XLA compiles in parallel; a daemon thread does not keep a stalled process alive), in
+    at most ``COMPILE_TIMEOUT`` seconds, else ``RuntimeError`` naming what to change."""
+    timeout = float(os.environ.get("SPDSLAM_COMPILE_TIMEOUT", COMPILE_TIMEOUT))
+    futures = [Future() for _ in built]
+    todo = list(enumerate(built))
+    lock = threading.Lock()
+
+    def worker():
+        while True:
+            with lock:
+                if not todo:
+                    return
+                k, b = todo.pop(0)
+            try:
+                futures[k].set_result(b[0].compile(b[1], b[2]))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller
+                futures[k].set_exception(e)
+
+    for _ in range(max(1, min(2, os.cpu_count() or 1))):
+        threading.Thread(target=worker, daemon=True, name="spdslam-compile").start()
+    deadline = time.monotonic() + timeout
+    out = []
+    for f in futures:
+        try:
+            out.append(f.result(timeout=max(0.0, deadline - time.monotonic())))
+        except TimeoutError:
+            raise RuntimeError(
+                f"compiling the batched solver did not finish in {timeout:g} s (XLA may have "
+                "stalled): run again with optimize=True (`spdslam simulate --optimize yes`, XLA's "
+                "default compile options), or raise SPDSLAM_COMPILE_TIMEOUT if this machine is "
+                "that slow") from None
+    return out
 
 
 # --- the grid in tasks (an engine: local or Ray) -------------------------------------------
