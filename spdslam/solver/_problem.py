@@ -21,8 +21,8 @@ with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J 
 one jitted call (its per-factor JᵀJ and Jᵀr̃ are scattered into their slots on the host).
 
 Compilation. A group's jitted functions are cached on its static description (residual
-function, variable types, data tree structure, kernel) and see only the variable stacks of
-the types it touches, so that JAX compiles one program per group and padded shape: a
+function, variable types, data tree structure, kernel) and take its factors' variables
+gathered on the host, so that JAX compiles one program per group and padded count: a
 problem whose set of groups changes (the fixed-lag window of online mapping, where kinds of
 factors come and go) reuses each group's programs. To keep
 the number of shapes small, the counts of variables per type and of factors per group are
@@ -200,26 +200,28 @@ class _GroupKernels:
             return jax.jit(f)
 
         self.cost, self.sparse, self.terms = program("cost", 2), program("sparse", 5), program("terms", 5)
-        #: padded sizes called so far, and the inputs of the first call (``compile_sizes``)
+        #: padded sizes called so far, and the first rows of the first call's inputs
+        #: (``compile_sizes``)
         self.sizes: set[int] = set()
         self.example = None
 
     def note(self, xs, mask, data) -> None:
         self.sizes.add(int(mask.shape[0]))
-        if self.example is None:
-            self.example = (xs, mask, data)
+        if self.example is None:  # row 0 is all that padding repeats: keep a few rows only
+            head = lambda a: np.array(np.asarray(a)[:_EXAMPLE_ROWS])  # noqa: E731
+            self.example = (jax.tree.map(head, xs), None, jax.tree.map(head, data))
 
     def compile_sizes(self, sizes) -> int:
         """Compile the cost and linearisation programs for each padded factor count in
-        ``sizes`` (by calling them on the first call's inputs, rows repeated): the in-process
+        ``sizes`` (by calling them on the first call's inputs, row 0 repeated): the in-process
         cache holds them afterwards, and the persistent cache when it is on. Returns the
         number of sizes compiled."""
         if self.example is None:
             return 0
-        xs, mask, data = self.example
+        xs, _, data = self.example
         done = 0
         for n in sorted(set(int(k) for k in sizes) - self.sizes):
-            grow = lambda a, n=n: a if a is None else _pad_rows(np.asarray(a), n)  # noqa: E731
+            grow = lambda a, n=n: _pad_rows(np.asarray(a)[:n], n)  # noqa: E731
             args = (jax.tree.map(grow, xs), np.zeros(n, bool), jax.tree.map(grow, data))
             jax.block_until_ready((self.cost(*args), self.sparse(*args)))
             self.sizes.add(n)
@@ -232,6 +234,8 @@ def group_kernels() -> list:
     return list(_GROUP_KERNELS.values())
 
 
+#: Rows of a group's first inputs kept for ``_GroupKernels.compile_sizes``.
+_EXAMPLE_ROWS = 8
 #: Group kernels by their static description.
 _GROUP_KERNELS: dict[Any, _GroupKernels] = {}
 #: Retractions by variable type.
