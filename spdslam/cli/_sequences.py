@@ -609,7 +609,7 @@ def warmup(
     """Compile ahead, into the compilation cache (SPDSLAM_CACHE_DIR): the batch run of the
     demo room (`spdslam run`'s programs) and an online replay of a synthetic room with the
     camera and priors of SEQUENCE (`spdslam run --online` and OnlineMapper's). A later
-    process loads the programs instead of compiling them (docs/performance.md, "Compilation")."""
+    process loads the programs instead of compiling them (docs/performance.md, "6. The first run")."""
     import time
 
     from .._cache import ensure_compilation_cache

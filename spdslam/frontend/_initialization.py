@@ -198,24 +198,24 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
     the fitted ellipsoid's (P, centre)."""
     box_of = project_cuboid_box if shape == "cuboid" else project_box
 
-    def residual(theta, tw):
+    def residual(theta):
         e = _multi_model(theta, frame, has_plane)
         r_box = jax.vmap(lambda T, b: box_of(e, T, camera) - b)(poses, boxes)
         r_box = (r_box / _PX_SIGMA) * mask
         r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
-        return jnp.concatenate([r_box.ravel(), r_prior, tw * theta[7:9]])
+        return jnp.concatenate([r_box.ravel(), r_prior, tilt_w * theta[7:9]])
 
-    def cost(theta, tw):
-        r = residual(theta, tw)
+    def cost(theta):
+        r = residual(theta)
         return jnp.sum(jnp.where(jnp.isfinite(r), r**2, jnp.inf))
 
-    def lm(theta, tw):
+    def lm(theta):
         def body(_, state):
             th, lam, c = state
-            r = residual(th, tw)
-            J = jax.jacfwd(residual)(th, tw)
+            r = residual(th)
+            J = jax.jacfwd(residual)(th)
             J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
-            J = jnp.where(tw > 0, J, J.at[:, 7:9].set(0.0))
+            J = jnp.where(tilt_w > 0, J, J.at[:, 7:9].set(0.0))
             H = J.T @ J
             g = J.T @ r
             # damping isotropic per block of θ (centre, log radii, yaw and tilt), as the back
@@ -225,15 +225,15 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
             D = jnp.concatenate([jnp.full(3, jnp.max(d[:3])), jnp.full(3, jnp.max(d[3:6])), d[6:]])
             step = -jnp.linalg.solve(H + lam * jnp.diag(D + 1e-9), g)
             cand = th + step
-            cc = cost(cand, tw)
+            cc = cost(cand)
             ok = cc < c
             return (jnp.where(ok, cand, th), jnp.where(ok, lam * 0.3, lam * 10.0), jnp.where(ok, cc, c))
 
-        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta, tw)))
+        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta)))
         return th, c
 
     def fit(th):
-        th, c = lm(th, tilt_w)
+        th, c = lm(th)
         e = _multi_model(th, frame, has_plane)
         return c, e.P, e.center
 

@@ -4,15 +4,16 @@ the up direction and support planes, the class priors and each class's silhouett
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import jaxlie
 import numpy as np
 
-from ..geometry.se3 import from_tum
+from ..geometry.se3 import from_tum, quat_to_matrix
 from ..io import Sequence, class_prior
 from ._methods import Method
 
-__all__ = ["SequenceContext", "as_context", "object_shape"]
+__all__ = ["SequenceContext", "as_context", "camera_axes_of", "object_shape"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +46,11 @@ class SequenceContext:
     def priors(self):
         return self.seq.priors
 
+    @cached_property
+    def camera_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R_wc (F, 3, 3), camera centres (F, 3)) of the trajectory, NumPy, computed once."""
+        return camera_axes_of(self.wxyz_xyz)
+
     def trajectory(self, frames=None) -> jaxlie.SE3:
         """The poses of ``frames`` (default all) as one batched ``jaxlie.SE3``."""
         return jaxlie.SE3(self.wxyz_xyz if frames is None else self.wxyz_xyz[frames])
@@ -56,6 +62,12 @@ class SequenceContext:
     def support_planes(self) -> list:
         """The priors' support planes as given (rows [a, b, c, d]); [] without priors."""
         return [] if self.priors is None else list(self.priors.support_planes)
+
+
+def camera_axes_of(wxyz_xyz) -> tuple[np.ndarray, np.ndarray]:
+    """(R_wc (n, 3, 3), centres (n, 3)) of jaxlie SE(3) rows [qw qx qy qz x y z] (NumPy)."""
+    rows = np.asarray(wxyz_xyz, dtype=float).reshape(-1, 7)
+    return quat_to_matrix(rows[:, [1, 2, 3, 0]]).reshape(-1, 3, 3), rows[:, 4:]
 
 
 def as_context(seq) -> SequenceContext:

@@ -52,7 +52,7 @@ from ..geometry.se3 import as_pose, from_tum, to_tum
 from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ..solver._problem import Problem, group_kernels
-from ._context import SequenceContext
+from ._context import SequenceContext, camera_axes_of
 from ._graph import (
     _box_factors,
     _measurement_factors,
@@ -406,7 +406,7 @@ class OnlineMapper:
                 self._tried[k] = len(tr.frames)
                 continue
             e = init[k]
-            ok = _visible(e, self._est.array[tr.frames])
+            ok = _visible(e, camera_axes_of(self._est.array[tr.frames]))
             if ok.sum() < self.min_views:
                 self._tried[k] = len(tr.frames)
                 continue

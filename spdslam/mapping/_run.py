@@ -45,7 +45,7 @@ from ..geometry import (
     project_box,
 )
 from ..geometry.matfun import eigh
-from ..geometry.se3 import quat_to_matrix, to_tum
+from ..geometry.se3 import to_tum
 from ..io import MapObject, Sequence, class_prior
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
@@ -362,20 +362,15 @@ def initialize_from_measurements(ctx, measurements) -> Ellipsoid:
     return Ellipsoid(np.asarray((V * np.exp(w)) @ V.T), center)
 
 
-def _camera_axes(wxyz_xyz):
-    """(R_wc (n, 3, 3), centres (n, 3)) of jaxlie SE(3) rows [qw qx qy qz x y z] (NumPy)."""
-    rows = np.asarray(wxyz_xyz, dtype=float).reshape(-1, 7)
-    return quat_to_matrix(rows[:, [1, 2, 3, 0]]).reshape(-1, 3, 3), rows[:, 4:]
-
-
 def _numpy_ellipsoid(e) -> Ellipsoid:
     return Ellipsoid(np.asarray(e.P, dtype=float), np.asarray(e.center, dtype=float))
 
 
-def _visible(e, wxyz_xyz) -> np.ndarray:
-    """Whether the ellipsoid ``e`` lies wholly in front (depth > 1 mm) of each pose (rows
-    of jaxlie SE(3) parameters); NumPy, so that no program is compiled per track length."""
-    return np.asarray(in_front(_numpy_ellipsoid(e), _camera_axes(wxyz_xyz), 1e-3))
+def _visible(e, pose) -> np.ndarray:
+    """Whether the ellipsoid ``e`` lies wholly in front (depth > 1 mm) of each camera of
+    ``pose`` (R_wc (n, 3, 3), centres (n, 3)); NumPy, so that no program is compiled per
+    track length."""
+    return np.asarray(in_front(_numpy_ellipsoid(e), pose, 1e-3))
 
 #: A track is spurious when its object, seen whole (in front, its box inside the image) in
 #: at least ``MIN_SEEN_FRAMES`` frames, is detected in fewer than this fraction of them: a
@@ -389,8 +384,8 @@ def detection_rate(ctx, track, e) -> tuple[int, int]:
     """(views of the track, frames of the sequence that see the ellipsoid ``e`` whole)."""
     ctx = as_context(ctx)
     cam = ctx.camera
-    pose = _camera_axes(ctx.wxyz_xyz)
-    ok = _visible(e, ctx.wxyz_xyz)
+    pose = ctx.camera_axes
+    ok = _visible(e, pose)
     with np.errstate(divide="ignore", invalid="ignore"):  # boxes of views where it is not in front
         b = np.asarray(project_box(_numpy_ellipsoid(e), pose, cam))
     whole = ok & (b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] <= cam.width) & (b[:, 3] <= cam.height)
@@ -420,7 +415,8 @@ def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=(
         if tr.id not in init:
             kept.append(tr)
             continue
-        ok = _visible(init[tr.id], ctx.wxyz_xyz[tr.frames])
+        R, C = ctx.camera_axes
+        ok = _visible(init[tr.id], (R[tr.frames], C[tr.frames]))
         if not ok.all():
             notes.append(
                 f"object {tr.id}: {int((~ok).sum())} of {ok.size} views dropped (the initial "
