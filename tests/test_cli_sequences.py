@@ -8,6 +8,7 @@ later ones reuse the compiled functions, so ``run`` is invoked only four times i
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -228,7 +229,7 @@ def test_run_malformed_detections_names_file_and_line(seq_dir, tmp_path):
 def test_run_missing_sequence_folder(tmp_path):
     missing = tmp_path / "no-such-sequence"
     result = invoke("run", missing, "--out", tmp_path / "out")
-    assert_error(result, str(missing), "no such folder")
+    assert_error(result, str(missing), "no such file or folder")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -287,14 +288,28 @@ def test_evaluate_malformed_map_json(run_out, seq_dir, tmp_path, edit):
     assert snapshot(tmp_path) == before
 
 
-def test_import_of_a_folder_that_is_not_fr3(seq_dir, tmp_path):
+def test_import_goes_through_the_format_registry(seq_dir, tmp_path):
+    """A canonical folder imports as a copy (every registered format reads); a folder no
+    format claims, or one two claim, is refused naming the candidates; nothing is written."""
+    from spdslam.io import read_sequence
+
     dest = tmp_path / "dest"
     result = invoke("import", seq_dir, dest)
-    assert_error(result, str(seq_dir), "no such file")
-    assert not dest.exists()
-    result = invoke("import", tmp_path / "nowhere", dest)
-    assert_error(result, str(tmp_path / "nowhere"))
-    assert list(tmp_path.iterdir()) == []
+    assert result.exit_code == 0, (result.stdout, result.stderr, result.exception)
+    assert read_sequence(dest) == dataclasses.replace(read_sequence(seq_dir), name="dest")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_error(invoke("import", empty, tmp_path / "d2"), str(empty), "none of their layouts",
+                 "canonical", "fr3_cabinet", "oaslam", "rosbag2")
+    both = tmp_path / "both"
+    shutil.copytree(seq_dir, both)
+    (both / "bbox").mkdir()
+    (both / "truth_objects.txt").write_text("0 0 0 0 1 1 1\n", encoding="utf-8")
+    assert_error(invoke("import", both, tmp_path / "d2"), str(both), "canonical (", "fr3_cabinet (",
+                 "all claim")
+    assert_error(invoke("import", tmp_path / "nowhere", tmp_path / "d2"), str(tmp_path / "nowhere"),
+                 "no such file or folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["both", "dest", "empty"]
 
 
 def test_demo_refuses_a_foreign_non_empty_folder(tmp_path):

@@ -95,9 +95,15 @@ def check_output(out: Path, inputs=(), option: str = "--out") -> None:
     removed)."""
     import tempfile
 
-    o = Path(os.path.abspath(out)).resolve()
+    def resolved(p: Path, what: str) -> Path:
+        try:
+            return Path(os.path.abspath(p)).resolve()
+        except (RuntimeError, OSError):  # Python 3.11 raises RuntimeError on a link loop
+            fail(f"{what}: {p}: expected a path, got a symbolic-link loop")
+
+    o = resolved(out, option)
     for src in inputs:
-        s = Path(os.path.abspath(src)).resolve()
+        s = resolved(src, str(src))
         if o == s:
             fail(f"{option}: {out} is the input {src}: expected an output folder apart from it")
         if s in o.parents:

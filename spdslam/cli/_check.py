@@ -58,13 +58,17 @@ def check(
     map spdslam run makes with its defaults, made first)."""
     from ..evaluation import check_sequence
     from ..io import (MapFormatError, SequenceFormatError, dumps_strict, read_map,
-                      read_measured_boxes, read_sequence, read_tum)
+                      check_sequence_path, read_measured_boxes, read_sequence, read_tum)
 
     if not (math.isfinite(min_iou) and 0 < min_iou < 1):
         fail(f"--min-iou: expected a number in (0, 1), got {min_iou}")
     if json_path is not None:
         if json_path.exists() and json_path.is_dir():
             fail(f"--json: {json_path} is a folder: expected a file path")
+        try:
+            check_sequence_path(sequence)
+        except SequenceFormatError as e:
+            fail(str(e))
         check_output(json_path, (sequence,) + ((map_,) if map_ is not None else ()), "--json")
     try:
         seq = read_sequence(sequence)

@@ -46,13 +46,60 @@ _ROBUST_HELP = (
 _METHOD_HELP = f"The back end: {', '.join(METHODS)}."
 
 
-def _load_sequence(path: Path):
+def _formats_help() -> str:
+    """The registered sequence formats, as the help of a SEQUENCE argument lists them."""
+    from ..io import FORMATS, formats
+
+    try:
+        known = formats()
+    except ImportError:  # a broken entry point: reported when a command looks a path up
+        known = list(FORMATS.values())
+    return "; ".join(f.describe() for f in known)
+
+
+def _format_options(items) -> dict:
+    """``--option NAME=VALUE`` items as keyword options of a format's reader (VALUE read as
+    a YAML scalar: 3, 0.5, true, odometry)."""
+    import yaml
+
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or not name.isidentifier():
+            fail(f"--option: expected NAME=VALUE, got {item!r}")
+        try:
+            v = yaml.safe_load(value) if value.strip() else ""
+        except yaml.YAMLError:
+            v = value
+        if isinstance(v, (list, dict)):
+            v = value
+        out[name] = v
+    return out
+
+
+def _sequence_path(path: Path) -> None:
+    """Refuse, before anything is read or written, a sequence path that is not there or
+    cannot be resolved (a symbolic-link loop): one line, exit 2."""
+    from ..io import SequenceFormatError, check_sequence_path
+
+    try:
+        check_sequence_path(path)
+    except SequenceFormatError as e:
+        fail(str(e))
+
+
+def _load_sequence(path: Path, options: dict | None = None):
+    """The sequence at ``path`` in its registered format (``io.read_sequence``), with the
+    format's keyword ``options``; errors as one line."""
     from ..io import SequenceFormatError, read_sequence
 
     try:
-        seq = read_sequence(path)
+        seq = read_sequence(path, **(options or {}))
     except SequenceFormatError as e:
         fail(str(e))
+    except ValueError as e:  # an option the format does not take, or a bad value
+        fail(f"--option: {e}")
     return seq
 
 
@@ -196,9 +243,10 @@ def _write_recording(path: Path, option: str, objects, trajectory, seq, to_groun
 
 @app.command()
 def run(
-    sequence: Path = typer.Argument(..., help="Sequence folder (canonical format or fr3_cabinet layout)."),
+    sequence: Path = typer.Argument(..., help=f"The sequence, in a registered format (docs/formats.md): {_formats_help()}."),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
+    option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, NAME=VALUE, repeatable (e.g. min_score=0.3 for an OA-SLAM folder; docs/formats.md)."),
     parameterization: str | None = typer.Option(None, help=f"Override: {', '.join(PARAMETERIZATIONS)}."),
     box_model: str | None = typer.Option(None, help=f"Override: {', '.join(BOX_MODELS)}."),
     associate: str | None = typer.Option(None, help="Data association: instances (the instance column) or auto; default: instances when every detection has an id, else auto."),
@@ -253,10 +301,12 @@ def run(
             fail("--online: support planes come from the priors only; --support-planes must be priors")
         online_settings = {"window": window, "every": every, "iterations": online_iterations,
                            "final_batch": final_batch, "warmup": warmup_first}
+    options = _format_options(option)
+    _sequence_path(sequence)
     check_output(out, [sequence])
     if rerun is not None:
         _check_recording(rerun, "--rerun")
-    seq = _load_sequence(sequence)
+    seq = _load_sequence(sequence, options)
     if not class_table:
         from ..io import without_class_table
 
@@ -321,9 +371,22 @@ def evaluate(
     console.print(f"wrote {folder / 'metrics.json'} and {folder / 'report.md'}")
 
 
+#: ``spdslam import``'s reader options: option name → (keyword of the readers, default).
+_IMPORT_OPTIONS = {
+    "--trajectory": ("trajectory", "odometry"),
+    "--min-score": ("min_score", 0.5),
+    "--undistort": ("undistort", True),
+    "--camera-info-topic": ("camera_info_topic", None),
+    "--detections-topic": ("detections_topic", None),
+    "--pose-topic": ("pose_topic", None),
+    "--world-frame": ("world_frame", None),
+    "--camera-frame": ("camera_frame", None),
+}
+
+
 @app.command("import")
 def import_(
-    source: Path = typer.Argument(..., help="A TUM fr3_cabinet-style folder (bbox/, groundtruth.txt, TUM3.yaml, truth_objects.txt), an OA-SLAM-style one (detections*.json, a camera YAML, TUM trajectories; docs/formats.md) or a ROS 2 bag (a folder with metadata.yaml, or a .mcap or .db3 file)."),
+    source: Path = typer.Argument(..., help=f"The input, in a registered format (docs/formats.md): {_formats_help()}."),
     dest: Path = typer.Argument(..., help="Destination folder (canonical format)."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
     trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth (a ROS 2 bag's poses come from --pose-topic)."),
@@ -334,43 +397,49 @@ def import_(
     pose_topic: str | None = typer.Option(None, help="ROS 2 bags: the camera poses, a geometry_msgs/msg/PoseStamped, nav_msgs/msg/Odometry or tf2_msgs/msg/TFMessage (/tf) topic (default: the bag's only one)."),
     world_frame: str | None = typer.Option(None, help="ROS 2 bags: the world frame of the poses (tf: default the root of the camera's tf tree; PoseStamped, Odometry: checked against header.frame_id)."),
     camera_frame: str | None = typer.Option(None, help="ROS 2 bags: the camera's optical frame (tf: default CameraInfo's header.frame_id; Odometry: checked against child_frame_id)."),
+    option: list[str] | None = typer.Option(None, "--option", help="Any other option of the format's reader, NAME=VALUE, repeatable (a format a package adds; docs/extending.md)."),
 ) -> None:
-    """Convert an fr3_cabinet- or OA-SLAM-style folder, or a ROS 2 bag (CameraInfo,
-    vision_msgs Detection2DArray, and PoseStamped, Odometry or tf camera poses; needs
-    the rosbags package, the 'ros' extra), to the canonical sequence format."""
-    from ..io import (
-        SequenceFormatError,
-        import_fr3_cabinet,
-        import_oaslam,
-        import_rosbag,
-        is_oaslam_layout,
-        write_sequence,
-    )
+    """Convert a sequence in any registered format (an fr3_cabinet- or OA-SLAM-style
+    folder, a ROS 2 bag: CameraInfo, vision_msgs Detection2DArray, and PoseStamped,
+    Odometry or tf camera poses, needing the rosbags package, the 'ros' extra; or a format
+    a package adds) to the canonical sequence format. An option the SOURCE's format does
+    not take is refused, naming the formats that take it."""
+    import dataclasses
 
-    bag = (source / "metadata.yaml").is_file() if source.is_dir() else source.suffix.lower() in (".mcap", ".db3")
-    bag_options = {"--camera-info-topic": camera_info_topic, "--detections-topic": detections_topic,
-                   "--pose-topic": pose_topic, "--world-frame": world_frame, "--camera-frame": camera_frame}
-    if not bag and not source.is_dir():
-        fail(f"{source}: expected an fr3_cabinet- or OA-SLAM-style folder or a ROS 2 bag, got no such folder")
+    from ..io import FORMATS, SequenceFormatError, find_format
+
+    given = {"--trajectory": trajectory, "--min-score": min_score, "--undistort": undistort,
+             "--camera-info-topic": camera_info_topic, "--detections-topic": detections_topic,
+             "--pose-topic": pose_topic, "--world-frame": world_frame, "--camera-frame": camera_frame}
     if trajectory not in ("odometry", "groundtruth"):
         fail(f"--trajectory: expected odometry or groundtruth, got {trajectory!r}")
-    if bag and trajectory != "odometry":
-        fail(f"--trajectory: a ROS 2 bag's poses come from --pose-topic: expected odometry, got {trajectory!r}")
-    if not bag and any(v is not None for v in bag_options.values()):
-        given = ", ".join(k for k, v in bag_options.items() if v is not None)
-        fail(f"{given}: expected a ROS 2 bag (a folder with metadata.yaml, or a .mcap or .db3 file), got {source}")
     if not math.isfinite(min_score):
         fail(f"--min-score: expected a finite number, got {min_score!r}")
+    options = {kw: given[opt] for opt, (kw, default) in _IMPORT_OPTIONS.items()
+               if given[opt] != default}
+    options.update(_format_options(option))
+    _sequence_path(source)
+
+    def refuse(kw, got):
+        flag = next((o for o, (k, _) in _IMPORT_OPTIONS.items() if k == kw), f"--option {kw}")
+        takers = [f.describe() for f in FORMATS.values() if kw in f.options]
+        fail(f"{flag}: expected {' or '.join(takers) or 'a format that takes it'}, got {source}, {got}")
+
+    try:
+        fmt = find_format(source)
+    except SequenceFormatError as e:
+        if options:  # say first what the option needs
+            refuse(next(iter(options)), "which no format claims")
+        fail(str(e))
+    for kw in options:
+        if kw not in fmt.options:
+            hint = fmt.hints.get(kw)
+            refuse(kw, fmt.title + (f" ({hint})" if hint else ""))
     check_output(dest, [source], "DEST")
     try:
-        if bag:
-            seq = import_rosbag(source, camera_info_topic, detections_topic, pose_topic, world_frame,
-                                camera_frame, min_score, undistort, name=dest.name)
-        elif is_oaslam_layout(source):
-            seq = import_oaslam(source, trajectory, min_score, undistort)
-        else:
-            seq = import_fr3_cabinet(source)
-        write_sequence(seq, dest, overwrite=overwrite)
+        seq = fmt.read(source, **options)
+        seq = dataclasses.replace(seq, name=dest.name)
+        FORMATS["canonical"].write(seq, dest, overwrite=overwrite)
     except SequenceFormatError as e:
         fail(str(e))
     except FileExistsError as e:
@@ -438,6 +507,7 @@ def compare(
     from ..experiments import Job
 
     names = _split("methods", methods, tuple(METHODS))
+    _sequence_path(sequence)
     check_output(out, [sequence])
     seq = _load_sequence(sequence)
     if not seq.objects_gt:

@@ -400,7 +400,7 @@ def run_study(
     """
     if engine is not None:
         return _run_sharded(cfg, progress, engine, trials_per_task)
-    from ..solver._batched import AUTO_OPTIMIZE_WORK
+    from ..solver._compile import AUTO_OPTIMIZE_WORK
 
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]
@@ -535,7 +535,8 @@ MAX_TRIALS_PER_TASK = 10_000
 
 
 def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
-    from ..solver._batched import AUTO_OPTIMIZE_WORK, DEFAULT_LANES
+    from ..solver._batched import DEFAULT_LANES
+    from ..solver._compile import AUTO_OPTIMIZE_WORK
 
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]

@@ -1,5 +1,6 @@
-"""Files: the sequence model and its canonical folder (readers, writers), the fr3_cabinet
-importer, g2o/TORO pose graphs and ``map.json``.
+"""Files: the sequence model and its formats (one ``SequenceFormat`` class per input layout:
+the canonical folder, fr3_cabinet, OA-SLAM, ROS 2 bags; ``read_sequence`` finds a path's
+format in the registry), g2o/TORO pose graphs and ``map.json``.
 
 Every malformed file gives a one-line ``file:line: expected …, got …`` error
 (``SequenceFormatError``, ``MapFormatError``). Imports ``geometry``, ``factors`` and
@@ -7,26 +8,39 @@ Every malformed file gives a one-line ``file:line: expected …, got …`` error
 """
 
 from ._classes import BUILTIN_CLASSES as BUILTIN_CLASSES
+from ._classes import ClassPrior as ClassPrior
 from ._classes import CLASS_SOURCES as CLASS_SOURCES
 from ._classes import builtin_class_prior as builtin_class_prior
 from ._classes import class_prior as class_prior
-from ._classes import without_class_table as without_class_table
 from ._g2o import Edge as Edge
 from ._g2o import PoseGraph as PoseGraph
 from ._g2o import parse_g2o as parse_g2o
 from ._g2o import pose_graph_factors as pose_graph_factors
 from ._g2o import read_g2o as read_g2o
 from ._g2o import rpy_to_quaternion as rpy_to_quaternion
-from ._importers import COCO_LABELS as COCO_LABELS
-from ._importers import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
-from ._importers import import_fr3_cabinet as import_fr3_cabinet
-from ._importers import is_fr3_cabinet as is_fr3_cabinet
+from ._formats import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
+from ._formats import FORMATS as FORMATS
+from ._formats import SequenceFormat as SequenceFormat
+from ._formats import check_sequence_path as check_sequence_path
+from ._formats import find_format as find_format
+from ._formats import formats as formats
+from ._formats import formats_table as formats_table
+from ._formats import read_measured_boxes as read_measured_boxes
+from ._formats import read_sequence as read_sequence
+# the built-in formats, registered in this order (canonical first)
+from ._readers import CanonicalFolder as CanonicalFolder
+from ._fr3_cabinet import COCO_LABELS as COCO_LABELS
+from ._fr3_cabinet import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
+from ._fr3_cabinet import Fr3CabinetFolder as Fr3CabinetFolder
+from ._fr3_cabinet import import_fr3_cabinet as import_fr3_cabinet
+from ._fr3_cabinet import is_fr3_cabinet as is_fr3_cabinet
 from ._json import dumps_strict as dumps_strict
 from ._map import MapFormatError as MapFormatError
 from ._map import MapObject as MapObject
 from ._map import read_map as read_map
 from ._map import write_map as write_map
 from ._oaslam import COCO80 as COCO80
+from ._oaslam import OASlamFolder as OASlamFolder
 from ._oaslam import estimate_up as estimate_up
 from ._oaslam import import_oaslam as import_oaslam
 from ._oaslam import is_oaslam_layout as is_oaslam_layout
@@ -41,17 +55,18 @@ from ._parse import read_tum as read_tum
 from ._readers import read_camera as read_camera
 from ._readers import read_detections as read_detections
 from ._readers import read_ellipsoids as read_ellipsoids
+from ._readers import read_canonical as read_canonical
 from ._readers import read_objects_gt as read_objects_gt
 from ._readers import read_priors as read_priors
-from ._readers import read_sequence as read_sequence
-from ._readers import read_measured_boxes as read_measured_boxes
+from ._rosbag import RosBag2 as RosBag2
 from ._rosbag import import_rosbag as import_rosbag
-from ._sequence import ClassPrior as ClassPrior
+from ._rosbag import is_rosbag as is_rosbag
 from ._sequence import Detection as Detection
 from ._sequence import EllipsoidDetection as EllipsoidDetection
 from ._sequence import GroundTruthObject as GroundTruthObject
 from ._sequence import Priors as Priors
 from ._sequence import Sequence as Sequence
+from ._sequence import without_class_table as without_class_table
 from ._writers import tum_text as tum_text
 from ._writers import write_folder_atomically as write_folder_atomically
 from ._writers import write_sequence as write_sequence

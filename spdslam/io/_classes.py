@@ -18,13 +18,41 @@ turns the table off.
 
 from __future__ import annotations
 
-import dataclasses
+from dataclasses import dataclass
 
-from ._sequence import ClassPrior, Priors, Sequence
+import numpy as np
 
-__all__ = [
-    "BUILTIN_CLASSES", "CLASS_SOURCES", "builtin_class_prior", "class_prior", "without_class_table",
-]
+from ..geometry import OBJECT_SHAPES
+from ._frozen import _close, _frozen_array
+
+__all__ = ["ClassPrior", "BUILTIN_CLASSES", "CLASS_SOURCES", "builtin_class_prior", "class_prior"]
+
+@dataclass(frozen=True, eq=False)
+class ClassPrior:
+    """Prior of a class: radii (3,), their standard deviation ``sigma``, and the ``shape``
+    whose silhouette the detector boxes (``"ellipsoid"`` or ``"cuboid"``: box-like objects
+    such as cabinets, monitors or tables; the radii are then the cuboid's half-extents)."""
+
+    radii: np.ndarray
+    sigma: float
+    shape: str = "ellipsoid"
+
+    def __post_init__(self):
+        object.__setattr__(self, "radii", _frozen_array(self.radii, (3,)))
+        object.__setattr__(self, "sigma", float(self.sigma))
+        if self.shape not in OBJECT_SHAPES:
+            raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
+
+    def __eq__(self, other):
+        if not isinstance(other, ClassPrior):
+            return NotImplemented
+        return (
+            _close(self.radii, other.radii)
+            and _close(self.sigma, other.sigma)
+            and self.shape == other.shape
+        )
+
+
 
 #: label → (full width, depth, height in metres, relative spread, source).
 _TABLE = {
@@ -103,10 +131,3 @@ def class_prior(priors, label: str) -> ClassPrior | None:
     its own entry, else the built-in table's unless ``builtin_classes`` is off); without
     priors, the built-in table's."""
     return builtin_class_prior(label) if priors is None else priors.class_prior(label)
-
-
-def without_class_table(seq: Sequence) -> Sequence:
-    """``seq`` with the built-in table turned off (``Priors.builtin_classes = False``)."""
-    priors = Priors(builtin_classes=False) if seq.priors is None else \
-        seq.priors.replace(builtin_classes=False)
-    return dataclasses.replace(seq, priors=priors)

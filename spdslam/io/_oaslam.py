@@ -1,4 +1,4 @@
-"""Importer of the OA-SLAM-style layout of real recordings (e.g. ``tum_fr2_desk``):
+"""The OA-SLAM-style layout of real recordings (e.g. ``tum_fr2_desk``):
 
 - ``detections*.json``: OA-SLAM's detection file, a list of ``{"file_name": "<timestamp>.png",
   "detections": [{"category_id": k, "detection_score": s, "bbox": [x1, y1, x2, y2]}]}``, k a
@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import Camera, Cuboid, undistort_boxes
+from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
@@ -40,9 +41,10 @@ from ._parse import (
     read_tum,
     required,
 )
+from ._readers import read_priors
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
-__all__ = ["COCO80", "is_oaslam_layout", "import_oaslam", "read_opencv_camera",
+__all__ = ["OASlamFolder", "COCO80", "is_oaslam_layout", "import_oaslam", "read_opencv_camera",
            "read_detections_json", "read_quadrics_gt", "estimate_up"]
 
 #: The 80 COCO classes in YOLO's 0-indexed order.
@@ -97,9 +99,8 @@ def _camera_files(folder: Path) -> list[Path]:
 
 
 def is_oaslam_layout(folder) -> bool:
-    """True for a folder with one ``detections*.json`` and no canonical ``detections.txt``."""
-    folder = Path(folder)
-    return len(_json_files(folder)) == 1 and not (folder / "detections.txt").exists()
+    """True for a folder with a ``detections*.json`` (``OASlamFolder.claims``)."""
+    return OASlamFolder.claims(Path(folder))
 
 
 def read_opencv_camera(path: Path) -> tuple[Camera, np.ndarray]:
@@ -241,8 +242,6 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
     (to measure what the distortion does). The ground truth (trajectory and objects) stays
     in its own frame: the evaluation aligns the trajectory to it
     (``evaluation.to_groundtruth``)."""
-    from ._readers import read_priors
-
     folder = Path(folder)
     if trajectory not in ("odometry", "groundtruth"):
         raise ValueError(f"trajectory must be 'odometry' or 'groundtruth', got {trajectory!r}")
@@ -294,4 +293,35 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
         priors = priors.replace(up=up)
     return Sequence(folder.name, camera, timestamps, traj[:, 1:], detections, objects, gt, priors)
 
+
+class OASlamFolder(SequenceFormat):
+    """The OA-SLAM-style layout of real recordings (module docstring, ``import_oaslam``)."""
+
+    name = "oaslam"
+    title = "an OA-SLAM-style folder"
+    layout = "a detections*.json, beside a camera YAML and TUM trajectories"
+    docs = "The OA-SLAM layout: real recordings"
+    options = {
+        "trajectory": "the poses to map with: odometry (the visual SLAM's, default) or groundtruth",
+        "min_score": f"leave out detections scored below this (default {DEFAULT_MIN_SCORE:g})",
+        "undistort": "replace each box by the pinhole box of its undistorted outline (default true)",
+    }
+
+    @classmethod
+    def claims(cls, path: Path) -> bool:
+        return path.is_dir() and bool(_json_files(path))
+
+    @classmethod
+    def read(cls, path: Path, **options) -> Sequence:
+        return import_oaslam(path, **options)
+
+    @classmethod
+    def read_measured(cls, path: Path):
+        cams = _camera_files(Path(path))
+        if len(cams) != 1:
+            return None
+        _, dist = read_opencv_camera(cams[0])
+        if not np.any(dist):
+            return None
+        return import_oaslam(path, undistort=False), dist
 

@@ -22,8 +22,7 @@ import numpy as np
 
 from ..geometry import OBJECT_SHAPES, Camera, Cuboid
 from ..geometry.se3 import quat_to_matrix
-from ._importers import import_fr3_cabinet, is_fr3_cabinet
-from ._oaslam import import_oaslam, is_oaslam_layout
+from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
@@ -43,23 +42,25 @@ from ._parse import (
     _ynumber,
     _yvector,
     camera_from,
+    present,
     read_images,
     optional,
     read_tum,
     required,
 )
+from ._classes import ClassPrior
 from ._sequence import (
-    ClassPrior,
     Detection,
     EllipsoidDetection,
     GroundTruthObject,
     Priors,
     Sequence,
 )
+from ._writers import write_sequence
 
 __all__ = [
-    "read_measured_boxes",
-    "read_sequence",
+    "CanonicalFolder",
+    "read_canonical",
     "read_camera",
     "read_priors",
     "read_detections",
@@ -222,16 +223,11 @@ def read_objects_gt(path, name: str | None = None) -> list:
     return out
 
 
-def read_sequence(folder) -> Sequence:
-    """Read a canonical sequence folder (or the fr3_cabinet or OA-SLAM layout, detected
-    automatically; the latter with its odometry as the trajectory)."""
+def read_canonical(folder) -> Sequence:
+    """Read a canonical sequence folder (module docstring)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise SequenceFormatError(folder, None, "a sequence folder", "no such folder")
-    if is_fr3_cabinet(folder) and not (folder / "trajectory.txt").exists():
-        return import_fr3_cabinet(folder)
-    if is_oaslam_layout(folder) and not (folder / "trajectory.txt").exists():
-        return import_oaslam(folder)
     camera = read_camera(required(folder, "camera.yaml"))
     traj = read_tum(required(folder, "trajectory.txt"), str(folder / "trajectory.txt"))
     det = read_detections(required(folder, "detections.txt"), traj[:, 0], camera=camera)
@@ -248,19 +244,24 @@ def read_sequence(folder) -> Sequence:
     return Sequence(folder.name, camera, traj[:, 0], traj[:, 1:], det, objs, gt, priors, images, ell)
 
 
-def read_measured_boxes(folder):
-    """(the sequence with its boxes as measured, the lens distortion (k1, k2, p1, p2, k3))
-    of a folder whose reader undistorts its boxes (the OA-SLAM layout), else None: what
-    ``spdslam check`` compares the undistorted boxes with."""
-    folder = Path(folder)
-    if not (is_oaslam_layout(folder) and not (folder / "trajectory.txt").exists()):
-        return None
-    from ._oaslam import _camera_files, read_opencv_camera
+class CanonicalFolder(SequenceFormat):
+    """spdslam's own folder (module docstring): the only format sequences are written in."""
 
-    cams = _camera_files(folder)
-    if len(cams) != 1:
-        return None
-    _, dist = read_opencv_camera(cams[0])
-    if not np.any(dist):
-        return None
-    return import_oaslam(folder, undistort=False), dist
+    name = "canonical"
+    title = "a canonical sequence folder"
+    layout = "camera.yaml, trajectory.txt, detections.txt"
+    docs = "The canonical format"
+    writes = True
+
+    @classmethod
+    def claims(cls, path: Path) -> bool:
+        return path.is_dir() and any(present(path / f) for f in
+                                     ("camera.yaml", "trajectory.txt", "detections.txt"))
+
+    @classmethod
+    def read(cls, path: Path, **options) -> Sequence:
+        return read_canonical(path)
+
+    @classmethod
+    def write(cls, seq: Sequence, dest: Path, overwrite: bool = False) -> None:
+        write_sequence(seq, dest, overwrite=overwrite)

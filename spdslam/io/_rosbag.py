@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import Camera, undistort_boxes
+from ._formats import SequenceFormat
 from ._oaslam import DEFAULT_MIN_SCORE, estimate_up
 from ._parse import MATCH_TOLERANCE, SequenceFormatError, _unit_quaternion, check_box, nearest_stamps
 from ._sequence import Detection, Priors, Sequence
@@ -70,9 +71,7 @@ _SHOWN_TOPICS = 8  # topics named in an error message
 
 def is_rosbag(path) -> bool:
     """True for a rosbag2 folder (``metadata.yaml`` present) or a ``.mcap`` / ``.db3`` file."""
-    p = Path(path)
-    return (p.is_dir() and (p / "metadata.yaml").is_file()) or (
-        p.is_file() and p.suffix.lower() in _BAG_SUFFIXES)
+    return RosBag2.claims(Path(path))
 
 
 # --- reading the bag ------------------------------------------------------------------------
@@ -538,3 +537,32 @@ def import_rosbag(path, camera_info_topic: str | None = None, detections_topic: 
     except ValueError:
         priors = None
     return Sequence(name, camera, timestamps, traj[:, 1:], detections, priors=priors)
+
+
+class RosBag2(SequenceFormat):
+    """A ROS 2 bag (module docstring, ``import_rosbag``; needs the rosbags package)."""
+
+    name = "rosbag2"
+    title = "a ROS 2 bag"
+    layout = "a folder with metadata.yaml, or a .mcap or .db3 file"
+    docs = "docs/your-data.md, From a ROS 2 bag"
+    options = {
+        "camera_info_topic": "the sensor_msgs/msg/CameraInfo topic (default: the bag's only one)",
+        "detections_topic": "the vision_msgs/msg/Detection2DArray topic (default: the bag's only one)",
+        "pose_topic": "the camera poses: PoseStamped, Odometry or tf (default: the bag's only one)",
+        "world_frame": "the world frame of the poses",
+        "camera_frame": "the camera's optical frame",
+        "min_score": f"leave out detections scored below this (default {DEFAULT_MIN_SCORE:g})",
+        "undistort": "replace each box by the pinhole box of its undistorted outline (default true)",
+    }
+    hints = {"trajectory": "a ROS 2 bag's poses come from --pose-topic"}
+
+    @classmethod
+    def claims(cls, path: Path) -> bool:
+        return (path.is_dir() and (path / "metadata.yaml").is_file()) or (
+            path.is_file() and path.suffix.lower() in _BAG_SUFFIXES)
+
+    @classmethod
+    def read(cls, path: Path, **options) -> Sequence:
+        return import_rosbag(path, **options)
+

@@ -6,39 +6,25 @@ format: docs/formats.md). Nothing here runs JAX code.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from dataclasses import replace as _dataclass_replace
 from pathlib import Path
 
 import numpy as np
 
-from ..geometry import OBJECT_SHAPES, Camera, Cuboid
+from ..geometry import Camera, Cuboid
+from ._classes import builtin_class_prior
+from ._frozen import _close, _frozen_array
 
 __all__ = [
     "Detection",
     "EllipsoidDetection",
     "GroundTruthObject",
-    "ClassPrior",
     "Priors",
     "Sequence",
+    "without_class_table",
 ]
 
-_FLOAT_TOL = 1e-12  # equality of round-tripped floats
-
-
 # --- data classes ---------------------------------------------------------------------------
-
-
-def _close(a, b) -> bool:
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    return a.shape == b.shape and bool(np.allclose(a, b, rtol=_FLOAT_TOL, atol=_FLOAT_TOL))
-
-
-def _frozen_array(x, shape=None) -> np.ndarray:
-    a = np.array(x, dtype=float)
-    if shape is not None and a.shape != shape:
-        raise ValueError(f"expected shape {shape}, got {a.shape}")
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,32 +138,6 @@ class GroundTruthObject:
 
 
 @dataclass(frozen=True, eq=False)
-class ClassPrior:
-    """Prior of a class: radii (3,), their standard deviation ``sigma``, and the ``shape``
-    whose silhouette the detector boxes (``"ellipsoid"`` or ``"cuboid"``: box-like objects
-    such as cabinets, monitors or tables; the radii are then the cuboid's half-extents)."""
-
-    radii: np.ndarray
-    sigma: float
-    shape: str = "ellipsoid"
-
-    def __post_init__(self):
-        object.__setattr__(self, "radii", _frozen_array(self.radii, (3,)))
-        object.__setattr__(self, "sigma", float(self.sigma))
-        if self.shape not in OBJECT_SHAPES:
-            raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
-
-    def __eq__(self, other):
-        if not isinstance(other, ClassPrior):
-            return NotImplemented
-        return (
-            _close(self.radii, other.radii)
-            and _close(self.sigma, other.sigma)
-            and self.shape == other.shape
-        )
-
-
-@dataclass(frozen=True, eq=False)
 class Priors:
     """Scene priors: support planes ``[a, b, c, d]`` (ax + by + cz + d = 0), the up
     direction, per-class size priors, and the trajectory's accuracy: of its relative motion
@@ -221,8 +181,6 @@ class Priors:
         table's when ``builtin_classes``, else None."""
         cp = self.classes.get(label)
         if cp is None and self.builtin_classes:
-            from ._classes import builtin_class_prior
-
             cp = builtin_class_prior(label)
         return cp
 
@@ -370,3 +328,10 @@ class Sequence:
                 ),
             )
         )
+
+
+def without_class_table(seq: Sequence) -> Sequence:
+    """``seq`` with the built-in table turned off (``Priors.builtin_classes = False``)."""
+    priors = Priors(builtin_classes=False) if seq.priors is None else \
+        seq.priors.replace(builtin_classes=False)
+    return _dataclass_replace(seq, priors=priors)

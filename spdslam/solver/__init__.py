@@ -14,7 +14,7 @@ problems of one structure in one jitted loop (``_batched``). Imports only
 
 from ._batched import BatchedProblem as BatchedProblem
 from ._batched import BatchedResult as BatchedResult
-from ._batched import clear_caches as clear_caches
+from ._compile import clear_caches as clear_caches
 from ._graph import NonlinearFactorGraph as NonlinearFactorGraph
 from ._keys import L as L
 from ._keys import Symbol as Symbol

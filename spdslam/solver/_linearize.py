@@ -7,7 +7,7 @@ For a factor with residual r(x₁, …, x_k, data), square-root information W an
 
 (iteratively reweighted least squares; ρ(s) = s without a kernel), plus whether r and J are
 finite and the factor's validity at x. The host layout (``_problem``) differentiates with
-``jax.jacfwd`` per factor, the batched layout (``_batched``) with pushforwards computed once
+``jax.jacfwd`` per factor, the batched layout (``_batched_layout``) with pushforwards computed once
 per variable; both whiten, weight and check through these functions, and both retract with
 ``retract_rows``.
 """

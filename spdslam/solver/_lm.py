@@ -60,7 +60,7 @@ Ceres. Stopping reasons (``OptimizationResult.reason``, ``BatchedResult.reason``
 ``converged`` is True for the first four.
 
 The rule is pure and array-generic (``decide``): the sparse host loop (``_optimizers``)
-calls it on NumPy scalars once per iteration, the batched driver (``_batched``) on JAX
+calls it on NumPy scalars once per iteration, the batched driver (``_batched_loop``) on JAX
 arrays of all lanes at once, so both take the same decisions.
 """
 

@@ -18,6 +18,7 @@ from typing import Any, Hashable, Iterable, Sequence
 import numpy as np
 
 from ..geometry import manifold
+from ._batched import BatchedProblem, solve_graphs
 from ._linear import make_linear_solver, resolve_linear_solver
 from ._lm import (
     CONVERGED_REASONS,
@@ -108,8 +109,6 @@ class Optimizer:
         """A ``BatchedProblem``: ``graph``/``values``/``fixed`` one problem of a structure,
         solved with this optimiser for many data sets given as arrays
         (``BatchedProblem.solve``)."""
-        from ._batched import BatchedProblem
-
         return BatchedProblem(graph, values, fixed, optimizer=self, optimize=optimize)
 
     def optimize_batched(self, graphs: Any, values_list: Sequence[Any],
@@ -118,8 +117,6 @@ class Optimizer:
         """Solve B independent problems of identical structure in one jitted loop (dense
         linear algebra); ``graphs`` one graph per problem or one shared graph,
         ``values_list`` the B initial Values. Returns a ``BatchedResult``."""
-        from ._batched import solve_graphs
-
         return solve_graphs(self, graphs, values_list, fixed, batch_size, optimize)
 
     def __repr__(self) -> str:

@@ -1,4 +1,4 @@
-"""Importers of other layouts into the sequence model: the TUM fr3_cabinet folder."""
+"""The TUM fr3_cabinet layout (EllipsoidSLAM's reference sequence) read into the sequence model."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry import Cuboid
+from ._formats import SequenceFormat
 from ._oaslam import read_opencv_camera
 from ._parse import (
     SequenceFormatError,
@@ -24,7 +25,8 @@ from ._parse import (
 )
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
-__all__ = ["import_fr3_cabinet", "is_fr3_cabinet", "COCO_LABELS", "FR3_TRAJECTORY_SIGMA"]
+__all__ = ["Fr3CabinetFolder", "import_fr3_cabinet", "is_fr3_cabinet", "COCO_LABELS",
+           "FR3_TRAJECTORY_SIGMA"]
 
 #: Per-step accuracy (m, rad) given to the fr3_cabinet trajectory: motion capture.
 FR3_TRAJECTORY_SIGMA = (1e-4, 1e-4)
@@ -35,11 +37,7 @@ COCO_LABELS = {28: "suitcase"}
 
 def is_fr3_cabinet(folder) -> bool:
     """True for the TUM fr3_cabinet layout (a ``bbox/`` folder and ``truth_objects.txt``)."""
-    folder = Path(folder)
-    return (folder / "bbox").is_dir() and (folder / "truth_objects.txt").is_file()
-
-
-
+    return Fr3CabinetFolder.claims(Path(folder))
 
 
 def _coco_label(k: int) -> str:
@@ -121,3 +119,20 @@ def import_fr3_cabinet(folder) -> Sequence:
     return Sequence(
         folder.name, camera, timestamps, traj[:, 1:], detections, objects, traj.copy(), priors, images
     )
+
+
+class Fr3CabinetFolder(SequenceFormat):
+    """The TUM fr3_cabinet layout (``import_fr3_cabinet``)."""
+
+    name = "fr3_cabinet"
+    title = "a TUM fr3_cabinet-style folder"
+    layout = "bbox/ and truth_objects.txt"
+    docs = "The TUM fr3_cabinet importer"
+
+    @classmethod
+    def claims(cls, path: Path) -> bool:
+        return (path / "bbox").is_dir() and (path / "truth_objects.txt").is_file()
+
+    @classmethod
+    def read(cls, path: Path, **options) -> Sequence:
+        return import_fr3_cabinet(path)
