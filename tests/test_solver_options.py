@@ -226,3 +226,28 @@ def test_dogleg_reaches_the_optimum_and_checks_its_radius():
             assert a.gain_ratio < 0.25
     with pytest.raises(ValueError, match="trust_radius_initial"):
         Dogleg(trust_radius_initial=0.0)
+
+
+@pytest.mark.parametrize("linear_solver", ["dense", pytest.param("cholmod", marks=needs_cholmod)])
+def test_a_result_gives_the_marginals_and_costs_of_its_final_values(linear_solver):
+    """``OptimizationResult.marginal_covariances`` / ``cost_by_kind`` reuse the run's last
+    linearisation and problem: the same numbers, to the bit, as laying the graph out again
+    at the final values (``marginal_covariances``, one problem per kind)."""
+    from spdslam.solver import NonlinearFactorGraph
+
+    graph, values, _ = pose_graph(5)
+    fixed = [list(values.keys())[0]]
+    res = LevenbergMarquardt(linear_solver=linear_solver, **TIGHT).optimize(graph, values, fixed=fixed)
+    keys = list(values.keys())[1:4]
+    again = marginal_covariances(graph, res.values, keys, linear_solver=linear_solver, fixed=fixed)
+    reused = res.marginal_covariances(keys)
+    for k in keys:
+        np.testing.assert_array_equal(reused[k], again[k])
+    kinds = {}
+    for f in graph:
+        kinds.setdefault(f.kind, []).append(f)
+    each = {k: float(NonlinearFactorGraph(fs).error(res.values)) for k, fs in kinds.items()}
+    assert res.cost_by_kind() == each and list(res.cost_by_kind()) == list(each)
+    assert abs(sum(each.values()) - res.final_cost) <= 1e-9 * res.final_cost
+    with pytest.raises(ValueError, match="not a free variable"):
+        res.marginal_covariances(fixed)

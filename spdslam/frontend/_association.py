@@ -145,6 +145,20 @@ class Association:
     stats: dict
 
 
+def _median(a: np.ndarray) -> float:
+    """``np.median`` of a 1-D array (the same number: the middle order statistic, or the
+    mean (x + y) / 2 of the two middle ones), without its general-purpose overhead, which
+    dominated the tracker's refits of short tracks."""
+    n = a.size
+    if n == 0 or not np.all(np.isfinite(a)):
+        return float(np.median(a))
+    h = n // 2
+    if n % 2:
+        return float(np.partition(a, h)[h])
+    p = np.partition(a, (h - 1, h))
+    return float((p[h - 1] + p[h]) / 2.0)
+
+
 def _iou(a, b) -> np.ndarray:
     """IoU of boxes [u₁, v₁, u₂, v₂] (broadcast over leading axes); 0 for empty boxes."""
     iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
@@ -221,6 +235,7 @@ class _Scene:
             raise ValueError("the trajectory (poses_tum) has non-finite values")
         self.R = quat_to_matrix(poses[:, 3:7]).reshape(self.F, 3, 3)  # R_wc
         self.C = poses[:, :3]
+        self.Rz = np.ascontiguousarray(self.R[:, :, 2])  # the optical axes, for depths
         for name, value in self._terms(frame, box, label).items():
             setattr(self, name, value)
         self.by_frame = [np.flatnonzero(self.frame == f) for f in range(self.F)]
@@ -296,17 +311,17 @@ class _Scene:
         """(r_h, r_v) from the untruncated box sizes at the depths of X (the detections'
         median prior radius where no box side is whole)."""
         f = self.frame[idx]
-        z = np.einsum("ni,ni->n", self.R[f][:, :, 2], X - self.C[f])
+        z = np.einsum("ni,ni->n", self.Rz[f], X - self.C[f])
         front = z > _MIN_DEPTH
         if not front.any():
             return None
         b = self.box[idx]
         wz = ((b[:, 2] - b[:, 0]) * z / (2 * self.fx))[front & self.w_ok[idx]]
         hz = ((b[:, 3] - b[:, 1]) * z / (2 * self.fy))[front & self.h_ok[idx]]
-        r_h = float(np.median(wz)) if wz.size else None
-        r_v = float(np.median(hz)) if hz.size else None
+        r_h = _median(wz) if wz.size else None
+        r_v = _median(hz) if hz.size else None
         if r_h is None and r_v is None:
-            r_h = float(np.median(self.radius0[idx]))
+            r_h = _median(self.radius0[idx])
         r_h = r_h if r_h is not None else r_v
         r_v = r_v if r_v is not None else r_h
         return r_h, r_v
@@ -341,8 +356,13 @@ class _Scene:
         """Centres (m, 3) of the landmark of ``idx`` seen at each of ``frames`` (m,): the fit
         with weights exp(−½((fᵢ − f)/window)²) on its detections, so that each frame sees a
         landmark consistent with the nearby (equally drifted) part of the trajectory."""
-        df = (self.frame[idx][None, :] - np.asarray(frames)[:, None]) / window
-        W = np.exp(-0.5 * df**2) + 1e-12
+        W = (self.frame[idx][None, :] - np.asarray(frames)[:, None]) / window
+        # exp(−½ df²) + 1e-12, in place (the same operations as written out; this (m, n)
+        # array is the largest the association makes)
+        np.square(W, out=W)
+        W *= -0.5
+        np.exp(W, out=W)
+        W += 1e-12
         r_v = np.sqrt(fit.P[2, 2]) if self.up is None else float(np.sqrt(self.up @ fit.P @ self.up))
         A, b = self._normal(idx, W, fit.plane, r_v)
         return np.linalg.solve(A, b[..., None])[..., 0]
@@ -667,8 +687,10 @@ class OnlineTracker:
         """The track index of each of the frame's detections (boxes (n, 4), labels (n,))."""
         sc, s = self._sc, self.settings
         f = sc.F
-        self._frames.add(R=np.asarray(R_wc, float)[None], C=np.asarray(centre, float)[None])
+        R_wc = np.asarray(R_wc, float)
+        self._frames.add(R=R_wc[None], C=np.asarray(centre, float)[None], Rz=R_wc[None, :, 2])
         sc.R, sc.C, sc.F = self._frames.view("R"), self._frames.view("C"), f + 1
+        sc.Rz = self._frames.view("Rz")
         boxes = np.asarray(boxes, float).reshape(-1, 4)
         if not len(boxes):
             return np.zeros(0, int)

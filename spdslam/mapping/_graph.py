@@ -199,12 +199,24 @@ def _box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s:
 
 
 def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
-                    s: dict, robust, planes=None, boxes: bool = True) -> list:
-    """The box factors of the track (``boxes``) and the object's own factors."""
+                    s: dict, robust, planes=None, boxes: bool = True, reuse: dict | None = None
+                    ) -> list:
+    """The box factors of the track (``boxes``; taken from ``reuse`` when an earlier build
+    made them for the same track object and settings) and the object's own factors."""
     key = L(track.id)
     priors = ctx.priors
     shape = object_shape(method, priors, track.label)
-    out = _box_factors(ctx, track, method, box_model, s, robust) if boxes else []
+    out = []
+    if boxes:
+        memo = (id(track), id(ctx), box_model, robust, method.margin, shape,
+                tuple(sorted(s.items())))
+        hit = None if reuse is None else reuse.get(memo)
+        if hit is not None and hit[0] is track and hit[1] is ctx:
+            out = list(hit[2])
+        else:
+            out = _box_factors(ctx, track, method, box_model, s, robust)
+            if reuse is not None:  # the track and context kept alive, so their ids stay theirs
+                reuse[memo] = (track, ctx, tuple(out))
     up = ctx.up
     if up is not None and method.orientation == "improved":
         if shape == "cuboid":
@@ -261,13 +273,16 @@ def _with_robust_by_type(factors: list, method: Method) -> list:
 
 def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
                 sigmas: dict | None = None, measured: dict | None = None,
-                planes=None, odometry: bool = True) -> NonlinearFactorGraph:
+                planes=None, odometry: bool = True, reuse: dict | None = None
+                ) -> NonlinearFactorGraph:
     """The factor graph of a sequence (a ``Sequence`` or a ``SequenceContext``) for the
     landmarks {id: landmark value} of the tracks, with the "inverse" or "semi" box model
     (module docstring); ``measured`` the measured ellipsoids per object id (default: by
     instance id); ``planes`` the estimated ``frontend.SupportPlanes`` (each object on its
     own plane, or on none) instead of the priors' planes; ``odometry=False`` leaves out the
-    trajectory's factors (poses held fixed by the caller)."""
+    trajectory's factors (poses held fixed by the caller). ``reuse``: a dict the caller keeps
+    across the builds of one run, so that a track's box factors are made once (factors are
+    immutable; a rebuild after merging two tracks remakes only the merged one's)."""
     ctx = as_context(seq)
     s = mapping_sigmas(ctx, sigmas)
     robust = robust_kernel(method.robust, method.robust_k)
@@ -275,7 +290,7 @@ def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
     for tr in tracks:
         if tr.id in landmarks:
             factors += _object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,
-                                       planes)
+                                       planes, reuse=reuse)
     measured = measured_objects(ctx) if measured is None else measured
     factors += _measurement_factors(ctx, measured, landmarks, s, robust)
     return NonlinearFactorGraph(_with_robust_by_type(factors, method))

@@ -243,14 +243,20 @@ def _summary_jacobian(lm):
     return jax.jacfwd(lambda d: _summary(lm, d))(jnp.zeros(manifold.tangent_dim(lm)))
 
 
-def object_uncertainty(graph, values, ids, fixed=()) -> dict:
+def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
     """{id: {"center_sigma": [3] (m, along the world axes), "center_sigma_max" (m, along
     the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first)}}
     from the marginal covariance Σ of each landmark L(id) at ``values``
     (``solver.marginal_covariances``), propagated as J Σ Jᵀ with J the Jacobian of
     (centre, log sorted radii) in the landmark's chart. An object whose block
-    is not determined gets ``inf``. ``fixed`` keys are held (the poses of a held trajectory)."""
-    cov = marginal_covariances(graph, values, [L(k) for k in ids], fixed=fixed)
+    is not determined gets ``inf``. ``fixed`` keys are held (the poses of a held trajectory).
+    ``result``: the optimisation of ``graph`` (with ``fixed``) that ended at ``values``,
+    whose last linearisation gives the covariances (``OptimizationResult.marginal_covariances``)."""
+    keys = [L(k) for k in ids]
+    if _reusable(result, values):
+        cov = result.marginal_covariances(keys)
+    else:
+        cov = marginal_covariances(graph, values, keys, fixed=fixed)
     out = {}
     for k in ids:
         lm, S = values[L(k)], cov[L(k)]
@@ -269,12 +275,15 @@ def object_uncertainty(graph, values, ids, fixed=()) -> dict:
     return out
 
 
-def mapped_uncertainty(graph, values, ids, fixed=()) -> dict:
+def mapped_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
     """``object_uncertainty`` of the objects that are not degenerate (``degenerate``), from
     the graph without the degenerate ones and their factors: a degenerate object (reported,
     not mapped) can make the joint information singular, which would leave every object's
-    marginal undetermined."""
+    marginal undetermined. ``result``: the optimisation that ended at ``values`` (reused
+    when no object is degenerate)."""
     flat = {L(k) for k in ids if degenerate(as_ellipsoid(values[L(k)]))}
+    if not flat:
+        return object_uncertainty(graph, values, ids, fixed, result)
     return object_uncertainty(
         NonlinearFactorGraph([f for f in graph if not flat.intersection(f.keys)]),
         Values({k: values[k] for k in values if k not in flat}),
@@ -642,12 +651,13 @@ def run_sequence(
     total_it, first_cost, res, graph = 0, None, None, None
     planes = front.planes
     fixed = [X(i) for i in range(len(ctx.poses))] if hold_trajectory else []
+    made: dict = {}  # box factors per track, across this run's graphs (build_graph's reuse)
 
     def optimise(stage: str, what: str) -> None:
         """Build the graph of the current tracks, landmarks and planes; optimise ``values``."""
         nonlocal graph, res, values, total_it, first_cost, landmarks
         graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                            planes, odometry=not hold_trajectory)
+                            planes, odometry=not hold_trajectory, reuse=made)
         say(f"optimisation ({what}): {len(values)} variables, {len(graph)} factors")
         res = optimizer.optimize(graph, values, fixed=fixed)
         values = res.values
@@ -689,7 +699,7 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
     ``initial`` {id: Ellipsoid} the front end's objects; ``res`` the last optimisation's
     result (final cost, convergence)."""
     ids = sorted(k for k in labels if L(k) in values)
-    spread = mapped_uncertainty(graph, values, ids, fixed)
+    spread = mapped_uncertainty(graph, values, ids, fixed, res)
     objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k)) for k in ids]
     first = [MapObject(k, labels[k], initial[k]) for k in sorted(initial)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(timestamps))])
@@ -709,12 +719,22 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
             kept.append(o)
     return MapResult(
         method, kept, first, poses_out, iterations, initial_cost, res.final_cost,
-        res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values),
+        res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values, res),
     )
 
 
-def cost_by_factor(graph, values) -> dict:
-    """{factor kind: its part of the cost at ``values``}, in the graph's order of kinds."""
+def _reusable(result, values) -> bool:
+    """Whether ``result`` is an ``OptimizationResult`` that ended at ``values`` (and so holds
+    the problem and last linearisation there)."""
+    return getattr(result, "_final", None) is not None and getattr(result, "values", None) is values
+
+
+def cost_by_factor(graph, values, result=None) -> dict:
+    """{factor kind: its part of the cost at ``values``}, in the graph's order of kinds;
+    ``result``: the optimisation of ``graph`` that ended at ``values`` (its final problem is
+    reused: ``OptimizationResult.cost_by_kind``)."""
+    if _reusable(result, values):
+        return result.cost_by_kind()
     kinds: dict = {}
     for f in graph:
         kinds.setdefault(f.kind, []).append(f)

@@ -15,7 +15,7 @@ import numpy as np
 from ._linear import make_linear_solver, resolve_linear_solver
 from ._problem import Problem
 
-__all__ = ["marginal_covariances"]
+__all__ = ["marginal_covariances", "covariance_blocks"]
 
 
 def marginal_covariances(graph: Iterable, values: Any, keys: Iterable[Hashable],
@@ -26,6 +26,17 @@ def marginal_covariances(graph: Iterable, values: Any, keys: Iterable[Hashable],
     ``optimize``."""
     problem = Problem(graph, values, fixed)
     keys = list(keys)
+    _columns(problem, keys)  # every key free, before the linearisation
+    if not keys:
+        return {}
+    H, _, _, _, finite = problem.linearize(problem.vars)
+    kind = resolve_linear_solver(linear_solver, problem.n)
+    solver = make_linear_solver(kind, problem.sparse_pattern(), problem.n)
+    return covariance_blocks(problem, H, finite, solver, keys)
+
+
+def _columns(problem: Problem, keys: list) -> list:
+    """The tangent columns of each key (``ValueError`` for a key that is not free)."""
     where = {}
     for ti, tkeys in enumerate(problem.type_keys):
         for j, k in enumerate(tkeys):
@@ -37,13 +48,18 @@ def marginal_covariances(graph: Iterable, values: Any, keys: Iterable[Hashable],
         ti, j = where[k]
         off = int(problem.offsets[ti][j])
         cols.append(np.arange(off, off + problem.tspecs[ti].dim))
+    return cols
+
+
+def covariance_blocks(problem: Problem, H, finite: bool, solver, keys) -> dict:
+    """{key: Σ} from H (lower CSC data of ``problem``'s pattern) at a solution: one
+    factorisation of H by ``solver`` (made for that pattern) and one multi-column solve
+    (``marginal_covariances``; the optimisers' results reuse their last linearisation)."""
+    keys = list(keys)
+    cols = _columns(problem, keys)
     out = {}
     if not keys:
         return out
-    H, _, _, _, finite = problem.linearize(problem.vars)
-    sp = problem.sparse_pattern()
-    kind = resolve_linear_solver(linear_solver, problem.n)
-    solver = make_linear_solver(kind, sp, problem.n)
     idx = np.concatenate(cols)
     E = np.zeros((problem.n, idx.size))
     E[idx, np.arange(idx.size)] = 1.0

@@ -20,6 +20,7 @@ import numpy as np
 from ..geometry import manifold
 from ._batched import BatchedProblem, solve_graphs
 from ._linear import make_linear_solver, resolve_linear_solver
+from ._marginals import covariance_blocks
 from ._lm import (
     CONVERGED_REASONS,
     MAX_ITERATIONS,
@@ -66,6 +67,22 @@ class OptimizationResult:
     timings: dict[str, float] = field(default_factory=dict)
     linear_solver: str = ""
     linearizations: int = 0
+    #: the problem, its variables, H and the linear solver at the final values (the last
+    #: accepted linearisation): what ``marginal_covariances`` and ``cost_by_kind`` reuse
+    _final: tuple | None = field(default=None, repr=False)
+
+    def marginal_covariances(self, keys) -> dict:
+        """{key: Σ} at the final values, as ``solver.marginal_covariances(graph, values,
+        keys, fixed=…)`` gives them for this run's graph and fixed keys, from the last
+        linearisation and the run's factorisation pattern (no new layout or Jacobians)."""
+        problem, _, H, solver = self._final
+        return covariance_blocks(problem, H, True, solver, keys)
+
+    def cost_by_kind(self) -> dict:
+        """{factor kind: its part of the final cost}, in the graph's order of kinds
+        (``Problem.cost_by_kind`` at the final values)."""
+        problem, x, _, _ = self._final
+        return problem.cost_by_kind(x)
 
     def __repr__(self) -> str:
         return (
@@ -249,4 +266,5 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
         timings=timings,
         linear_solver=solver.name,
         linearizations=nlin,
+        _final=(problem, x, H, solver),
     )

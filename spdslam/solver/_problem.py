@@ -581,6 +581,26 @@ class Problem:
         c, _ = self.kernels.evaluate(vars_, self.gdata, self.gidx)
         return float(c)
 
+    def cost_by_kind(self, vars_=None) -> dict:
+        """{factor kind: Σ ½ρ(‖W r‖²) over the factors of that kind}, in the order the kinds
+        first appear among the factors. A group holds one kind unless two kinds share a
+        residual function; its padded per-factor costs are summed as ``cost`` sums them, so
+        each kind's figure is the cost of a problem of that kind's factors alone."""
+        vars_ = self.vars if vars_ is None else vars_
+        vh = _host(vars_)
+        K = self.kernels
+        out: dict = {f.kind: 0 for f in self.factors}
+        for k, (gk, d, ix) in enumerate(zip(K.groups, self.gdata, self.gidx)):
+            hr = np.asarray(gk.cost(*K._inputs(k, vh, ix, d))[0])
+            kinds = [self.factors[int(fi)].kind for fi in self.group_fids[k]]
+            if len(set(kinds)) == 1:
+                out[kinds[0]] = out[kinds[0]] + np.sum(hr)
+                continue
+            kinds = np.array(kinds + [None] * (len(hr) - len(kinds)), dtype=object)
+            for kind in dict.fromkeys(kinds[: self.group_nf[k]]):
+                out[kind] = out[kind] + np.sum(np.where(kinds == kind, hr, 0.0))
+        return {kind: float(c) for kind, c in out.items()}
+
     def linearize(self, vars_, timings: dict | None = None):
         """(H: lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, whether all
         residuals and Jacobians are finite). H and g are numpy arrays, summed here from the
