@@ -33,6 +33,13 @@ def test_sphere2500_quick(tmp_path):
     assert "per λ trial" in out
 
 
+def test_sphere2500_floor_quick():
+    pytest.importorskip("gtsam")
+    out = run("sphere2500_floor.py")
+    assert "default, 1 BLAS:" in out and "forward (solver), chunk 16:" in out
+    assert "floor: " in out and "× gtsam's" in out
+
+
 def test_simulation_quick(tmp_path):
     run("simulation.py", "--optimize", "yes", "--out", str(tmp_path / "sim.json"))
     d = json.loads((tmp_path / "sim.json").read_text())
