@@ -210,7 +210,10 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
     if boxes:
         memo = (id(track), id(ctx), box_model, robust, method.margin, shape,
                 tuple(sorted(s.items())))
-        hit = None if reuse is None else reuse.get(memo)
+        try:
+            hit = None if reuse is None else reuse.get(memo)
+        except TypeError:  # a setting that cannot be a key: build afresh, keep nothing
+            memo, hit, reuse = None, None, None
         if hit is not None and hit[0] is track and hit[1] is ctx:
             out = list(hit[2])
         else:
