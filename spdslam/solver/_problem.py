@@ -584,8 +584,9 @@ class Problem:
     def cost_by_kind(self, vars_=None) -> dict:
         """{factor kind: Σ ½ρ(‖W r‖²) over the factors of that kind}, in the order the kinds
         first appear among the factors. A group holds one kind unless two kinds share a
-        residual function; its padded per-factor costs are summed as ``cost`` sums them, so
-        each kind's figure is the cost of a problem of that kind's factors alone."""
+        residual function; a one-kind group's padded per-factor costs are summed as ``cost``
+        sums them, so that kind's figure is, to the bit, the cost of a problem of its factors
+        alone (a shared group's kinds are masked sums: equal up to round-off)."""
         vars_ = self.vars if vars_ is None else vars_
         vh = _host(vars_)
         K = self.kernels
