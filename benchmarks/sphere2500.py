@@ -21,6 +21,7 @@ assembly of H and g, damping, CHOLMOD factorisation, back-substitution, and the 
     python3 benchmarks/sphere2500.py --cholmod-mode simplicial --cholmod-ordering metis
     python3 benchmarks/sphere2500.py --cholmod-openmp --blas-threads 0   # CHOLMOD's own threads
     python3 benchmarks/sphere2500.py --quick              # 5 iterations each (smoke run)
+    python3 benchmarks/sphere2500.py --optimizer dogleg   # spdslam's dogleg; gtsam's LM and dogleg
 
 spdslam's LM options: ``--lambda-initial``, ``--lambda-schedule nielsen|fixed``,
 ``--lambda-factor``, ``--damping``; ``--gtsam-schedule`` sets gtsam's defaults
@@ -161,10 +162,14 @@ def main() -> int:
     initial_cost = g.error(init)
 
     # ---- gtsam ---------------------------------------------------------------------------
-    params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(RELATIVE_TOLERANCE)
-    params.setAbsoluteErrorTol(0.0)
-    params.setMaxIterations(args.max_iterations)
+    def stopping(params):
+        """The stopping rule both optimisers share: relative decrease, iteration cap."""
+        params.setRelativeErrorTol(RELATIVE_TOLERANCE)
+        params.setAbsoluteErrorTol(0.0)
+        params.setMaxIterations(args.max_iterations)
+        return params
+
+    params = stopping(gtsam.LevenbergMarquardtParams())
     t0 = time.perf_counter()
     opt = gtsam.LevenbergMarquardtOptimizer(g, init, params)
     ref = opt.optimize()
@@ -192,6 +197,13 @@ def main() -> int:
               "upper bound)")
         gt["lambda_trials"] = it_gtsam
     gt["per_trial_ms"] = 1e3 * t_gtsam / max(gt["lambda_trials"], 1)
+    gt_dogleg = None
+    if args.optimizer == "dogleg":  # like for like: gtsam's Powell's dogleg on the same graph
+        t0 = time.perf_counter()
+        dopt = gtsam.DoglegOptimizer(g, init, stopping(gtsam.DoglegParams()))
+        dref = dopt.optimize()
+        gt_dogleg = dict(iterations=int(dopt.iterations()), final_cost=g.error(dref),
+                         total_s=time.perf_counter() - t0)
 
     # ---- spdslam ---------------------------------------------------------------------------
     if args.optimizer == "dogleg":
@@ -269,12 +281,21 @@ def main() -> int:
     print(f"BLAS loaded (used by CHOLMOD): {blas}")
     rel = abs(sp["final_cost_gtsam"] - gt["final_cost"]) / gt["final_cost"]
     print(f"relative difference of final costs: {rel:.2e}")
+    if gt_dogleg is not None:
+        gt_dogleg["ratio_total"] = sp["iterations_s"] / gt_dogleg["total_s"]
+        gt_dogleg["relative_cost_difference"] = (
+            abs(sp["final_cost_gtsam"] - gt_dogleg["final_cost"]) / gt_dogleg["final_cost"])
+        print(f"gtsam's dogleg: {gt_dogleg['iterations']} iterations, final cost "
+              f"{gt_dogleg['final_cost']:.8f}, {gt_dogleg['total_s']:.2f} s; spdslam's dogleg "
+              f"{gt_dogleg['ratio_total']:.2f}x of it (final costs differ by "
+              f"{gt_dogleg['relative_cost_difference']:.2e})")
 
     out = dict(
         problem=dict(file=path, poses=len(pg.poses), edges=len(pg.edges), prior_sigma=PRIOR_SIGMA,
                      relative_tolerance=RELATIVE_TOLERANCE, initial_cost=initial_cost,
                      read_and_build_s=t_read),
         gtsam=gt,
+        gtsam_dogleg=gt_dogleg,
         spdslam=sp,
         ratio_per_iteration=ratio_lin,
         ratio_per_trial=ratio_trial,

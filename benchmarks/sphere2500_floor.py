@@ -34,6 +34,7 @@ import jax.numpy as jnp  # noqa: E402
 import spdslam  # noqa: E402,F401  (float64)
 from spdslam.io import pose_graph_factors, read_g2o  # noqa: E402
 from spdslam.solver import Problem  # noqa: E402
+from spdslam.solver._problem import _host  # noqa: E402  (the gather the solver does)
 from spdslam.solver._linear import make_linear_solver  # noqa: E402
 from spdslam.solver import _problem  # noqa: E402
 
@@ -70,7 +71,7 @@ def jacobian_modes(problem: Problem, repeats: int) -> dict:
     """The between group's sparse terms (JᵀJ upper triangle, Jᵀr) three ways."""
     K = problem.kernels
     k = next(i for i, gk in enumerate(K.groups) if gk.sparse.__name__.startswith("pose_between"))
-    vh = jax.tree.map(np.asarray, problem.vars)
+    vh = _host(problem.vars)
     xs, mask, data = K._inputs(k, vh, problem.gidx[k], problem.gdata[k])
     (T1, T2), (leaves, W) = xs, data
     Z = jax.tree.unflatten(K.gspecs[k].args_treedef, leaves)[0]

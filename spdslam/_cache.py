@@ -20,8 +20,9 @@ CACHE_ENV = "SPDSLAM_CACHE_DIR"
 CACHE_OFF = ("off", "0", "none", "false")
 #: Default JAX compilation-cache directory.
 DEFAULT_CACHE_DIR = Path("~/.cache/spdslam/jax")
-#: Only compilations that took at least this long are written to the persistent cache.
-CACHE_MIN_COMPILE_SECS = 0.1
+#: Only compilations that took at least this long are written to the persistent cache: all of
+#: them, since loading a small one (~1 ms) is still cheaper than compiling it (5–40 ms).
+CACHE_MIN_COMPILE_SECS = 0.0
 
 
 def cache_dir() -> Path:

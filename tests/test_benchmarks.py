@@ -31,6 +31,15 @@ def test_sphere2500_quick(tmp_path):
     for k in ("ratio_per_iteration", "ratio_per_trial", "ratio_total"):
         assert d[k] > 0
     assert "per λ trial" in out
+    assert d["gtsam_dogleg"] is None
+
+
+def test_sphere2500_dogleg_against_both_gtsam_optimisers(tmp_path):
+    pytest.importorskip("gtsam")
+    out = run("sphere2500.py", "--optimizer", "dogleg", "--out", str(tmp_path / "s.json"))
+    d = json.loads((tmp_path / "s.json").read_text())
+    assert d["gtsam_dogleg"]["iterations"] == 5 and d["gtsam_dogleg"]["ratio_total"] > 0
+    assert "gtsam's dogleg:" in out
 
 
 def test_sphere2500_floor_quick():

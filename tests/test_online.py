@@ -17,6 +17,7 @@ from spdslam.geometry import Ellipsoid, EllipsoidFull, manifold
 from spdslam.io import write_sequence
 from spdslam.mapping import OnlineMapper, run_online, run_sequence
 from spdslam.mapping._online import OnlineMapper as _Mapper
+from spdslam.mapping._online import _padded_size, _padded_sizes_above
 from spdslam.solver import L, NonlinearFactorGraph, Values
 from spdslam.synthetic import make_room_sequence
 
@@ -246,5 +247,27 @@ def test_warmup_compiles_ahead_and_leaves_the_mapper_unchanged():
     assert seconds > 0 and len(mapper) == 0 and not mapper.landmarks and not mapper.records
     grown = [gk for gk in group_kernels() if "box" in gk.cost.__name__
              and gk.sizes - before.get(id(gk), set())]
-    assert grown  # the replay's box programs, and two doublings of the largest size
-    assert any(max(gk.sizes) // 2 in gk.sizes and max(gk.sizes) // 4 in gk.sizes for gk in grown)
+    assert grown  # the replay's box programs, and the sizes of two doublings beyond
+    assert any(set(_padded_sizes_above(s, 4)) <= gk.sizes
+               and max(_padded_sizes_above(s, 4)) in gk.sizes - before.get(id(gk), set())
+               for gk in grown for s in gk.sizes)
+
+
+def test_padding_follows_the_count_up_and_down(room):
+    """Each kind is padded to the grid 2ᵏ, 3·2ᵏ⁻¹ at or above its count (at least its
+    floor), and back down when the window holds fewer factors: a problem that once held
+    many boxes does not keep paying for them."""
+    from types import SimpleNamespace
+
+    m = OnlineMapper(room.camera, room.priors, associate="instances", window=30)
+
+    def rows(n_box, n_between):
+        fs = [SimpleNamespace(kind="inverse_box")] * n_box + [SimpleNamespace(kind="between")] * n_between
+        return m._padding(fs, {})
+
+    assert rows(10, 2) == {"inverse_box": 128, "between": 48}  # floors: 4·window, window + every + 8
+    assert rows(500, 30)["inverse_box"] == 512
+    assert rows(520, 30)["inverse_box"] == 768  # a third padded at most, not 1024
+    assert rows(200, 30)["inverse_box"] == 256  # down again
+    assert [_padded_size(n) for n in (1, 9, 13, 17, 25, 384, 385)] == [8, 12, 16, 24, 32, 384, 512]
+    assert _padded_sizes_above(128, 4) == [192, 256, 384, 512]

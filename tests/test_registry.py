@@ -124,6 +124,26 @@ def test_factors_are_immutable_copyable_and_picklable():
     np.testing.assert_array_equal(p.args[0], g.args[0])
 
 
+def test_the_flattened_args_are_computed_once_and_follow_a_replace():
+    """``Factor.flat_args`` (what the solver stacks factors by) is kept on the factor; a copy
+    with other args flattens its own, and a pickled factor carries none of it."""
+    f = EXAMPLES["inverse_box"]()
+    leaves, treedef, shapes = f.flat_args()
+    assert f.flat_args()[0] is leaves
+    assert all(isinstance(a, np.ndarray) for a in leaves)
+    assert shapes == tuple((a.shape, a.dtype.str) for a in leaves)
+    box = np.asarray(f.args[0]) + 1.0
+    g = f.replace(args=(box,) + tuple(f.args[1:]))
+    np.testing.assert_array_equal(g.flat_args()[0][0], box)
+    np.testing.assert_array_equal(f.flat_args()[0][0], box - 1.0)
+    assert f.with_robust(Huber(1.0)).flat_args()[2] == shapes
+    p = pickle.loads(pickle.dumps(f))
+    assert "_flat" not in f.__getstate__()
+    np.testing.assert_array_equal(p.flat_args()[0][0], leaves[0])
+    with pytest.raises(TypeError, match="cannot replace"):
+        f.replace(_flat=None)
+
+
 def test_declaration_errors():
     with pytest.raises(TypeError, match="not a factor type"):
         Factor((X(0),), ())

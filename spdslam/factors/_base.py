@@ -225,7 +225,7 @@ class Factor:
     valid: ClassVar[Callable[..., Any] | None] = None
     variables: ClassVar[tuple[str, ...]] = ()
 
-    __slots__ = ("keys", "args", "sqrt_info", "robust")
+    __slots__ = ("keys", "args", "sqrt_info", "robust", "_flat")
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -297,7 +297,7 @@ class Factor:
 
     def __getstate__(self) -> dict:
         return {name: getattr(self, name) for cls in type(self).__mro__
-                for name in cls.__dict__.get("__slots__", ())}
+                for name in cls.__dict__.get("__slots__", ()) if name != "_flat"}
 
     def __setstate__(self, state: dict) -> None:
         for name, value in state.items():
@@ -307,7 +307,7 @@ class Factor:
         """A copy with ``keys``, ``args``, ``sqrt_info`` or ``robust`` replaced."""
         out = copy.copy(self)
         for name, value in changes.items():
-            if name not in Factor.__slots__:
+            if name not in Factor.__slots__ or name == "_flat":
                 raise TypeError(f"cannot replace {name!r} of a factor")
             if name in ("keys", "args"):
                 value = tuple(value)
@@ -315,6 +315,19 @@ class Factor:
                 value = np.asarray(value, dtype=float)
             object.__setattr__(out, name, value)
         return out
+
+    def flat_args(self) -> tuple:
+        """(leaves of ``args`` as NumPy arrays, their tree structure, ((shape, dtype), …) of
+        the leaves): the layout the solver stacks factors by, computed once per factor
+        (factors are immutable; a copy made by ``replace`` computes its own)."""
+        try:
+            return self._flat
+        except AttributeError:
+            leaves, treedef = jax.tree.flatten(self.args)
+            leaves = [np.asarray(x) for x in leaves]
+            flat = (leaves, treedef, tuple((x.shape, x.dtype.str) for x in leaves))
+            object.__setattr__(self, "_flat", flat)
+            return flat
 
     def with_robust(self, robust: RobustKernel | None) -> "Factor":
         """A copy with another robust kernel."""

@@ -124,9 +124,20 @@ class _Poses:
         return self.n
 
 
-def _power_of_two(n: int) -> int:
-    """The smallest power of two ≥ max(n, 8)."""
-    return 1 << int(np.ceil(np.log2(max(int(n), 8))))
+def _padded_size(n: int) -> int:
+    """The smallest of 2ᵏ and 3·2ᵏ⁻¹ (k ≥ 3: 8, 12, 16, 24, 32, 48, …) that is ≥ max(n, 8)."""
+    n = max(int(n), 8)
+    p = 1 << int(np.ceil(np.log2(n)))
+    return p * 3 // 4 if p >= 16 and p * 3 // 4 >= n else p
+
+
+def _padded_sizes_above(n: int, factor: int) -> list:
+    """The sizes of ``_padded_size``'s grid above n, up to ``factor``·n."""
+    out, k = [], _padded_size(n + 1)
+    while k <= factor * n:
+        out.append(k)
+        k = _padded_size(k + 1)
+    return out
 
 
 def _detection(d, frame: int, timestamp: float) -> Detection:
@@ -220,8 +231,6 @@ class OnlineMapper:
         self._last_graph = None
         self._last_values = None
         self._since = 0
-        self._rows: dict = {}  # padded rows of the fixed-lag problem, per kind / type
-        self._rows_marginal: dict = {}  # … of the marginalisation's
 
     # --- input ------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -233,9 +242,9 @@ class OnlineMapper:
         recording of the same kind) is replayed through a mapper of this one's method and
         settings (its priors; the sequence's labels renamed to their classes), then
         discarded (``finish`` is not run); this mapper is unchanged. Programs are kept per factor kind and padded
-        size (powers of two, ``_padding``), so those compiled here serve any sequence whose
+        size (2ᵏ and 3·2ᵏ⁻¹, ``_padding``), so those compiled here serve any sequence whose
         fixed-lag problems reach the same sizes; each kind's programs are also compiled for
-        two doublings of the largest size the replay reached. Returns the seconds it took;
+        the sizes of two more doublings of the largest size the replay reached. Returns the seconds it took;
         ``progress(frame, frames)`` after each frame."""
         t0 = time.perf_counter()
         # this mapper's priors (they decide which factors exist: class size and shape priors,
@@ -253,12 +262,11 @@ class OnlineMapper:
             twin.add_frame(sequence.timestamps[i], sequence.poses_tum[i], detections=by_frame.get(i, ()))
             if progress:
                 progress(i + 1, len(sequence))
-        # each factor kind's programs for the next two doublings of its largest size, which
-        # a longer or busier recording reaches
+        # each factor kind's programs for the sizes of the next two doublings of its
+        # largest, which a longer or busier recording reaches
         for gk in group_kernels():
             if gk.sizes:
-                top = max(gk.sizes)
-                gk.compile_sizes([top * 2, top * 4])
+                gk.compile_sizes(_padded_sizes_above(max(gk.sizes), 4))
         return time.perf_counter() - t0
 
     def add_frame(self, timestamp: float, pose: Any = None, *, odometry: Any = None,
@@ -536,7 +544,7 @@ class OnlineMapper:
         if start > 0:
             fixed.append(X(start - 1))
         fixed = sorted(set(fixed) & keys, key=lambda k: k.index)
-        res = self._optimizer.optimize(graph, values, fixed, rows=self._padding(factors, values, self._rows))
+        res = self._optimizer.optimize(graph, values, fixed, rows=self._padding(factors, values))
         for key in keys:
             if key.chr == "l":
                 self.landmarks[key.index] = res.values[key]
@@ -551,20 +559,17 @@ class OnlineMapper:
         free = len(keys) - len(fixed)
         return len(factors), free, res.iterations
 
-    def _padding(self, factors, values, rows: dict) -> dict:
-        """Rows to pad each factor kind and variable type to (``rows`` is updated): the power
-        of two at or above a quarter more than the count, and never fewer than before, so
-        that the shapes (and compilations) change only when the problem outgrows them (a
-        few times per run, each kind's programs at most once per doubling), not at every
-        update."""
+    def _padding(self, factors, values) -> dict:
+        """Rows to pad each factor kind and variable type to: the size of the grid 2ᵏ,
+        3·2ᵏ⁻¹ at or above the count (and a floor per kind), so that each kind compiles at
+        most two programs per doubling of its count (a few per run, all of them reached on
+        the way up) and pads at most a third of its rows; a problem that shrinks goes back to
+        a smaller shape, which costs less per solve."""
         counts = Counter(f.kind for f in factors)
         counts.update(type(values[k]).__name__ for k in values)
-        for name, c in counts.items():
-            floor = rows.get(name) or _power_of_two(
-                4 * self.window if "box" in name else
-                self.window + self.every + 8 if name in ("between", "SE3") else 16)
-            rows[name] = max(floor, _power_of_two(int(np.ceil(1.25 * c))))
-        return dict(rows)
+        return {name: _padded_size(max(c, 4 * self.window if "box" in name else
+                                       self.window + self.every + 8 if name in ("between", "SE3") else 16))
+                for name, c in counts.items()}
 
     def _marginalise(self, start: int) -> None:
         """The box and measurement factors of frames before ``start`` become the objects'
@@ -585,7 +590,7 @@ class OnlineMapper:
             values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
         poses = [key for key in values if key.chr == "x"]
         problem = Problem(NonlinearFactorGraph(factors), values, poses,
-                          rows=self._padding(factors, values, self._rows_marginal))
+                          rows=self._padding(factors, values))
         h, g, _, _, finite = problem.linearize(problem.vars)
         sp = problem.sparse_pattern()
         H = scipy.sparse.csc_matrix((h, sp["indices"], sp["indptr"]), shape=(problem.n, problem.n)).toarray()

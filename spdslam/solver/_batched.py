@@ -202,8 +202,8 @@ class BatchedProblem:
         self._tvars = [jax.tree.map(np.asarray, v) for v in p.vars]
         self._targs = []  # per factor: (treedef, [np leaves])
         for f in self.factors:
-            leaves, td = jax.tree.flatten(f.args)
-            self._targs.append((td, [np.asarray(a) for a in leaves]))
+            leaves, td, _ = f.flat_args()
+            self._targs.append((td, leaves))
         self._tW = []
         for (k, sel) in lay.sub_sel:
             W = p.gdata[k][1]

@@ -105,6 +105,27 @@ def _describe(f, fi) -> str:
     return f"factor #{fi} ({name}, keys {tuple(f.keys)!r})"
 
 
+#: Residual dimension by group signature and variable layouts (``_residual_dim``).
+_RESIDUAL_DIM: dict[Any, int] = {}
+
+
+def _residual_dim(f0, gb: _GroupBuild, values: list, layouts: list) -> int:
+    """The residual dimension of group ``gb`` (``jax.eval_shape`` of its first factor
+    ``f0``), traced once per signature and variable layouts."""
+    key = (gb.sig[0], gb.sig[2], gb.sig[3], tuple(layouts))
+    m = _RESIDUAL_DIM.get(key)
+    if m is None:
+        try:
+            out = jax.eval_shape(f0.residual, *values, *f0.args)
+        except Exception as e:
+            raise ValueError(f"{_describe(f0, gb.first)}: residual failed: {e}") from e
+        m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
+        if len(_RESIDUAL_DIM) > 4096:  # ad-hoc residuals (closures) must not pile up
+            _RESIDUAL_DIM.clear()
+        _RESIDUAL_DIM[key] = m
+    return m
+
+
 def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
     """Append copies of row 0 up to ``total`` rows."""
     if len(a) == total:
@@ -254,8 +275,13 @@ def _retract_kernel(ts: _TypeSpec):
     return k
 
 
-def _host(tree):
-    return jax.tree.map(np.asarray, tree)
+def _host(vars_):
+    """Per variable type: (its leaves as NumPy arrays, its tree structure)."""
+    out = []
+    for v in vars_:
+        leaves, td = jax.tree.flatten(v)
+        out.append(([np.asarray(a) for a in leaves], td))
+    return out
 
 
 class _Kernels:
@@ -283,9 +309,11 @@ class _Kernels:
     def _inputs(self, k, vars_host, gidx, data):
         """(variables of each key position of group k's factors, pad mask, data)."""
         idx, mask = gidx
-        idx = np.asarray(idx)
-        xs = [jax.tree.map(lambda a, p=p: a[idx[:, p]], vars_host[t])
-              for p, t in enumerate(self.gspecs[k].var_types)]
+        xs = []
+        for p, t in enumerate(self.gspecs[k].var_types):
+            leaves, td = vars_host[t]
+            rows = idx[:, p]
+            xs.append(td.unflatten([a[rows] for a in leaves]))
         self.groups[k].note(xs, mask, data)
         return xs, mask, data
 
@@ -403,14 +431,13 @@ class Problem:
                 slots.append(s)
             if len(set(f.keys)) != len(f.keys):
                 raise ValueError(f"{_describe(f, fi)} uses a key more than once")
-            leaves, treedef = jax.tree.flatten(f.args)
-            leaves = [np.asarray(x) for x in leaves]
+            leaves, treedef, shapes = f.flat_args()
             W = f.sqrt_info
             sig = (
                 f.residual,
-                tuple(s[0] for s in slots),
+                tuple([s[0] for s in slots]),
                 treedef,
-                tuple((x.shape, x.dtype.str) for x in leaves),
+                shapes,
                 None if W is None else W.shape,
                 f.robust,
                 f.valid,
@@ -468,12 +495,8 @@ class Problem:
         self.group_fids, self.group_cols, self.group_nf = [], [], []
         for gb in groups.values():
             f0 = factors[gb.first]
-            ex_vals = [values[k] for k in f0.keys]
-            try:
-                out = jax.eval_shape(f0.residual, *ex_vals, *f0.args)
-            except Exception as e:
-                raise ValueError(f"{_describe(f0, gb.first)}: residual failed: {e}") from e
-            m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
+            m = _residual_dim(f0, gb, [values[k] for k in f0.keys],
+                              [(t_cls[t], t_treedef[t], tuple(t_shapes[t])) for t in gb.sig[1]])
             if f0.dim is not None and m != f0.dim:
                 raise ValueError(
                     f"{_describe(f0, gb.first)}: the residual has dimension {m}, but "
@@ -510,7 +533,7 @@ class Problem:
             G = np.concatenate(cols, axis=1)
             gspecs.append(spec)
             gdata.append((leaves, W))
-            gidx.append((jnp.asarray(_pad_rows(idx, nf_pad)), jnp.asarray(mask)))
+            gidx.append((_pad_rows(idx, nf_pad), jnp.asarray(mask)))
             self.group_fids.append(np.asarray(gb.fids))
             self.group_cols.append(G)
             self.group_nf.append(nf)
