@@ -48,6 +48,7 @@ def clear_caches() -> None:
     _problem._KERNELS.clear()
     _problem._GROUP_KERNELS.clear()
     _problem._RETRACT.clear()
+    _problem._RESIDUAL_DIM.clear()
     _CACHE.clear()
     _EXECUTABLES.clear()
     _BUILT.clear()
