@@ -13,8 +13,8 @@ import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "spdslam"
 
-#: What each layer may import (besides itself, ``spdslam._version`` and ``spdslam._cache``,
-#: the base modules), lowest first.
+#: What each layer may import (besides itself and ``spdslam._version``, the one base module),
+#: lowest first.
 ALLOWED = {
     "geometry": set(),
     "factors": {"geometry"},
@@ -30,24 +30,32 @@ ALLOWED = {
 }
 
 
+def _resolve(node: ast.ImportFrom, package: list[str]) -> list[str]:
+    """The absolute module path (its parts) of ``from … import``, a relative one resolved
+    against ``package``, the importing module's package (``["spdslam", "io"]`` for
+    ``spdslam/io/_readers.py`` and ``spdslam/io/__init__.py``)."""
+    if not node.level:
+        return (node.module or "").split(".")
+    if node.level - 1 > len(package):
+        return []
+    base = package[: len(package) - (node.level - 1)]
+    return base + (node.module.split(".") if node.module else [])
+
+
 def _imported_layers(path: Path, layer: str) -> set[str]:
     """The spdslam subpackages a module imports."""
     out = set()
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.ImportFrom):
-            if node.level:  # relative: resolve against the module's package
-                parts = ["spdslam", layer][: 3 - node.level] if node.level <= 2 else []
-                target = ".".join(parts + ([node.module] if node.module else []))
-                names = [target] if node.module else [f"{target}.{a.name}" for a in node.names]
-            else:
-                names = [node.module or ""]
+            target = ".".join(_resolve(node, ["spdslam", layer]))
+            names = [target] if node.module else [f"{target}.{a.name}" for a in node.names]
         elif isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         else:
             continue
         for name in names:
             parts = name.split(".")
-            if parts[0] == "spdslam" and len(parts) > 1 and parts[1] not in ("_version", "_cache"):
+            if parts[0] == "spdslam" and len(parts) > 1 and parts[1] != "_version":
                 out.add(parts[1])
     return out - {layer}
 
@@ -65,7 +73,7 @@ def test_the_layers_are_the_whole_package():
     packages = {p.name for p in PKG.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
     assert packages == set(ALLOWED)
     flat = sorted(p.name for p in PKG.glob("*.py"))
-    assert flat == ["__init__.py", "_cache.py", "_version.py"], f"modules outside the layers: {flat}"
+    assert flat == ["__init__.py", "_version.py"], f"modules outside the layers: {flat}"
 
 
 def test_the_order_is_acyclic():
@@ -165,3 +173,128 @@ def test_every_reader_is_reached_through_the_format_registry():
             if isinstance(node, ast.ImportFrom):
                 used = {a.name for a in node.names} & direct
                 assert not used, f"{path.relative_to(PKG.parent)} imports {sorted(used)}"
+
+
+# --- "_" means private ----------------------------------------------------------------------
+# A module imports another package's names from that package (``from ..solver import
+# Problem``), never from its ``_`` modules (``spdslam._version`` aside); and no ``_`` name
+# (dunders aside) is imported from another module, inside one package too. Importing a private
+# module of one's own package for its public names (``from ._parse import read_tum``) is fine.
+
+
+def _is_dunder(name: str) -> bool:
+    return name.startswith("__") and name.endswith("__")
+
+
+def _is_module(parts: list[str], pkg: Path) -> bool:
+    """Whether ``spdslam.a.b`` (``parts``) is a module or package of the tree at ``pkg``."""
+    if not parts or parts[0] != "spdslam":
+        return False
+    where = pkg.joinpath(*parts[1:])
+    return where.with_suffix(".py").is_file() or (where / "__init__.py").is_file()
+
+
+def _package_of(path: Path, pkg: Path) -> list[str]:
+    """The package a module of the tree at ``pkg`` belongs to (its folder), as parts."""
+    return ["spdslam", *path.parent.relative_to(pkg).parts]
+
+
+def _imports(path: Path, pkg: Path):
+    """(line, absolute module parts, imported names or None) of every ``import`` statement of
+    a module, at module level or inside functions; ``import a.b`` gives names None."""
+    package = _package_of(path, pkg)
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom):
+            yield node.lineno, _resolve(node, package), [a.name for a in node.names]
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                yield node.lineno, a.name.split("."), None
+
+
+def private_module_imports(path: Path, pkg: Path = PKG) -> list[str]:
+    """``file:line module`` for each import of a private (``_``) module of another package
+    than the module's own (``from ..solver._problem import Problem``, ``import
+    spdslam.io._parse``, ``from ..io import _parse``); ``spdslam._version`` is allowed."""
+    package, where = _package_of(path, pkg), path.relative_to(pkg.parent).as_posix()
+    out = []
+    for line, parts, names in _imports(path, pkg):
+        if parts[:1] != ["spdslam"]:
+            continue
+        modules = [parts] + [parts + [n] for n in names or () if _is_module(parts + [n], pkg)]
+        for mod in modules:
+            private = [i for i, p in enumerate(mod) if i and p.startswith("_") and not _is_dunder(p)
+                       and mod[:i + 1] != ["spdslam", "_version"]]
+            if private and mod[: private[0]] != package:
+                out.append(f"{where}:{line} {'.'.join(mod[: private[0] + 1])}")
+    return out
+
+
+def private_name_imports(path: Path, pkg: Path = PKG) -> list[str]:
+    """``file:line name (from module)`` for each ``_`` name (not a dunder, not a module)
+    imported from a spdslam module: ``from ._parse import _line``."""
+    where = path.relative_to(pkg.parent).as_posix()
+    out = []
+    for line, parts, names in _imports(path, pkg):
+        if parts[:1] != ["spdslam"]:
+            continue
+        for n in names or ():
+            if n.startswith("_") and not _is_dunder(n) and not _is_module(parts + [n], pkg):
+                out.append(f"{where}:{line} {n} (from {'.'.join(parts)})")
+    return out
+
+
+def _every_module(pkg: Path = PKG) -> list[Path]:
+    return sorted(pkg.rglob("*.py"))
+
+
+def test_no_module_imports_another_packages_private_module():
+    bad = [b for path in _every_module() for b in private_module_imports(path)]
+    assert not bad, "private modules of another package imported (import the package):\n" + "\n".join(bad)
+
+
+def test_no_private_name_is_imported():
+    bad = [b for path in _every_module() for b in private_name_imports(path)]
+    assert not bad, "private names imported from another module (make them public):\n" + "\n".join(bad)
+
+
+def test_the_privacy_checks_can_fail(tmp_path):
+    """Both checks find what they forbid (relative, absolute, in functions, modules imported
+    by ``from … import``), and pass what is allowed."""
+    pkg = tmp_path / "spdslam"
+    for f in ["__init__.py", "_version.py", "_cache.py", "solver/__init__.py", "solver/_compile.py",
+              "io/__init__.py", "io/_parse.py", "cli/__init__.py", "cli/_other.py"]:
+        (pkg / f).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / f).write_text("")
+    (pkg / "cli" / "_app.py").write_text(
+        "from .._cache import cache_dir\n"
+        "from .._version import __version__\n"
+        "from ..solver._compile import clear_caches\n"
+        "from ..solver import Problem\n"
+        "from . import _other\n"
+        "from ._other import thing\n"
+        "def f():\n"
+        "    import spdslam.io._parse\n"
+        "    from spdslam.io import _parse\n"
+        "    import numpy._core\n")
+    (pkg / "io" / "_readers.py").write_text(
+        "from ._parse import _line, parse_line, __doc__\n"
+        "from . import _parse\n"
+        "from dataclasses import replace as _replace\n"
+        "def g():\n"
+        "    from spdslam.io._parse import _kind\n"
+        "    from numpy import _pytesttester\n")
+    (pkg / "__init__.py").write_text("from ._version import __version__\nfrom ._cache import cache_dir\n")
+    app, readers = pkg / "cli" / "_app.py", pkg / "io" / "_readers.py"
+    assert private_module_imports(app, pkg) == [
+        "spdslam/cli/_app.py:1 spdslam._cache",
+        "spdslam/cli/_app.py:3 spdslam.solver._compile",
+        "spdslam/cli/_app.py:8 spdslam.io._parse",
+        "spdslam/cli/_app.py:9 spdslam.io._parse",
+    ]
+    assert private_name_imports(app, pkg) == []
+    assert private_module_imports(readers, pkg) == []
+    assert private_name_imports(readers, pkg) == [
+        "spdslam/io/_readers.py:1 _line (from spdslam.io._parse)",
+        "spdslam/io/_readers.py:5 _kind (from spdslam.io._parse)",
+    ]
+    assert private_module_imports(pkg / "__init__.py", pkg) == []  # its own private modules

@@ -78,7 +78,7 @@ def test_faithful_rts_baseline_constrains_the_third_axis_and_the_stored_scales()
     from spdslam.factors import ClassicOrientationFactor, ClassicShapeFactor, ShapeFactor
     from spdslam.frontend import tracks_from_instances
     from spdslam.mapping import build_graph, initialize_objects
-    from spdslam.mapping._run import _landmark
+    from spdslam.mapping._run import as_landmark
     from spdslam.solver import L
 
     seq = make_room_sequence(0, frames=30, objects=2)
@@ -86,7 +86,7 @@ def test_faithful_rts_baseline_constrains_the_third_axis_and_the_stored_scales()
     built = {}
     for name in ("multi-rts", "multi-rts-nearest"):
         init, _, _ = initialize_objects(seq, tracks, METHODS[name])
-        landmarks = {k: _landmark(e, METHODS[name]) for k, e in init.items()}
+        landmarks = {k: as_landmark(e, METHODS[name]) for k, e in init.items()}
         graph = build_graph(seq, [t for t in tracks if t.id in landmarks], landmarks, METHODS[name], "inverse")
         built[name] = (graph, landmarks)
     g, lms = built["multi-rts"]

@@ -5,14 +5,14 @@ import pytest
 
 from spdslam.experiments import StudyConfig, compare_with_reference, reference_solve, run_study
 from spdslam.experiments._reference import _Chart
-from spdslam.experiments._study import _all_scenes, _box_sigma
+from spdslam.experiments._study import all_scenes, box_sigma
 from spdslam.geometry import dual_quadric_of
 
 
 @pytest.mark.parametrize("param", ["F", "S", "O"])
 def test_each_chart_starts_at_the_initial_landmark(param):
     cfg = StudyConfig(trials=3, noise=("M",), angles=(60.0,))
-    scenes, _, _ = _all_scenes(cfg)
+    scenes, _, _ = all_scenes(cfg)
     P0, t0 = np.asarray(scenes.initial.P[1]), np.asarray(scenes.initial.center[1])
     chart = _Chart(param, P0, t0)
     np.testing.assert_allclose(chart.quadrics(chart.x0)[0], dual_quadric_of(P0, t0), atol=1e-12)
@@ -27,9 +27,9 @@ def test_reference_has_our_cost_and_solves_noise_free_trials(model):
     boxes) it reaches the truth's cost, 0, as our LM does."""
     cfg = StudyConfig(trials=6, noise=("L",), angles=(120.0,), params=("O",), models=(model,))
     res = run_study(cfg)
-    scenes, _, _ = _all_scenes(cfg)
+    scenes, _, _ = all_scenes(cfg)
     for param in ("F", "S", "O"):
-        ref = reference_solve(model, param, scenes, _box_sigma(model, cfg), workers=1)
+        ref = reference_solve(model, param, scenes, box_sigma(model, cfg), workers=1)
         ours0 = np.array([r["initial_cost"] for r in res.rows])
         np.testing.assert_allclose(ref.initial_cost, ours0, rtol=1e-9)
         assert np.all(ref.cost <= 1e-6 * ours0), (param, ref.cost)

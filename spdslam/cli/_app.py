@@ -28,8 +28,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from .._cache import CACHE_ENV, CACHE_OFF, DEFAULT_CACHE_DIR, cache_dir, enable_compilation_cache  # noqa: F401
 from .._version import __version__
+from ..solver import CACHE_ENV, CACHE_OFF, DEFAULT_CACHE_DIR, cache_dir, enable_compilation_cache  # noqa: F401
 
 app = typer.Typer(
     name="spdslam",

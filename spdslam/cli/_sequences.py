@@ -28,7 +28,7 @@ from ..mapping import (
 )
 from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
                    console, err_console, fail, open_engine)
-from ._simulate import _split
+from ._simulate import split_option
 
 __all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup", "DEMO_MARKER"]
 
@@ -214,7 +214,7 @@ def _print_result(result) -> None:
 def _check_recording(path: Path, option: str) -> None:
     """Refuse, before anything is computed, a recording path that is a folder, and a
     missing rerun-sdk (the viewer extra)."""
-    from ..evaluation._rerun import RERUN_MISSING
+    from ..evaluation import RERUN_MISSING
 
     if path.is_dir():
         fail(f"{option}: {path} is a folder: expected the path of a .rrd file")
@@ -506,7 +506,7 @@ def compare(
     from ..evaluation import FRONT_END_NAMES, table_iii
     from ..experiments import Job
 
-    names = _split("methods", methods, tuple(METHODS))
+    names = split_option("methods", methods, tuple(METHODS))
     _sequence_path(sequence)
     check_output(out, [sequence])
     seq = _load_sequence(sequence)
@@ -682,8 +682,8 @@ def warmup(
     process loads the programs instead of compiling them (docs/performance.md, "6. The first run")."""
     import time
 
-    from .._cache import ensure_compilation_cache
     from ..mapping import OnlineMapper, run_sequence
+    from ..solver import ensure_compilation_cache
     from ..synthetic import make_room_sequence
 
     if method not in METHODS:

@@ -10,10 +10,13 @@ import typer
 from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
                    console, fail, open_engine)
 
-__all__ = ["simulate"]
+__all__ = ["simulate", "split_option"]
 
 
-def _split(option: str, value: str, allowed=None, cast=str) -> tuple:
+def split_option(option: str, value: str, allowed=None, cast=str) -> tuple:
+    """The items of a comma-separated option ``--option a,b,c``, each among ``allowed`` (when
+    given) and converted by ``cast``; an empty list, an unknown item or one ``cast`` refuses
+    exits with a one-line error (``fail``)."""
     items = tuple(x.strip() for x in value.split(",") if x.strip())
     if not items:
         fail(f"--{option}: expected a comma-separated list, got {value!r}")
@@ -95,10 +98,10 @@ def simulate(
     cfg_kwargs = dict(
         trials=trials,
         seed=seed,
-        params=_split("params", params, ("F", "S", "O")),
-        models=_split("models", models, ("inv", "semi")),
-        angles=_split("angles", angles, None, float),
-        noise=_split("noise", noise, ("L", "M", "H")),
+        params=split_option("params", params, ("F", "S", "O")),
+        models=split_option("models", models, ("inv", "semi")),
+        angles=split_option("angles", angles, None, float),
+        noise=split_option("noise", noise, ("L", "M", "H")),
         max_iters=max_iters,
     )
     if optimizer not in ("lm", "dogleg"):

@@ -44,6 +44,7 @@ from ._report import shown as shown
 from ._report import table_iii as table_iii
 from ._report import to_groundtruth as to_groundtruth
 from ._report import write_run as write_run
+from ._rerun import RERUN_MISSING as RERUN_MISSING
 from ._rerun import write_recording as write_recording  # needs rerun-sdk (the viewer extra) when called
 from ._stats import Interval as Interval
 from ._stats import PairedComparison as PairedComparison

@@ -33,6 +33,7 @@ __all__ = [
     "conic_outline",
     "ellipse_points",
     "ellipses_points",
+    "image_for",
     "latency_csv",
     "plane_basis",
     "plot_latency",
@@ -393,7 +394,7 @@ def plot_overlay(path, image, camera, T_wc, ellipsoids, boxes=None, labels=None,
     return _save(fig, path, dpi)
 
 
-def _image_for(sequence, frame: int, detections, tolerance: float):
+def image_for(sequence, frame: int, detections, tolerance: float):
     """(timestamp, path) of the frame's image: the image nearest to the detections' stamp
     (else the pose's) within ``tolerance``, or None."""
     keys = np.array(sorted(sequence.images), dtype=float)
@@ -439,7 +440,7 @@ def write_overlays(folder, sequence, ellipsoids, poses_tum, frames=None, max_fra
         dets = by_frame.get(f, [])
         if not dets:
             continue
-        found = _image_for(sequence, f, dets, MATCH_TOLERANCE + 1e-9)
+        found = image_for(sequence, f, dets, MATCH_TOLERANCE + 1e-9)
         if found is None or not Path(found[1]).is_file():
             continue
         jobs.append((f, dets, *found))

@@ -38,7 +38,7 @@ from ..geometry import (
 )
 from ..geometry.se3 import matrix_to_quat, quat_to_matrix
 from ..io import MATCH_TOLERANCE, nearest_stamps
-from ._plots import _image_for, camera_centers, conic_ellipses, ellipses_points
+from ._plots import camera_centers, conic_ellipses, ellipses_points, image_for
 from ._report import ground_truth_in_map_frame
 
 __all__ = ["RERUN_MISSING", "projected_ellipses", "write_recording"]
@@ -242,7 +242,7 @@ def write_recording(path, objects, trajectory, sequence=None, input_trajectory=N
                 [outlines[r % _BLOCK, k] for k in keep], colors=colors[keep],
                 labels=[labels[k] for k in keep]))  # fmt: skip
             if images and sequence is not None and sequence.images:
-                found = _image_for(sequence, f, dets, MATCH_TOLERANCE + 1e-9)
+                found = image_for(sequence, f, dets, MATCH_TOLERANCE + 1e-9)
                 if found is not None and Path(found[1]).is_file():
                     rec.log("world/camera/image/rgb", _image(rr, Path(found[1])))
                 else:

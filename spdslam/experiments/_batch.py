@@ -97,28 +97,28 @@ def _settings(name, pairs, where: str) -> dict:
     """The settings of a job or of ``defaults`` from (key, key node, value node) pairs, checked."""
     import yaml
 
-    from ..io._parse import SequenceFormatError, _kind, _line, _mapping, _scalar, _ynumber
+    from ..io import SequenceFormatError, yaml_kind, yaml_line, yaml_mapping, yaml_number, yaml_scalar
     from ..mapping import (ASSOCIATIONS, BOX_MODELS, DEFAULT_MAPPING_SIGMAS, OBJECT_SHAPE_CHOICES,
                            PARAMETERIZATIONS, SUPPORT_PLANES, check_sigma, parse_keyframes,
                            parse_robust)
 
     def err(node, expected, got=None):
-        raise SequenceFormatError(name, _line(node), expected, _kind(node) if got is None else got)
+        raise SequenceFormatError(name, yaml_line(node), expected, yaml_kind(node) if got is None else got)
 
     def choice(node, allowed, what):
-        v = _scalar(node)
+        v = yaml_scalar(node)
         if v not in allowed:
             err(node, f"{what}: one of {', '.join(allowed)}")
         return v
 
     def boolean(node, what):
-        v = _scalar(node)
+        v = yaml_scalar(node)
         if not isinstance(v, bool):
             err(node, f"{what}: true or false")
         return v
 
     def positive_int(node, what, least=1):
-        v = _scalar(node)
+        v = yaml_scalar(node)
         if isinstance(v, bool) or not isinstance(v, int) or v < least:
             err(node, f"{what}: an integer ≥ {least}")
         return v
@@ -131,7 +131,7 @@ def _settings(name, pairs, where: str) -> dict:
             out[key] = choice(v, ASSOCIATIONS, key)
         elif key == "keyframes":
             try:
-                out[key] = parse_keyframes(_scalar(v))
+                out[key] = parse_keyframes(yaml_scalar(v))
             except ValueError:
                 err(v, "keyframes: all, motion or a positive integer")
         elif key == "support_planes":
@@ -143,26 +143,26 @@ def _settings(name, pairs, where: str) -> dict:
         elif key == "object_shape":
             out[key] = choice(v, OBJECT_SHAPE_CHOICES, key)
         elif key == "truncation_margin":
-            out[key] = _ynumber(name, v, key)
+            out[key] = yaml_number(name, v, key)
         elif key == "robust_k":
-            k = _ynumber(name, v, key)
+            k = yaml_number(name, v, key)
             if not k > 0:
                 err(v, "robust_k: a positive number", repr(k))
             out[key] = k
         elif key == "robust":
             items = [v] if isinstance(v, yaml.ScalarNode) else v.value if isinstance(v, yaml.SequenceNode) else None
-            if items is None or not all(isinstance(_scalar(i), str) for i in items):
+            if items is None or not all(isinstance(yaml_scalar(i), str) for i in items):
                 err(v, "robust: a kernel or a list of KERNEL or TYPE=KERNEL[:K]")
-            out[key] = [_scalar(i) for i in items]
+            out[key] = [yaml_scalar(i) for i in items]
             robust_node = v
         elif key in ("class_table", "overlay"):
             out[key] = boolean(v, key)
         elif key == "sigma":
             sig = {}
-            for sname, sk, sv in _mapping(name, v, "sigma"):
+            for sname, sk, sv in yaml_mapping(name, v, "sigma"):
                 if sname not in DEFAULT_MAPPING_SIGMAS:
                     err(sk, f"a sigma among {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}", repr(sname))
-                value = _ynumber(name, sv, f"sigma {sname}")
+                value = yaml_number(name, sv, f"sigma {sname}")
                 try:
                     sig[sname] = check_sigma(sname, value)
                 except ValueError:
@@ -171,19 +171,19 @@ def _settings(name, pairs, where: str) -> dict:
         elif key == "online":
             if isinstance(v, yaml.MappingNode):
                 on = dict(ONLINE_DEFAULTS)
-                for ok, okn, ov in _mapping(name, v, "online"):
+                for ok, okn, ov in yaml_mapping(name, v, "online"):
                     if ok in ("final_batch", "warmup"):
                         on[ok] = boolean(ov, f"online {ok}")
                     elif ok in ONLINE_DEFAULTS:
                         on[ok] = positive_int(ov, f"online {ok}", 2 if ok == "window" else 1)
                     else:
-                        raise SequenceFormatError(name, _line(okn), f"a key of online among {', '.join(ONLINE_DEFAULTS)}", repr(ok))
+                        raise SequenceFormatError(name, yaml_line(okn), f"a key of online among {', '.join(ONLINE_DEFAULTS)}", repr(ok))
                 out[key] = on
             else:
                 out[key] = dict(ONLINE_DEFAULTS) if boolean(v, "online") else None
         else:
             raise SequenceFormatError(
-                name, _line(knode), f"a key of {where} among {', '.join(JOB_SETTINGS)}", repr(key))
+                name, yaml_line(knode), f"a key of {where} among {', '.join(JOB_SETTINGS)}", repr(key))
     if robust_node is not None:
         try:
             parse_robust(out["robust"], out.get("robust_k"))
@@ -198,92 +198,92 @@ def read_manifest(path) -> list[Job]:
     names, an online job with keyframes or estimated support planes."""
     import yaml
 
-    from ..io._parse import SequenceFormatError, _kind, _line, _mapping, _scalar, _yaml_root
+    from ..io import SequenceFormatError, yaml_kind, yaml_line, yaml_mapping, yaml_root, yaml_scalar
     from ..mapping import METHODS
 
     path = Path(path)
     name = str(path)
-    root = _yaml_root(path, name)
+    root = yaml_root(path, name)
     defaults, jobs_node = {}, None
-    for key, knode, v in _mapping(name, root, "the manifest"):
+    for key, knode, v in yaml_mapping(name, root, "the manifest"):
         if key == "defaults":
-            pairs = _mapping(name, v, "defaults")
+            pairs = yaml_mapping(name, v, "defaults")
             for k, kn, _ in pairs:
                 if k in ("sequence", "name"):
-                    raise SequenceFormatError(name, _line(kn), "defaults without sequence or name", repr(k))
+                    raise SequenceFormatError(name, yaml_line(kn), "defaults without sequence or name", repr(k))
             method_pairs = [p for p in pairs if p[0] in ("method", "methods")]
             defaults = {"_methods": _methods(name, method_pairs, METHODS)} if method_pairs else {}
             defaults.update(_settings(name, [p for p in pairs if p[0] not in ("method", "methods")], "defaults"))
         elif key == "jobs":
             jobs_node = v
         else:
-            raise SequenceFormatError(name, _line(knode), "a key of the manifest among defaults, jobs", repr(key))
+            raise SequenceFormatError(name, yaml_line(knode), "a key of the manifest among defaults, jobs", repr(key))
     if jobs_node is None:
         raise SequenceFormatError(name, None, "a list of jobs (jobs:)", "none")
     if not isinstance(jobs_node, yaml.SequenceNode) or not jobs_node.value:
-        raise SequenceFormatError(name, _line(jobs_node), "a non-empty list of jobs", _kind(jobs_node))
+        raise SequenceFormatError(name, yaml_line(jobs_node), "a non-empty list of jobs", yaml_kind(jobs_node))
     jobs, names = [], {}
     for node in jobs_node.value:
-        pairs = _mapping(name, node, "a job")
+        pairs = yaml_mapping(name, node, "a job")
         seq = next((p for p in pairs if p[0] == "sequence"), None)
         if seq is None:
-            raise SequenceFormatError(name, _line(node), "a sequence for the job", "none")
-        seq_value = _scalar(seq[2])
+            raise SequenceFormatError(name, yaml_line(node), "a sequence for the job", "none")
+        seq_value = yaml_scalar(seq[2])
         if not isinstance(seq_value, str) or not seq_value.strip():
-            raise SequenceFormatError(name, _line(seq[2]), "a sequence folder (a path)", _kind(seq[2]))
+            raise SequenceFormatError(name, yaml_line(seq[2]), "a sequence folder (a path)", yaml_kind(seq[2]))
         method_pairs = [p for p in pairs if p[0] in ("method", "methods")]
         methods = _methods(name, method_pairs, METHODS) if method_pairs else \
             defaults.get("_methods", ["multi-spd"])
         given = next((p for p in pairs if p[0] == "name"), None)
         if given is not None and len(methods) > 1:
-            raise SequenceFormatError(name, _line(given[1]), "no name for a job of several methods "
-                                      "(each is named <name>-<method>)", repr(_scalar(given[2])))
+            raise SequenceFormatError(name, yaml_line(given[1]), "no name for a job of several methods "
+                                      "(each is named <name>-<method>)", repr(yaml_scalar(given[2])))
         settings = {k: v for k, v in defaults.items() if k != "_methods"}
         settings.update(_settings(name, [p for p in pairs if p[0] not in
                                          ("sequence", "method", "methods", "name")], "a job"))
         if settings.get("online"):
             if settings.get("keyframes", "all") != "all":
-                raise SequenceFormatError(name, _line(node), "keyframes all for an online job", repr(settings["keyframes"]))
+                raise SequenceFormatError(name, yaml_line(node), "keyframes all for an online job", repr(settings["keyframes"]))
             if settings.get("support_planes", "priors") != "priors":
-                raise SequenceFormatError(name, _line(node), "support_planes priors for an online job",
+                raise SequenceFormatError(name, yaml_line(node), "support_planes priors for an online job",
                                           repr(settings["support_planes"]))
         folder = Path(seq_value).expanduser()
         folder = folder if folder.is_absolute() else path.parent / folder
         for m in methods:
-            job_name = _scalar(given[2]) if given is not None else f"{folder.name}-{m}"
+            job_name = yaml_scalar(given[2]) if given is not None else f"{folder.name}-{m}"
             if not isinstance(job_name, str) or not job_name or "/" in job_name or "\\" in job_name \
                     or job_name in (".", "..") or job_name.startswith("."):
-                raise SequenceFormatError(name, _line(given[2] if given is not None else node),
+                raise SequenceFormatError(name, yaml_line(given[2] if given is not None else node),
                                           "a job name that is a plain folder name", repr(job_name))
             if job_name in names:
-                raise SequenceFormatError(name, _line(node), f"unique job names ({job_name!r} is the job "
+                raise SequenceFormatError(name, yaml_line(node), f"unique job names ({job_name!r} is the job "
                                           f"of line {names[job_name]})", f"{job_name!r} twice")
-            names[job_name] = _line(node)
-            jobs.append(Job(job_name, folder, m, dict(settings), _line(node)))
+            names[job_name] = yaml_line(node)
+            jobs.append(Job(job_name, folder, m, dict(settings), yaml_line(node)))
     return jobs
 
 
 def _methods(name, pairs, allowed) -> list[str]:
     import yaml
 
-    from ..io._parse import SequenceFormatError, _line, _scalar
+    from ..io import SequenceFormatError, yaml_line, yaml_scalar
 
     if len(pairs) > 1:
-        raise SequenceFormatError(name, _line(pairs[1][1]), "method or methods, not both", "both")
+        raise SequenceFormatError(name, yaml_line(pairs[1][1]), "method or methods, not both", "both")
     key, _, v = pairs[0]
     items = v.value if key == "methods" and isinstance(v, yaml.SequenceNode) else [v]
     if key == "methods" and not isinstance(v, yaml.SequenceNode):
-        raise SequenceFormatError(name, _line(v), "methods: a list of methods", repr(_scalar(v)))
+        raise SequenceFormatError(name, yaml_line(v), "methods: a list of methods", repr(yaml_scalar(v)))
     out = []
     for i in items:
-        m = _scalar(i)
+        m = yaml_scalar(i)
         if m not in allowed:
-            raise SequenceFormatError(name, _line(i), f"a method among {', '.join(allowed)}", repr(m))
+            raise SequenceFormatError(name, yaml_line(i), f"a method among {', '.join(allowed)}", repr(m))
         if m in out:
-            raise SequenceFormatError(name, _line(i), "each method once", f"{m!r} twice")
+            raise SequenceFormatError(name, yaml_line(i), "each method once", f"{m!r} twice")
         out.append(m)
     if not out:
-        raise SequenceFormatError(name, _line(v), "at least one method", "an empty list")
+        raise SequenceFormatError(name, yaml_line(v), "at least one method", "an empty list")
     return out
 
 
@@ -361,7 +361,7 @@ def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
     attempt or whose outputs cannot be written is reported failed with its error; the
     others are unaffected. ``progress(report, done, total)`` as each job ends."""
     from ..evaluation import write_run
-    from ._engines import LocalEngine, _one_line
+    from ._engines import LocalEngine, error_line
 
     engine = engine or LocalEngine()
     out = Path(out)
@@ -373,7 +373,7 @@ def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
         try:
             seq = _read(job)
         except (ValueError, OSError) as e:
-            reports[i] = JobReport(job, "failed", "read", _one_line(e), 0, time.perf_counter() - t0)
+            reports[i] = JobReport(job, "failed", "read", error_line(e), 0, time.perf_counter() - t0)
             done += 1
             if progress:
                 progress(reports[i], done, len(jobs))
@@ -396,7 +396,7 @@ def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
                 reports[i] = JobReport(job, "done", "", "", o.attempts, o.seconds, o.where,
                                        len(result.objects), metrics)
             except Exception as e:  # noqa: BLE001 - a full disk, a folder made meanwhile, …
-                reports[i] = JobReport(job, "failed", "write", _one_line(e), o.attempts, o.seconds, o.where)
+                reports[i] = JobReport(job, "failed", "write", error_line(e), o.attempts, o.seconds, o.where)
         done += 1
         if progress:
             progress(reports[i], done, len(jobs))

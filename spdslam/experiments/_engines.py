@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-__all__ = ["RAY_MISSING", "LocalEngine", "RayEngine", "TaskOutcome", "make_engine"]
+__all__ = ["RAY_MISSING", "LocalEngine", "RayEngine", "TaskOutcome", "error_line", "make_engine"]
 
 #: The message when Ray is asked for and not installed.
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or pip install ray)'
@@ -41,7 +41,9 @@ class TaskOutcome:
         return self.error is None
 
 
-def _one_line(e: BaseException) -> str:
+def error_line(e: BaseException) -> str:
+    """An exception as one line, ``"<Type>: <message>"`` (whitespace runs collapsed; an
+    empty message reads "(no message)"): a failed task's or job's error."""
     text = " ".join(str(e).split()) or "(no message)"
     return f"{type(e).__name__}: {text}"
 
@@ -56,7 +58,7 @@ def _attempt(fn: Callable, args: tuple) -> tuple:
     try:
         value = fn(*args)
     except Exception as e:  # noqa: BLE001 - reported to the driver, which decides
-        return "error", _one_line(e), time.perf_counter() - t0, where
+        return "error", error_line(e), time.perf_counter() - t0, where
     return "ok", value, time.perf_counter() - t0, where
 
 
@@ -166,7 +168,7 @@ class RayEngine(_Engine):
             try:
                 status, value, seconds, where = ray.get(ref)
             except Exception as e:  # noqa: BLE001 - the worker died, the task was cancelled, …
-                status, value, seconds, where = "error", _one_line(e), 0.0, "ray"
+                status, value, seconds, where = "error", error_line(e), 0.0, "ray"
             if status == "error" and attempt <= self.retries:
                 pending[self._remote.remote(fn_ref, tuple(tasks[i]))] = (i, attempt + 1)
                 continue

@@ -203,16 +203,16 @@ def compare_with_reference(cfg, max_nfev: int = 100, workers: int | None = None,
     param): trials, successes of each, trials where only one succeeds, median iterations
     (ours) and function evaluations (TRF), and collapse rates (smallest radius below
     ``COLLAPSED_RATIO`` of the largest), plus the study itself under "result"."""
-    from ._study import _all_scenes, _box_sigma, run_study
+    from ._study import all_scenes, box_sigma, run_study
     from ._summary import COLLAPSED_RATIO
 
     result = run_study(cfg)
-    scenes, angle_lab, noise_lab = _all_scenes(cfg)
+    scenes, angle_lab, noise_lab = all_scenes(cfg)
     cells = []
     for model in cfg.models:
         for param in cfg.params:
             rows = [r for r in result.rows if r["model"] == model and r["param"] == param]
-            ref = reference_solve(model, param, scenes, _box_sigma(model, cfg), max_nfev, workers)
+            ref = reference_solve(model, param, scenes, box_sigma(model, cfg), max_nfev, workers)
             thr = np.array([(1 + cfg.success_rtol) * r["truth_cost"] + cfg.success_atol
                             for r in rows])
             ours = np.array([r["success"] for r in rows])

@@ -37,7 +37,8 @@ from ..geometry import Ellipsoid, EllipsoidFull, EllipsoidRTS, sorted_axes
 from ..solver import Dogleg, L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ..synthetic import NOISE_LEVELS, Protocol, Scenes, get_protocol, make_scenes
 
-__all__ = ["CSV_COLUMNS", "HISTORY_TRIALS", "STUDY_CHUNK", "StudyConfig", "StudyResult", "history_labels", "run_study"]
+__all__ = ["CSV_COLUMNS", "HISTORY_TRIALS", "STUDY_CHUNK", "StudyConfig", "StudyResult", "all_scenes", "box_sigma",
+           "history_labels", "run_study"]
 
 _PARAM_TYPES = {"F": EllipsoidFull, "S": EllipsoidRTS, "O": Ellipsoid}
 _MODEL_FACTORS = {"inv": InverseBoxFactor, "semi": SemiInverseBoxFactor}
@@ -164,7 +165,7 @@ def history_labels(cfg: StudyConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --- scenes and problems -----------------------------------------------------------------
-def _all_scenes(cfg: StudyConfig) -> tuple[Scenes, np.ndarray, np.ndarray]:
+def all_scenes(cfg: StudyConfig) -> tuple[Scenes, np.ndarray, np.ndarray]:
     """Scenes of every cell, concatenated along the batch axis, with their cell labels."""
     parts, angle, noise = [], [], []
     for ia, a in enumerate(cfg.angles):
@@ -186,7 +187,9 @@ def _all_scenes(cfg: StudyConfig) -> tuple[Scenes, np.ndarray, np.ndarray]:
     return scenes, np.array(angle), np.array(noise)
 
 
-def _box_sigma(model: str, cfg: StudyConfig) -> float:
+def box_sigma(model: str, cfg: StudyConfig) -> float:
+    """The σ of ``model``'s box factors in the study: ``semi_sigma`` (m² per edge plane) for
+    the semi-inverse model, else ``inverse_sigma`` (px per edge)."""
     return cfg.semi_sigma if model == "semi" else cfg.inverse_sigma
 
 
@@ -212,7 +215,7 @@ def _template(model: str, scenes: Scenes, cfg: StudyConfig, landmark0):
     for i in range(cfg.n_views):
         values[X(i)] = jaxlie.SE3(scenes.poses.wxyz_xyz[0, i])
         graph.add(factor(X(i), OBJECT, scenes.boxes[0, i], scenes.camera,
-                         sigma=_box_sigma(model, cfg)))
+                         sigma=box_sigma(model, cfg)))
     values[OBJECT] = landmark0
     return graph, values
 
@@ -400,11 +403,11 @@ def run_study(
     """
     if engine is not None:
         return _run_sharded(cfg, progress, engine, trials_per_task)
-    from ..solver._compile import AUTO_OPTIMIZE_WORK
+    from ..solver import AUTO_OPTIMIZE_WORK
 
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]
-    scenes, _, _ = _all_scenes(cfg)
+    scenes, _, _ = all_scenes(cfg)
     B = len(scenes)
     size = min(B, STUDY_CHUNK if chunk is None else int(chunk))
     if size < 1:
@@ -535,12 +538,11 @@ MAX_TRIALS_PER_TASK = 10_000
 
 
 def _run_sharded(cfg, progress, engine, trials_per_task) -> StudyResult:
-    from ..solver._batched import DEFAULT_LANES
-    from ..solver._compile import AUTO_OPTIMIZE_WORK
+    from ..solver import AUTO_OPTIMIZE_WORK, DEFAULT_LANES
 
     t_start = time.perf_counter()
     structures = [(m, p) for m in cfg.models for p in cfg.params]
-    scenes, _, _ = _all_scenes(cfg)
+    scenes, _, _ = all_scenes(cfg)
     B = len(scenes)
     if trials_per_task is None:
         trials_per_task = min(MAX_TRIALS_PER_TASK,

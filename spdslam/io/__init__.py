@@ -52,6 +52,13 @@ from ._parse import SequenceFormatError as SequenceFormatError
 from ._parse import nearest_stamps as nearest_stamps
 from ._parse import read_images as read_images
 from ._parse import read_tum as read_tum
+# YAML read node by node, with ``file:line`` errors (experiments' manifests use it too)
+from ._parse import yaml_kind as yaml_kind
+from ._parse import yaml_line as yaml_line
+from ._parse import yaml_mapping as yaml_mapping
+from ._parse import yaml_number as yaml_number
+from ._parse import yaml_root as yaml_root
+from ._parse import yaml_scalar as yaml_scalar
 from ._readers import read_camera as read_camera
 from ._readers import read_detections as read_detections
 from ._readers import read_ellipsoids as read_ellipsoids

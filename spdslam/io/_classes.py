@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import OBJECT_SHAPES
-from ._frozen import _close, _frozen_array
+from ._frozen import arrays_close, frozen_array
 
 __all__ = ["ClassPrior", "BUILTIN_CLASSES", "CLASS_SOURCES", "builtin_class_prior", "class_prior"]
 
@@ -38,7 +38,7 @@ class ClassPrior:
     shape: str = "ellipsoid"
 
     def __post_init__(self):
-        object.__setattr__(self, "radii", _frozen_array(self.radii, (3,)))
+        object.__setattr__(self, "radii", frozen_array(self.radii, (3,)))
         object.__setattr__(self, "sigma", float(self.sigma))
         if self.shape not in OBJECT_SHAPES:
             raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
@@ -47,8 +47,8 @@ class ClassPrior:
         if not isinstance(other, ClassPrior):
             return NotImplemented
         return (
-            _close(self.radii, other.radii)
-            and _close(self.sigma, other.sigma)
+            arrays_close(self.radii, other.radii)
+            and arrays_close(self.sigma, other.sigma)
             and self.shape == other.shape
         )
 

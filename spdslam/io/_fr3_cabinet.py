@@ -12,16 +12,16 @@ from ._formats import SequenceFormat
 from ._oaslam import read_opencv_camera
 from ._parse import (
     SequenceFormatError,
-    _box,
-    _check_columns,
-    _integer,
-    _match,
-    _number,
-    _rows,
+    check_columns,
+    match_stamp,
     optional,
+    parse_box,
+    parse_integer,
+    parse_number,
     read_images,
     read_tum,
     required,
+    token_rows,
 )
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
 
@@ -85,15 +85,15 @@ def import_fr3_cabinet(folder) -> Sequence:
     for t, f in files:
         name = str(f)
         frame = None
-        for line, tok in _rows(f, name):
-            _check_columns(name, line, tok, (8,), layout)
-            _integer(name, line, tok[0], "id")
-            box = _box(name, line, tok[1:5], camera=camera)
-            cls = _integer(name, line, tok[5], "label (a COCO class index)")
-            score = _number(name, line, tok[6], "score")
-            inst = _integer(name, line, tok[7], "instance")
+        for line, tok in token_rows(f, name):
+            check_columns(name, line, tok, (8,), layout)
+            parse_integer(name, line, tok[0], "id")
+            box = parse_box(name, line, tok[1:5], camera=camera)
+            cls = parse_integer(name, line, tok[5], "label (a COCO class index)")
+            score = parse_number(name, line, tok[6], "score")
+            inst = parse_integer(name, line, tok[7], "instance")
             if frame is None:
-                frame = _match(name, line, t, timestamps)
+                frame = match_stamp(name, line, t, timestamps)
             detections.append(Detection(frame, t, box, _coco_label(cls), score, inst))
 
     labels = {}
@@ -101,9 +101,9 @@ def import_fr3_cabinet(folder) -> Sequence:
         labels.setdefault(d.instance, set()).add(d.label)
     objects = []
     name = str(folder / "truth_objects.txt")
-    for i, (line, tok) in enumerate(_rows(folder / "truth_objects.txt", name)):
-        _check_columns(name, line, tok, (7,), "x y z yaw hx hy hz")
-        v = [_number(name, line, t, f) for t, f in zip(tok, "x y z yaw hx hy hz".split())]
+    for i, (line, tok) in enumerate(token_rows(folder / "truth_objects.txt", name)):
+        check_columns(name, line, tok, (7,), "x y z yaw hx hy hz")
+        v = [parse_number(name, line, t, f) for t, f in zip(tok, "x y z yaw hx hy hz".split())]
         if not all(h > 0 for h in v[4:]):
             raise SequenceFormatError(name, line, "positive half-extents hx hy hz", " ".join(tok[4:]))
         lab = labels.get(i, set())

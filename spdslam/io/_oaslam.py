@@ -31,15 +31,15 @@ from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
-    _number,
-    _rows,
     camera_from,
     check_box,
     nearest_stamps,
     optional,
+    parse_number,
     read_text,
     read_tum,
     required,
+    token_rows,
 )
 from ._readers import read_priors
 from ._sequence import Detection, GroundTruthObject, Priors, Sequence
@@ -108,7 +108,7 @@ def read_opencv_camera(path: Path) -> tuple[Camera, np.ndarray]:
     lines (``%YAML:1.0`` header; 640×480 and no distortion unless given)."""
     name = str(path)
     values, lines = {}, {}
-    for line, tok in _rows(path, name):
+    for line, tok in token_rows(path, name):
         body = " ".join(tok)
         if not body.startswith("Camera."):
             continue
@@ -118,7 +118,7 @@ def read_opencv_camera(path: Path) -> tuple[Camera, np.ndarray]:
             continue
         if not sep or not val.strip():
             raise SequenceFormatError(name, line, f"'Camera.{key}: <number>'", repr(body))
-        values[key] = _number(name, line, val.strip(), f"Camera.{key}")
+        values[key] = parse_number(name, line, val.strip(), f"Camera.{key}")
         lines[key] = line
     values.setdefault("width", 640.0)
     values.setdefault("height", 480.0)
@@ -188,10 +188,10 @@ def read_quadrics_gt(path: Path) -> list[GroundTruthObject]:
     name = str(path)
     layout = "name roll pitch yaw cx cy cz r1 r2 r3 [coco]"
     out = []
-    for i, (line, tok) in enumerate(_rows(path, name)):
+    for i, (line, tok) in enumerate(token_rows(path, name)):
         if len(tok) not in (10, 11):
             raise SequenceFormatError(name, line, f"10 or 11 columns '{layout}'", f"{len(tok)} columns")
-        v = [_number(name, line, t, f) for t, f in zip(tok[1:10], layout.split()[1:10])]
+        v = [parse_number(name, line, t, f) for t, f in zip(tok[1:10], layout.split()[1:10])]
         if not all(r > 0 for r in v[6:9]):
             raise SequenceFormatError(name, line, "positive semi-axes r1 r2 r3", " ".join(tok[7:10]))
         R = Rotation.from_euler("ZYX", [v[2], v[1], v[0]], degrees=True).as_matrix()

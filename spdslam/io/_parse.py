@@ -16,7 +16,10 @@ import numpy as np
 from ..geometry import Camera
 
 __all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images", "read_text",
-           "nearest_stamps"]
+           "nearest_stamps", "token_rows", "check_columns", "parse_number", "parse_integer",
+           "unit_quaternion", "match_stamp", "parse_box", "check_box", "yaml_root", "yaml_line",
+           "yaml_mapping", "yaml_kind", "yaml_scalar", "yaml_number", "yaml_vector",
+           "reject_unknown_key"]
 
 #: A detection timestamp matches the nearest trajectory pose within this many seconds.
 MATCH_TOLERANCE = 0.02
@@ -94,7 +97,7 @@ def read_text(path: Path, name: str | None = None) -> str:
     return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
-def _rows(path: Path, label: str | None = None):
+def token_rows(path: Path, label: str | None = None):
     """(line number, tokens) of the non-empty lines of a text file, ``#`` comments removed."""
     name = label or str(path)
     text = read_text(path, name)
@@ -109,7 +112,9 @@ def _show(tokens) -> str:
     return repr(s if len(s) <= 80 else s[:77] + "...")
 
 
-def _check_columns(file, line, tokens, counts, layout):
+def check_columns(file, line, tokens, counts, layout):
+    """A row of ``len(tokens)`` columns, one of ``counts``; else ``SequenceFormatError``
+    naming the ``layout`` (``"timestamp tx ty …"``)."""
     if len(tokens) not in counts:
         want = " or ".join(str(c) for c in counts)
         raise SequenceFormatError(
@@ -117,7 +122,9 @@ def _check_columns(file, line, tokens, counts, layout):
         )
 
 
-def _number(file, line, token: str, what: str) -> float:
+def parse_number(file, line, token: str, what: str) -> float:
+    """The finite float of ``token`` (``what`` names it in the error); ``1_000``, nan and
+    inf are errors."""
     try:
         if "_" in token:  # Python's float() reads 1_000; no text format here does
             raise ValueError(token)
@@ -129,14 +136,16 @@ def _number(file, line, token: str, what: str) -> float:
     return v
 
 
-def _integer(file, line, token: str, what: str) -> int:
+def parse_integer(file, line, token: str, what: str) -> int:
+    """The int of ``token`` (``what`` names it in the error)."""
     try:
         return int(token)
     except ValueError:
         raise SequenceFormatError(file, line, f"an integer for {what}", repr(token)) from None
 
 
-def _unit_quaternion(file, line, q) -> np.ndarray:
+def unit_quaternion(file, line, q) -> np.ndarray:
+    """``q`` (qx qy qz qw) normalised to unit length; a norm ≤ 1e-6 is an error."""
     q = np.asarray(q, dtype=float)
     m = float(np.max(np.abs(q)))
     if m > 0:
@@ -158,10 +167,10 @@ def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
     layout = "timestamp tx ty tz qx qy qz qw"
     fields = layout.split()
     rows = []
-    for line, tok in _rows(path, name):
-        _check_columns(name, line, tok, (8,), layout)
-        v = [_number(name, line, t, f) for t, f in zip(tok, fields)]
-        v[4:8] = _unit_quaternion(name, line, v[4:8]).tolist()
+    for line, tok in token_rows(path, name):
+        check_columns(name, line, tok, (8,), layout)
+        v = [parse_number(name, line, t, f) for t, f in zip(tok, fields)]
+        v[4:8] = unit_quaternion(name, line, v[4:8]).tolist()
         if rows and not v[0] > rows[-1][0]:
             if skip_repeats:
                 continue
@@ -186,7 +195,9 @@ def nearest_stamps(sorted_t: np.ndarray, t: np.ndarray):
     return i, np.abs(sorted_t[i] - t) <= MATCH_TOLERANCE
 
 
-def _match(file, line, t: float, timestamps: np.ndarray) -> int:
+def match_stamp(file, line, t: float, timestamps: np.ndarray) -> int:
+    """The index of the trajectory pose nearest ``t`` among ``timestamps``, which must lie
+    within ``MATCH_TOLERANCE``; else ``SequenceFormatError`` at the row's line."""
     i = int(np.argmin(np.abs(timestamps - t)))
     gap = abs(float(timestamps[i]) - t)
     if gap > MATCH_TOLERANCE + _MATCH_SLACK:
@@ -197,10 +208,10 @@ def _match(file, line, t: float, timestamps: np.ndarray) -> int:
     return i
 
 
-def _box(file, line, tok, what="x1 y1 x2 y2", camera: Camera | None = None) -> np.ndarray:
+def parse_box(file, line, tok, what="x1 y1 x2 y2", camera: Camera | None = None) -> np.ndarray:
     """A box ``x1 y1 x2 y2`` of positive area, overlapping ``camera``'s image when given
     (``check_box``)."""
-    b = np.array([_number(file, line, t, f) for t, f in zip(tok, what.split())])
+    b = np.array([parse_number(file, line, t, f) for t, f in zip(tok, what.split())])
     check_box(file, line, b, camera)
     return b
 
@@ -224,7 +235,9 @@ def check_box(file, line, b, camera: Camera | None = None) -> None:
 # --- YAML with line numbers -----------------------------------------------------------------
 
 
-def _yaml_root(path: Path, name: str):
+def yaml_root(path: Path, name: str):
+    """The root node of a YAML file, composed with line marks (not constructed), every
+    scalar checked to be a plain value; invalid or empty YAML is an error."""
     import yaml
 
     text = read_text(path, name)
@@ -255,7 +268,7 @@ def _check_plain(name, node) -> None:
             try:
                 yaml.SafeLoader("").construct_object(n, deep=True)
             except yaml.YAMLError as e:
-                raise SequenceFormatError(name, _line(n), "a plain YAML value",
+                raise SequenceFormatError(name, yaml_line(n), "a plain YAML value",
                                           f"the tag {n.tag!r} ({getattr(e, 'problem', None) or e})") from None
         elif isinstance(n, yaml.SequenceNode):
             todo.extend(n.value)
@@ -264,39 +277,45 @@ def _check_plain(name, node) -> None:
                 todo += [k, v]
 
 
-def _line(node) -> int:
+def yaml_line(node) -> int:
+    """The 1-based line where a YAML node starts."""
     return node.start_mark.line + 1
 
 
-def _mapping(name, node, what: str) -> list:
+def yaml_mapping(name, node, what: str) -> list:
+    """(key, key node, value node) of a YAML mapping node, in order; a node that is not a
+    mapping, a key that is not a string and a repeated key are errors."""
     import yaml
 
     if not isinstance(node, yaml.MappingNode):
-        raise SequenceFormatError(name, _line(node), f"a mapping for {what}", _kind(node))
+        raise SequenceFormatError(name, yaml_line(node), f"a mapping for {what}", yaml_kind(node))
     out = []
     seen = set()
     for k, v in node.value:
-        key = _scalar(k)
+        key = yaml_scalar(k)
         if not isinstance(key, str):
-            raise SequenceFormatError(name, _line(k), f"a string key in {what}", repr(key))
+            raise SequenceFormatError(name, yaml_line(k), f"a string key in {what}", repr(key))
         if key in seen:
-            raise SequenceFormatError(name, _line(k), f"unique keys in {what}", f"{key!r} twice")
+            raise SequenceFormatError(name, yaml_line(k), f"unique keys in {what}", f"{key!r} twice")
         seen.add(key)
         out.append((key, k, v))
     return out
 
 
-def _kind(node) -> str:
+def yaml_kind(node) -> str:
+    """What a YAML node is, for the "got" of an error: "a mapping", "a list" or the
+    scalar's ``repr``."""
     import yaml
 
     if isinstance(node, yaml.MappingNode):
         return "a mapping"
     if isinstance(node, yaml.SequenceNode):
         return "a list"
-    return repr(_scalar(node))
+    return repr(yaml_scalar(node))
 
 
-def _scalar(node):
+def yaml_scalar(node):
+    """The value of a scalar YAML node (safe loading), None for a mapping or a list."""
     import yaml
 
     if not isinstance(node, yaml.ScalarNode):
@@ -304,38 +323,43 @@ def _scalar(node):
     return yaml.SafeLoader("").construct_object(node, deep=True)
 
 
-def _ynumber(name, node, what: str, allow_inf: bool = False) -> float:
+def yaml_number(name, node, what: str, allow_inf: bool = False) -> float:
+    """The finite float of a YAML scalar (``.inf`` too with ``allow_inf``); a quoted string
+    and a boolean are errors."""
     import yaml
 
     if isinstance(node, yaml.ScalarNode) and node.style in ("'", '"'):
-        raise SequenceFormatError(name, _line(node), f"a number for {what} (not quoted)",
+        raise SequenceFormatError(name, yaml_line(node), f"a number for {what} (not quoted)",
                                   f"the string {node.value!r}")
-    v = _scalar(node) if isinstance(node, yaml.ScalarNode) else None
+    v = yaml_scalar(node) if isinstance(node, yaml.ScalarNode) else None
     if isinstance(v, str):  # PyYAML reads an unquoted 1e3 (no dot) as a string
         try:
             v = float(v)
         except ValueError:
             pass
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise SequenceFormatError(name, _line(node), f"a number for {what}", _kind(node))
+        raise SequenceFormatError(name, yaml_line(node), f"a number for {what}", yaml_kind(node))
     if not (math.isfinite(v) or (allow_inf and v == math.inf)):
-        raise SequenceFormatError(name, _line(node), f"a finite number for {what}"
+        raise SequenceFormatError(name, yaml_line(node), f"a finite number for {what}"
                                   + (" (or .inf)" if allow_inf else ""), repr(v))
     return float(v)
 
 
-def _yvector(name, node, n: int, what: str, allow_inf: bool = False) -> np.ndarray:
+def yaml_vector(name, node, n: int, what: str, allow_inf: bool = False) -> np.ndarray:
+    """The ``n`` numbers (``yaml_number``) of a YAML list of length ``n``."""
     import yaml
 
     if not isinstance(node, yaml.SequenceNode) or len(node.value) != n:
-        got = f"a list of {len(node.value)}" if isinstance(node, yaml.SequenceNode) else _kind(node)
-        raise SequenceFormatError(name, _line(node), f"a list of {n} numbers for {what}", got)
-    return np.array([_ynumber(name, v, what, allow_inf) for v in node.value])
+        got = f"a list of {len(node.value)}" if isinstance(node, yaml.SequenceNode) else yaml_kind(node)
+        raise SequenceFormatError(name, yaml_line(node), f"a list of {n} numbers for {what}", got)
+    return np.array([yaml_number(name, v, what, allow_inf) for v in node.value])
 
 
-def _unknown_key(name, knode, key, allowed, where):
+def reject_unknown_key(name, knode, key, allowed, where):
+    """Raise ``SequenceFormatError`` at ``knode``'s line: ``key`` is not a key of ``where``
+    (one of ``allowed``)."""
     raise SequenceFormatError(
-        name, _line(knode), f"a key of {where} among {', '.join(allowed)}", repr(key)
+        name, yaml_line(knode), f"a key of {where} among {', '.join(allowed)}", repr(key)
     )
 
 
@@ -356,9 +380,9 @@ def read_images(path, folder, name: str | None = None) -> dict:
     path = Path(path)
     name = name or str(path)
     out = {}
-    for line, tok in _rows(path, name):
-        _check_columns(name, line, tok, (2,), "timestamp path")
-        t = _number(name, line, tok[0], "timestamp")
+    for line, tok in token_rows(path, name):
+        check_columns(name, line, tok, (2,), "timestamp path")
+        t = parse_number(name, line, tok[0], "timestamp")
         p = Path(tok[1])
         out[t] = Path(os.path.abspath(p if p.is_absolute() else Path(folder) / p))
     return out

@@ -26,27 +26,27 @@ from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
-    _box,
-    _check_columns,
-    _integer,
-    _kind,
-    _line,
-    _mapping,
-    _match,
-    _number,
-    _rows,
-    _scalar,
-    _unit_quaternion,
-    _unknown_key,
-    _yaml_root,
-    _ynumber,
-    _yvector,
     camera_from,
+    check_columns,
+    match_stamp,
+    optional,
+    parse_box,
+    parse_integer,
+    parse_number,
     present,
     read_images,
-    optional,
     read_tum,
+    reject_unknown_key,
     required,
+    token_rows,
+    unit_quaternion,
+    yaml_kind,
+    yaml_line,
+    yaml_mapping,
+    yaml_number,
+    yaml_root,
+    yaml_scalar,
+    yaml_vector,
 )
 from ._classes import ClassPrior
 from ._sequence import (
@@ -74,13 +74,13 @@ def read_camera(path, name: str | None = None) -> Camera:
     """``camera.yaml``: a mapping with exactly fx, fy, cx, cy, width, height (all > 0)."""
     path = Path(path)
     name = name or str(path)
-    root = _yaml_root(path, name)
+    root = yaml_root(path, name)
     values, lines = {}, {}
-    for key, knode, vnode in _mapping(name, root, "the camera"):
+    for key, knode, vnode in yaml_mapping(name, root, "the camera"):
         if key not in CAMERA_KEYS:
-            _unknown_key(name, knode, key, CAMERA_KEYS, "camera.yaml")
-        values[key] = _ynumber(name, vnode, key)
-        lines[key] = _line(vnode)
+            reject_unknown_key(name, knode, key, CAMERA_KEYS, "camera.yaml")
+        values[key] = yaml_number(name, vnode, key)
+        lines[key] = yaml_line(vnode)
     missing = [k for k in CAMERA_KEYS if k not in values]
     if missing:
         raise SequenceFormatError(name, None, "keys fx, fy, cx, cy, width, height", f"{', '.join(missing)} missing")
@@ -92,68 +92,68 @@ def read_priors(path, name: str | None = None) -> Priors:
     trajectory_sigma, trajectory_absolute_sigma."""
     path = Path(path)
     name = name or str(path)
-    root = _yaml_root(path, name)
+    root = yaml_root(path, name)
     planes, up, classes, tsig, tabs, builtin = [], None, {}, None, None, True
     allowed = ("support_planes", "up", "classes", "builtin_classes", "trajectory_sigma",
                "trajectory_absolute_sigma")
     import yaml
 
-    for key, knode, vnode in _mapping(name, root, "the priors"):
+    for key, knode, vnode in yaml_mapping(name, root, "the priors"):
         if key == "support_planes":
             if not isinstance(vnode, yaml.SequenceNode):
-                raise SequenceFormatError(name, _line(vnode), "a list of planes [a, b, c, d]", _kind(vnode))
+                raise SequenceFormatError(name, yaml_line(vnode), "a list of planes [a, b, c, d]", yaml_kind(vnode))
             for p in vnode.value:
-                v = _yvector(name, p, 4, "a support plane [a, b, c, d]")
+                v = yaml_vector(name, p, 4, "a support plane [a, b, c, d]")
                 if not np.linalg.norm(v[:3]) > 0:
-                    raise SequenceFormatError(name, _line(p), "a plane with a non-zero normal (a, b, c)", str(v.tolist()))
+                    raise SequenceFormatError(name, yaml_line(p), "a plane with a non-zero normal (a, b, c)", str(v.tolist()))
                 planes.append(v)
         elif key == "up":
-            up = _yvector(name, vnode, 3, "up")
+            up = yaml_vector(name, vnode, 3, "up")
             if not np.linalg.norm(up) > 0:
-                raise SequenceFormatError(name, _line(vnode), "a non-zero up vector", str(up.tolist()))
+                raise SequenceFormatError(name, yaml_line(vnode), "a non-zero up vector", str(up.tolist()))
         elif key == "trajectory_sigma":
-            tsig = _yvector(name, vnode, 2, "trajectory_sigma [metres, radians]")
+            tsig = yaml_vector(name, vnode, 2, "trajectory_sigma [metres, radians]")
             if not np.all(tsig > 0):
-                raise SequenceFormatError(name, _line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
+                raise SequenceFormatError(name, yaml_line(vnode), "a positive trajectory_sigma", str(tsig.tolist()))
         elif key == "trajectory_absolute_sigma":
-            tabs = _yvector(name, vnode, 2, "trajectory_absolute_sigma [metres, radians]", allow_inf=True)
+            tabs = yaml_vector(name, vnode, 2, "trajectory_absolute_sigma [metres, radians]", allow_inf=True)
             if not np.all(tabs > 0):
-                raise SequenceFormatError(name, _line(vnode), "a positive trajectory_absolute_sigma (.inf: none)",
+                raise SequenceFormatError(name, yaml_line(vnode), "a positive trajectory_absolute_sigma (.inf: none)",
                                           str(tabs.tolist()))
         elif key == "builtin_classes":
-            builtin = _scalar(vnode)
+            builtin = yaml_scalar(vnode)
             if not isinstance(builtin, bool):
-                raise SequenceFormatError(name, _line(vnode), "builtin_classes: true or false", _kind(vnode))
+                raise SequenceFormatError(name, yaml_line(vnode), "builtin_classes: true or false", yaml_kind(vnode))
         elif key == "classes":
-            for label, lk, cnode in _mapping(name, vnode, "classes"):
+            for label, lk, cnode in yaml_mapping(name, vnode, "classes"):
                 radii = sigma = None
                 shape = "ellipsoid"
-                for ck, ckn, cv in _mapping(name, cnode, f"class {label!r}"):
+                for ck, ckn, cv in yaml_mapping(name, cnode, f"class {label!r}"):
                     if ck == "radii":
-                        radii = _yvector(name, cv, 3, f"the radii of {label!r}")
+                        radii = yaml_vector(name, cv, 3, f"the radii of {label!r}")
                         if not np.all(radii > 0):
-                            raise SequenceFormatError(name, _line(cv), f"positive radii for {label!r}", str(radii.tolist()))
+                            raise SequenceFormatError(name, yaml_line(cv), f"positive radii for {label!r}", str(radii.tolist()))
                     elif ck == "sigma":
-                        sigma = _ynumber(name, cv, f"the sigma of {label!r}")
+                        sigma = yaml_number(name, cv, f"the sigma of {label!r}")
                         if not sigma > 0:
-                            raise SequenceFormatError(name, _line(cv), f"a positive sigma for {label!r}", repr(sigma))
+                            raise SequenceFormatError(name, yaml_line(cv), f"a positive sigma for {label!r}", repr(sigma))
                     elif ck == "shape":
-                        shape = _scalar(cv)
+                        shape = yaml_scalar(cv)
                         if shape not in OBJECT_SHAPES:
                             raise SequenceFormatError(
-                                name, _line(cv), f"shape {' or '.join(OBJECT_SHAPES)} for {label!r}",
-                                _kind(cv),
+                                name, yaml_line(cv), f"shape {' or '.join(OBJECT_SHAPES)} for {label!r}",
+                                yaml_kind(cv),
                             )
                     else:
-                        _unknown_key(name, ckn, ck, ("radii", "sigma", "shape"), f"class {label!r}")
+                        reject_unknown_key(name, ckn, ck, ("radii", "sigma", "shape"), f"class {label!r}")
                 if radii is None or sigma is None:
                     raise SequenceFormatError(
-                        name, _line(lk), f"radii and sigma for class {label!r}",
+                        name, yaml_line(lk), f"radii and sigma for class {label!r}",
                         "radii missing" if radii is None else "sigma missing",
                     )
                 classes[label] = ClassPrior(radii, sigma, shape)
         else:
-            _unknown_key(name, knode, key, allowed, "priors.yaml")
+            reject_unknown_key(name, knode, key, allowed, "priors.yaml")
     return Priors(planes, up, classes, tsig, builtin, tabs)
 
 
@@ -165,13 +165,13 @@ def read_detections(path, timestamps, name: str | None = None, camera: Camera | 
     timestamps = np.asarray(timestamps, dtype=float)
     layout = "timestamp x1 y1 x2 y2 label score [instance]"
     out = []
-    for line, tok in _rows(path, name):
-        _check_columns(name, line, tok, (7, 8), layout)
-        t = _number(name, line, tok[0], "timestamp")
-        box = _box(name, line, tok[1:5], camera=camera)
-        score = _number(name, line, tok[6], "score")
-        inst = _integer(name, line, tok[7], "instance") if len(tok) == 8 else None
-        frame = _match(name, line, t, timestamps)
+    for line, tok in token_rows(path, name):
+        check_columns(name, line, tok, (7, 8), layout)
+        t = parse_number(name, line, tok[0], "timestamp")
+        box = parse_box(name, line, tok[1:5], camera=camera)
+        score = parse_number(name, line, tok[6], "score")
+        inst = parse_integer(name, line, tok[7], "instance") if len(tok) == 8 else None
+        frame = match_stamp(name, line, t, timestamps)
         out.append(Detection(frame, t, box, tok[5], score, inst))
     return out
 
@@ -186,16 +186,16 @@ def read_ellipsoids(path, timestamps, name: str | None = None) -> list:
     layout = "timestamp label qx qy qz qw cx cy cz a b c [instance]"
     fields = layout.split()
     out = []
-    for line, tok in _rows(path, name):
-        _check_columns(name, line, tok, (12, 13), layout)
-        t = _number(name, line, tok[0], "timestamp")
-        v = [_number(name, line, x, f) for x, f in zip(tok[2:12], fields[2:12])]
-        q = _unit_quaternion(name, line, v[:4])
+    for line, tok in token_rows(path, name):
+        check_columns(name, line, tok, (12, 13), layout)
+        t = parse_number(name, line, tok[0], "timestamp")
+        v = [parse_number(name, line, x, f) for x, f in zip(tok[2:12], fields[2:12])]
+        q = unit_quaternion(name, line, v[:4])
         radii = np.array(v[7:10])
         if not np.all(radii > 0):
             raise SequenceFormatError(name, line, "positive semi-axes a b c", " ".join(tok[9:12]))
-        inst = _integer(name, line, tok[12], "instance") if len(tok) == 13 else None
-        frame = _match(name, line, t, timestamps)
+        inst = parse_integer(name, line, tok[12], "instance") if len(tok) == 13 else None
+        frame = match_stamp(name, line, t, timestamps)
         out.append(EllipsoidDetection(frame, t, tok[1], quat_to_matrix(q), v[4:7], radii, inst))
     return out
 
@@ -207,11 +207,11 @@ def read_objects_gt(path, name: str | None = None) -> list:
     layout = "id label cx cy cz qx qy qz qw hx hy hz"
     fields = layout.split()
     out = []
-    for line, tok in _rows(path, name):
-        _check_columns(name, line, tok, (12,), layout)
-        oid = _integer(name, line, tok[0], "id")
-        v = [_number(name, line, t, f) for t, f in zip(tok[2:], fields[2:])]
-        q = _unit_quaternion(name, line, v[3:7])
+    for line, tok in token_rows(path, name):
+        check_columns(name, line, tok, (12,), layout)
+        oid = parse_integer(name, line, tok[0], "id")
+        v = [parse_number(name, line, t, f) for t, f in zip(tok[2:], fields[2:])]
+        q = unit_quaternion(name, line, v[3:7])
         h = np.array(v[7:10])
         if not np.all(h > 0):
             raise SequenceFormatError(name, line, "positive half-extents hx hy hz", " ".join(tok[9:12]))

@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from ..geometry import Camera, undistort_boxes
 from ._formats import SequenceFormat
 from ._oaslam import DEFAULT_MIN_SCORE, estimate_up
-from ._parse import MATCH_TOLERANCE, SequenceFormatError, _unit_quaternion, check_box, nearest_stamps
+from ._parse import MATCH_TOLERANCE, SequenceFormatError, check_box, nearest_stamps, unit_quaternion
 from ._sequence import Detection, Priors, Sequence
 
 __all__ = [
@@ -319,7 +319,7 @@ def _pose_rows(bag: str, topic: str, msgs, world_frame, camera_frame) -> np.ndar
         qv = [float(q.x), float(q.y), float(q.z), float(q.w)]
         if not all(math.isfinite(x) for x in v + qv):
             raise SequenceFormatError(where, None, "a finite pose", f"message {i}: position {v}, orientation {qv}")
-        rows.append([t, *v, *_unit_quaternion(f"{where} message {i}", None, qv)])
+        rows.append([t, *v, *unit_quaternion(f"{where} message {i}", None, qv)])
     if len(frames) > 1:
         raise SequenceFormatError(where, None, "poses in one frame (header.frame_id)",
                                   ", ".join(repr(f) for f in sorted(frames)))
@@ -384,7 +384,7 @@ def _tf_edges(bag: str, topic: str, msgs, static: bool, edges: dict) -> None:
             qv = [float(r.x), float(r.y), float(r.z), float(r.w)]
             if not all(math.isfinite(x) for x in p + qv):
                 raise SequenceFormatError(where, None, "a finite transform", f"translation {p}, rotation {qv}")
-            q = _unit_quaternion(where, None, qv)
+            q = unit_quaternion(where, None, qv)
             e = edges.get(child)
             if e is None:
                 e = edges[child] = _Edge(parent)

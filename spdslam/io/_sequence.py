@@ -13,7 +13,7 @@ import numpy as np
 
 from ..geometry import Camera, Cuboid
 from ._classes import builtin_class_prior
-from ._frozen import _close, _frozen_array
+from ._frozen import arrays_close, frozen_array
 
 __all__ = [
     "Detection",
@@ -41,7 +41,7 @@ class Detection:
     def __post_init__(self):
         object.__setattr__(self, "frame", int(self.frame))
         object.__setattr__(self, "timestamp", float(self.timestamp))
-        object.__setattr__(self, "box", _frozen_array(self.box, (4,)))
+        object.__setattr__(self, "box", frozen_array(self.box, (4,)))
         object.__setattr__(self, "label", str(self.label))
         object.__setattr__(self, "score", float(self.score))
         if self.instance is not None:
@@ -54,9 +54,9 @@ class Detection:
             self.frame == other.frame
             and self.label == other.label
             and self.instance == other.instance
-            and _close(self.timestamp, other.timestamp)
-            and _close(self.score, other.score)
-            and _close(self.box, other.box)
+            and arrays_close(self.timestamp, other.timestamp)
+            and arrays_close(self.score, other.score)
+            and arrays_close(self.box, other.box)
         )
 
 
@@ -85,9 +85,9 @@ class EllipsoidDetection:
             raise ValueError(f"rotation must be an orthonormal 3x3 matrix, got {R.tolist()}")
         if np.linalg.det(R) < 0:
             R[:, 2] = -R[:, 2]
-        object.__setattr__(self, "rotation", _frozen_array(R, (3, 3)))
-        c = _frozen_array(self.center, (3,))
-        r = _frozen_array(self.radii, (3,))
+        object.__setattr__(self, "rotation", frozen_array(R, (3, 3)))
+        c = frozen_array(self.center, (3,))
+        r = frozen_array(self.radii, (3,))
         if not np.all(np.isfinite(c)):
             raise ValueError(f"center must be finite, got {c.tolist()}")
         if not (np.all(np.isfinite(r)) and np.all(r > 0)):
@@ -109,10 +109,10 @@ class EllipsoidDetection:
             self.frame == other.frame
             and self.label == other.label
             and self.instance == other.instance
-            and _close(self.timestamp, other.timestamp)
-            and _close(self.rotation, other.rotation)
-            and _close(self.center, other.center)
-            and _close(self.radii, other.radii)
+            and arrays_close(self.timestamp, other.timestamp)
+            and arrays_close(self.rotation, other.rotation)
+            and arrays_close(self.center, other.center)
+            and arrays_close(self.radii, other.radii)
         )
 
 
@@ -131,9 +131,9 @@ class GroundTruthObject:
         return (
             int(self.id) == int(other.id)
             and self.label == other.label
-            and _close(a.center, b.center)
-            and _close(a.rotation, b.rotation)
-            and _close(a.half_extents, b.half_extents)
+            and arrays_close(a.center, b.center)
+            and arrays_close(a.rotation, b.rotation)
+            and arrays_close(a.half_extents, b.half_extents)
         )
 
 
@@ -159,20 +159,20 @@ class Priors:
 
     def __post_init__(self):
         if self.trajectory_sigma is not None:
-            ts = _frozen_array(self.trajectory_sigma, (2,))
+            ts = frozen_array(self.trajectory_sigma, (2,))
             if not (np.all(np.isfinite(ts)) and np.all(ts > 0)):
                 raise ValueError(f"trajectory_sigma must be 2 positive numbers, got {ts.tolist()}")
             object.__setattr__(self, "trajectory_sigma", ts)
         if self.trajectory_absolute_sigma is not None:
-            ta = _frozen_array(self.trajectory_absolute_sigma, (2,))
+            ta = frozen_array(self.trajectory_absolute_sigma, (2,))
             if not (np.all(~np.isnan(ta)) and np.all(ta > 0)):
                 raise ValueError(f"trajectory_absolute_sigma must be 2 positive numbers (inf allowed), got {ta.tolist()}")
             object.__setattr__(self, "trajectory_absolute_sigma", ta)
         object.__setattr__(
-            self, "support_planes", [_frozen_array(p, (4,)) for p in self.support_planes]
+            self, "support_planes", [frozen_array(p, (4,)) for p in self.support_planes]
         )
         if self.up is not None:
-            object.__setattr__(self, "up", _frozen_array(self.up, (3,)))
+            object.__setattr__(self, "up", frozen_array(self.up, (3,)))
         object.__setattr__(self, "classes", dict(self.classes))
         object.__setattr__(self, "builtin_classes", bool(self.builtin_classes))
 
@@ -212,19 +212,19 @@ class Priors:
             return NotImplemented
         if len(self.support_planes) != len(other.support_planes):
             return False
-        if not all(_close(a, b) for a, b in zip(self.support_planes, other.support_planes)):
+        if not all(arrays_close(a, b) for a, b in zip(self.support_planes, other.support_planes)):
             return False
         if (self.up is None) != (other.up is None):
             return False
-        if self.up is not None and not _close(self.up, other.up):
+        if self.up is not None and not arrays_close(self.up, other.up):
             return False
         if (self.trajectory_sigma is None) != (other.trajectory_sigma is None):
             return False
-        if self.trajectory_sigma is not None and not _close(self.trajectory_sigma, other.trajectory_sigma):
+        if self.trajectory_sigma is not None and not arrays_close(self.trajectory_sigma, other.trajectory_sigma):
             return False
         a, b = self.trajectory_absolute_sigma, other.trajectory_absolute_sigma
         if (a is None) != (b is None) or (a is not None and not (
-                np.array_equal(np.isinf(a), np.isinf(b)) and _close(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b)))):
+                np.array_equal(np.isinf(a), np.isinf(b)) and arrays_close(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b)))):
             return False
         return self.classes == other.classes and self.builtin_classes == other.builtin_classes
 
@@ -247,18 +247,18 @@ class Sequence:
     ellipsoids: list | None = None
 
     def __post_init__(self):
-        t = _frozen_array(self.timestamps)
+        t = frozen_array(self.timestamps)
         if t.ndim != 1:
             raise ValueError(f"timestamps must have shape (N,), got {t.shape}")
         object.__setattr__(self, "timestamps", t)
-        object.__setattr__(self, "poses_tum", _frozen_array(self.poses_tum, (t.size, 7)))
+        object.__setattr__(self, "poses_tum", frozen_array(self.poses_tum, (t.size, 7)))
         object.__setattr__(self, "detections", list(self.detections))
         if self.objects_gt is not None:
             object.__setattr__(self, "objects_gt", list(self.objects_gt))
         if self.ellipsoids is not None:
             object.__setattr__(self, "ellipsoids", list(self.ellipsoids))
         if self.groundtruth_tum is not None:
-            g = _frozen_array(self.groundtruth_tum)
+            g = frozen_array(self.groundtruth_tum)
             if g.ndim != 2 or g.shape[1] != 8:
                 raise ValueError(f"groundtruth_tum must have shape (M, 8), got {g.shape}")
             object.__setattr__(self, "groundtruth_tum", g)
@@ -311,11 +311,11 @@ class Sequence:
         return (
             self.name == other.name
             and self.camera == other.camera
-            and _close(self.timestamps, other.timestamps)
-            and _close(self.poses_tum, other.poses_tum)
+            and arrays_close(self.timestamps, other.timestamps)
+            and arrays_close(self.poses_tum, other.poses_tum)
             and self.detections == other.detections
             and opt(self.objects_gt, other.objects_gt, lambda a, b: a == b)
-            and opt(self.groundtruth_tum, other.groundtruth_tum, _close)
+            and opt(self.groundtruth_tum, other.groundtruth_tum, arrays_close)
             and opt(self.priors, other.priors, lambda a, b: a == b)
             and opt(self.ellipsoids, other.ellipsoids, lambda a, b: a == b)
             and opt(
@@ -323,7 +323,7 @@ class Sequence:
                 other.images,
                 lambda a, b: len(a) == len(b)
                 and all(
-                    _close(ka, kb) and Path(va) == Path(vb)
+                    arrays_close(ka, kb) and Path(va) == Path(vb)
                     for (ka, va), (kb, vb) in zip(sorted(a.items()), sorted(b.items()))
                 ),
             )

@@ -45,7 +45,9 @@ from ._run import MIN_PLAUSIBLE_RATIO as MIN_PLAUSIBLE_RATIO
 from ._run import SUPPORT_PLANES as SUPPORT_PLANES
 from ._run import Association as Association
 from ._run import Initialization as Initialization
+from ._run import OBJECT_ERRORS as OBJECT_ERRORS
 from ._run import MapResult as MapResult
+from ._run import MappingError as MappingError
 from ._run import associate_tracks as associate_tracks
 from ._run import cost_by_factor as cost_by_factor
 from ._run import degenerate as degenerate
@@ -57,7 +59,10 @@ from ._run import initialize_objects as initialize_objects
 from ._run import mapped_uncertainty as mapped_uncertainty
 from ._run import map_result as map_result
 from ._run import merged_track as merged_track
+from ._run import nesting_depths as nesting_depths
+from ._run import object_quality as object_quality
 from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import run_sequence as run_sequence
+from ._run import step as step

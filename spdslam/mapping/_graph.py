@@ -181,7 +181,7 @@ def _odometry(ctx: SequenceContext, s: dict) -> list:
     return out
 
 
-def _box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
+def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
                  robust) -> list:
     """The box factor of each of the track's detections (module docstring)."""
     key = L(track.id)
@@ -198,7 +198,7 @@ def _box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s:
     return out
 
 
-def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
+def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
                     s: dict, robust, planes=None, boxes: bool = True, reuse: dict | None = None
                     ) -> list:
     """The box factors of the track (``boxes``; taken from ``reuse`` when an earlier build
@@ -217,7 +217,7 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
         if hit is not None and hit[0] is track and hit[1] is ctx:
             out = list(hit[2])
         else:
-            out = _box_factors(ctx, track, method, box_model, s, robust)
+            out = box_factors(ctx, track, method, box_model, s, robust)
             if reuse is not None:  # the track and context kept alive, so their ids stay theirs
                 reuse[memo] = (track, ctx, tuple(out))
     up = ctx.up
@@ -253,7 +253,7 @@ def _object_factors(ctx: SequenceContext, track, landmark, method: Method, box_m
     return out
 
 
-def _measurement_factors(ctx, measured: dict, landmarks: dict, s: dict, robust) -> list:
+def measurement_factors(ctx, measured: dict, landmarks: dict, s: dict, robust) -> list:
     sigma = np.r_[np.full(6, s["ellipsoid_shape"]), np.full(3, s["ellipsoid_center"])]
     return [
         EllipsoidMeasurementFactor(X(m.frame), L(k), (m.rotation, m.radii), m.center,
@@ -262,7 +262,7 @@ def _measurement_factors(ctx, measured: dict, landmarks: dict, s: dict, robust) 
     ]
 
 
-def _with_robust_by_type(factors: list, method: Method) -> list:
+def with_robust_by_type(factors: list, method: Method) -> list:
     """The factors with ``method.robust_by_type``'s kernels on those of the chosen groups."""
     if not method.robust_by_type:
         return factors
@@ -292,8 +292,8 @@ def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
     factors = _odometry(ctx, s) if odometry else []
     for tr in tracks:
         if tr.id in landmarks:
-            factors += _object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,
+            factors += object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,
                                        planes, reuse=reuse)
     measured = measured_objects(ctx) if measured is None else measured
-    factors += _measurement_factors(ctx, measured, landmarks, s, robust)
-    return NonlinearFactorGraph(_with_robust_by_type(factors, method))
+    factors += measurement_factors(ctx, measured, landmarks, s, robust)
+    return NonlinearFactorGraph(with_robust_by_type(factors, method))

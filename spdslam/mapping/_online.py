@@ -44,34 +44,45 @@ import jaxlie
 import numpy as np
 import scipy.sparse
 
-from .._cache import ensure_compilation_cache
+from ..solver import ensure_compilation_cache
 from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
-from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence
+from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence, without_class_table
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
-from ..solver._problem import Problem, group_kernels
+from ..solver import Problem, group_kernels
 from ._context import SequenceContext, camera_axes_of
 from ._graph import (
-    _box_factors,
-    _measurement_factors,
-    _object_factors,
-    _with_robust_by_type,
+    box_factors,
+    measurement_factors,
+    object_factors,
+    with_robust_by_type,
     absolute_sigma,
     build_graph,
     mapping_sigmas,
 )
-from ._methods import METHODS, Method, robust_kernel
+from ._methods import Method, robust_kernel
+from ._settings import (
+    Associate,
+    OnlineSettings,
+    RunSettings,
+    as_settings,
+    default_association,
+)
 from ._run import (
-    _drop_rarely_detected,
-    _landmark,
-    _visible,
+    drop_rarely_detected,
+    as_landmark,
+    wholly_in_front,
     initialize_objects,
     map_result,
+    nesting_depths,
 )
 
 __all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "run_online"]
+
+#: ``OnlineSettings``' fields, taken by ``OnlineMapper`` and ``run_online`` as keywords.
+ONLINE_FIELDS = tuple(f.name for f in dataclasses.fields(OnlineSettings))
 
 
 @dataclass(frozen=True)
@@ -159,54 +170,51 @@ def _detection(d, frame: int, timestamp: float) -> Detection:
 class OnlineMapper:
     """Incremental object mapping (module docstring).
 
-    ``camera``, ``priors``: as a ``Sequence``'s. ``method``: a name of ``METHODS`` or a
-    ``Method`` (SPD or RTS landmarks). ``associate``: "instances" (every detection carries
-    its object's id; negative ids are false detections) or "auto". ``window``: frames whose
-    poses are free; ``every``: frames between optimisations; ``max_iterations``: LM
-    iterations per optimisation; ``min_views``: views before an object is created;
-    ``sigmas``: as ``run_sequence``'s. ``compilation_cache``: turn on JAX's persistent
+    ``camera``, ``priors``: as a ``Sequence``'s. ``method``: the run's ``RunSettings`` (its
+    ``online`` the fixed-lag settings, ``OnlineSettings()`` when None), or a name of
+    ``METHODS`` (or a ``Method``; SPD or RTS landmarks) with ``settings``: the keywords of
+    ``RunSettings.of``, and ``OnlineSettings``' fields (``window``: frames whose poses are
+    free; ``every``: frames between optimisations; ``iterations``: LM iterations per
+    optimisation) as keywords of their own. ``associate``: "instances" (every detection
+    carries its object's id; negative ids are false detections) or "auto" (the default);
+    ``min_views``: views before an object is created; ``max_iterations`` and ``tolerance``:
+    ``finish``'s batch optimisation. ``compilation_cache``: turn on JAX's persistent
     compilation cache (``SPDSLAM_CACHE_DIR``, as the CLI does) unless the process already
     has one; ``warmup`` compiles before the first frame.
     """
 
-    def __init__(self, camera, priors=None, method: str | Method = "multi-spd", *,
-                 associate: str = "auto", window: int = 30, every: int = 10,
-                 max_iterations: int = 5, min_views: int = 3, sigmas: dict | None = None,
+    def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
                  association: AssociationSettings | None = None, name: str = "online",
-                 screen: bool = True, compilation_cache: bool = True, **overrides):
-        if isinstance(method, str):
-            if method not in METHODS:
-                raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-            method = METHODS[method]
-        method = method.replace(**overrides)
-        if method.parameterization not in ("spd", "rts"):
-            raise ValueError(f"online mapping takes SPD or RTS landmarks, not {method.parameterization!r}")
-        if method.box_model not in ("inverse", "semi"):
-            raise ValueError(f"online mapping takes one box model (inverse or semi), not {method.box_model!r}")
-        if associate not in ("instances", "auto"):
-            raise ValueError(f"associate must be instances or auto, got {associate!r}")
-        for k, v, lo in (("window", window, 2), ("every", every, 1), ("max_iterations", max_iterations, 1),
-                         ("min_views", min_views, 1)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ValueError(f"{k} must be an integer >= {lo}, got {v!r}")
-        self._config = dict(method=method, associate=associate, window=window, every=every,
-                            max_iterations=max_iterations, min_views=min_views, sigmas=sigmas,
-                            association=association, screen=screen, **overrides)
+                 compilation_cache: bool = True, **settings):
+        online = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
+        if online:
+            if isinstance(method, RunSettings) or "online" in settings:
+                raise TypeError(f"online settings given twice: {', '.join(online)} and a RunSettings or online")
+            settings["online"] = online
+        run = as_settings(method, settings)
+        if run.online is None:
+            run = run.replace(online=OnlineSettings())
+        if run.associate is None:
+            run = run.replace(associate=Associate.AUTO)
+        self.settings = run
+        self._config = dict(method=run, association=association)
         if compilation_cache:
             ensure_compilation_cache()
-        method = method.resolved(associate == "auto")
+        associate = str(run.associate)
+        method = run.method.resolved(associate == "auto")
+        sigmas = dict(run.sigma)
         self.method, self.associate = method, associate
-        self.window, self.every, self.min_views = int(window), int(every), int(min_views)
+        self.window, self.every, self.min_views = run.online.window, run.online.every, run.min_views
         self.name = name
         empty = Sequence(name, camera, np.zeros(0), np.zeros((0, 7)), [], priors=priors)
         self._ctx0 = SequenceContext.of(empty)
         self._sigmas = mapping_sigmas(self._ctx0, sigmas)
         self._user_sigmas = sigmas
         self._robust = robust_kernel(method.robust, method.robust_k)
-        self._optimizer = LevenbergMarquardt(max_iterations=int(max_iterations))
+        self._optimizer = LevenbergMarquardt(max_iterations=run.online.iterations)
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
-        self._screen = bool(screen)
+        self._screen = run.screen
         self._screened: dict = {}  # reason -> [(detection number, text)], as the batch run's screen
         self._n_detections = 0
         self._timestamps: list = []
@@ -414,11 +422,11 @@ class OnlineMapper:
                 self._tried[k] = len(tr.frames)
                 continue
             e = init[k]
-            ok = _visible(e, camera_axes_of(self._est.array[tr.frames]))
+            ok = wholly_in_front(e, camera_axes_of(self._est.array[tr.frames]))
             if ok.sum() < self.min_views:
                 self._tried[k] = len(tr.frames)
                 continue
-            self.landmarks[k] = _landmark(e, self.method)
+            self.landmarks[k] = as_landmark(e, self.method)
             self._candidates.discard(k)
             self._initial[k] = e
             self._views[k] = [v for v, good in zip(self._views[k], ok) if good]
@@ -440,15 +448,13 @@ class OnlineMapper:
 
     def _merge_duplicates(self, active) -> None:
         """Objects of ``active`` that are one object with another (automatic association):
-        the same label and each centre inside the other's ellipsoid (``overlapping_duplicates``'s
+        the same label and each centre inside the other's ellipsoid (``nesting_depths`` < 1, ``overlapping_duplicates``'s
         rule, checked for the objects of the window against all); the one with more views is
         kept and the other's views join it."""
         if self._tracker is None or len(self.landmarks) < 2:
             return
         ids = sorted(self.landmarks)
-        E = {k: as_ellipsoid(self.landmarks[k]) for k in ids}
-        C = np.stack([np.asarray(E[k].center, float) for k in ids])
-        Pinv = np.linalg.inv(np.stack([np.asarray(E[k].P, float) for k in ids]))
+        D = nesting_depths([as_ellipsoid(self.landmarks[k]) for k in ids])
         labels = [self._label(k) for k in ids]
         where = {k: i for i, k in enumerate(ids)}
         gone: set = set()
@@ -456,9 +462,7 @@ class OnlineMapper:
             if a in gone or a not in where:
                 continue
             i = where[a]
-            d = C - C[i]
-            depth = np.maximum(np.einsum("nj,jk,nk->n", d, Pinv[i], d), np.einsum("nj,njk,nk->n", d, Pinv, d))
-            depth[i] = np.inf
+            depth = D[i]
             for j in np.argsort(depth):
                 b = ids[j]
                 if depth[j] >= 1.0:
@@ -489,7 +493,7 @@ class OnlineMapper:
         """[(frame, box factor)] of object k's ``views`` [(frame, box)] (made once per view)."""
         if not views:
             return []
-        out = _box_factors(self._ctx0, self._track(k, views), self.method, self.method.box_model,
+        out = box_factors(self._ctx0, self._track(k, views), self.method, self.method.box_model,
                            self._sigmas, self._robust)
         return [(f, fac) for (f, _), fac in zip(views, out)]
 
@@ -497,7 +501,7 @@ class OnlineMapper:
         """[(frame, factor)] of object k's measured ellipsoids ``meas``."""
         if not meas:
             return []
-        out = _measurement_factors(self._ctx0, {k: list(meas)}, {k: self.landmarks[k]},
+        out = measurement_factors(self._ctx0, {k: list(meas)}, {k: self.landmarks[k]},
                                    self._sigmas, self._robust)
         return [(m.frame, fac) for m, fac in zip(meas, out)]
 
@@ -507,7 +511,7 @@ class OnlineMapper:
         marginal prior (``with_prior``)."""
         out = [fac for _, fac in items]
         if with_object:
-            out += _object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method,
+            out += object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method,
                                    self.method.box_model, self._sigmas, self._robust, boxes=False)
         if with_prior and k in self._prior:
             out.append(self._prior[k])
@@ -534,7 +538,7 @@ class OnlineMapper:
         active = sorted(k for k in self.landmarks if self._pending.get(k) or self._pending_meas.get(k))
         for k in active:
             factors += self._object_graph(k, self._pending.get(k, []) + self._pending_meas.get(k, []), True)
-        factors = _with_robust_by_type(factors, self.method)
+        factors = with_robust_by_type(factors, self.method)
         graph = NonlinearFactorGraph(factors)
         values = Values()
         keys = {key for f in factors for key in f.keys}
@@ -584,7 +588,7 @@ class OnlineMapper:
         factors = []
         for k, items in old.items():
             factors += self._object_graph(k, items, with_prior=True, with_object=False)
-        factors = _with_robust_by_type(factors, self.method)
+        factors = with_robust_by_type(factors, self.method)
         values = Values()
         for key in {key for f in factors for key in f.keys}:
             values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
@@ -646,12 +650,17 @@ class OnlineMapper:
                         list(self._detections), priors=self._ctx0.priors,
                         ellipsoids=list(self._ellipsoids) if self._ellipsoids else None)
 
-    def finish(self, final_batch: bool = True, max_iterations: int = 100,
-               tolerance: float = 1e-6, progress=None):
+    def finish(self, final_batch: bool | None = None, max_iterations: int | None = None,
+               tolerance: float | None = None, progress=None):
         """The ``MapResult`` of the frames so far (the mapper is not changed): after one batch
         optimisation of every frame and view from the online state (``final_batch``; LM with
         ``max_iterations`` and relative ``tolerance``), or of the online estimates as they are
-        (the uncertainty then still comes from the whole graph)."""
+        (the uncertainty then still comes from the whole graph). None: the settings'
+        (``online.final_batch``, ``max_iterations``, ``tolerance``)."""
+        run = self.settings
+        final_batch = run.online.final_batch if final_batch is None else final_batch
+        max_iterations = run.max_iterations if max_iterations is None else max_iterations
+        tolerance = run.tolerance if tolerance is None else tolerance
         say = progress or (lambda message: None)
         if not len(self):
             raise ValueError("no frames were added")
@@ -661,7 +670,7 @@ class OnlineMapper:
         tracks = [self._track(k) for k in sorted(landmarks)]
         rare = {}
         if self._tracker is not None:  # the batch run's rule for spurious automatic tracks
-            rare = _drop_rarely_detected(self._context(), tracks,
+            rare = drop_rarely_detected(self._context(), tracks,
                                          {k: as_ellipsoid(v) for k, v in landmarks.items()})
             for k in rare:
                 landmarks.pop(k)
@@ -714,25 +723,28 @@ class _Unchanged:
         self.iterations, self.converged, self.reason = 0, True, "online estimates (no final batch)"
 
 
-def run_online(seq: Sequence, method: str | Method = "multi-spd", *, associate: str | None = None,
-               sigmas: dict | None = None, window: int = 30, every: int = 10,
-               max_iterations: int = 5, min_views: int = 3, final_batch: bool = True,
-               final_iterations: int = 100, final_tolerance: float = 1e-6, progress=None,
-               warmup: Sequence | None = None, **overrides):
+def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", *,
+               progress=None, warmup: Sequence | None = None, **settings):
     """Replay a sequence through an ``OnlineMapper``, frame by frame in timestamp order:
-    (``MapResult``, the ``FrameRecord`` of every frame). ``associate`` as
-    ``run_sequence``'s (None: by instance id when every detection has one, else auto);
-    ``final_batch``, ``final_iterations``, ``final_tolerance``: ``OnlineMapper.finish``'s.
-    ``warmup``: a sequence for ``OnlineMapper.warmup`` before the first frame (as a live
-    mapper would, so that the frames' times do not include compilation).
-    ``progress(message)`` every 100 frames."""
+    (``MapResult``, the ``FrameRecord`` of every frame). ``method`` and ``settings`` as
+    ``OnlineMapper``'s; ``associate`` None: by instance id when every detection has one,
+    else auto (``default_association``); the settings' ``online.final_batch``,
+    ``max_iterations`` and ``tolerance`` are ``OnlineMapper.finish``'s. ``warmup``: a
+    sequence for ``OnlineMapper.warmup`` before the first frame (as a live mapper would, so
+    that the frames' times do not include compilation). ``progress(message)`` every 100
+    frames."""
     say = progress or (lambda message: None)
-    if associate is None:
-        has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
-        associate = "instances" if has_ids or not seq.detections else "auto"
-    mapper = OnlineMapper(seq.camera, seq.priors, method, associate=associate, window=window,
-                          every=every, max_iterations=max_iterations, min_views=min_views,
-                          sigmas=sigmas, name=seq.name, **overrides)
+    online = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
+    if online:
+        settings["online"] = online
+    run = as_settings(method, settings)
+    if run.online is None:
+        run = run.replace(online=OnlineSettings())
+    if not run.class_table:
+        seq = without_class_table(seq)
+    if run.associate is None:
+        run = run.replace(associate=default_association(seq))
+    mapper = OnlineMapper(seq.camera, seq.priors, run, name=seq.name)
     if warmup is not None:
         say(f"online: warm-up on {warmup.name} ({len(warmup)} frames)")
         say(f"online: warm-up took {mapper.warmup(warmup):.1f} s")
@@ -749,6 +761,5 @@ def run_online(seq: Sequence, method: str | Method = "multi-spd", *, associate: 
         if (n + 1) % 100 == 0 or n + 1 == len(order):
             r = mapper.records[-1]
             say(f"online: frame {n + 1} of {len(order)}, {r.objects} objects")
-    result = mapper.finish(final_batch=final_batch, max_iterations=final_iterations,
-                           tolerance=final_tolerance, progress=say)
+    result = mapper.finish(progress=say)
     return result, list(mapper.records)

@@ -15,6 +15,7 @@ association, the instance ids, when a sequence has them, only score it).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -46,18 +47,21 @@ from ..geometry import (
 )
 from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
-from ..io import MapObject, Sequence, class_prior
+from ..io import MapObject, Sequence, class_prior, without_class_table
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
 from ._graph import build_graph, measured_objects, support_plane, trajectory_noise_note
 from ._keyframes import parse_keyframes, select_keyframes
-from ._methods import METHODS, Method
+from ._methods import Method
+from ._settings import Associate, PlaneSource, RunSettings, SettingsError, as_settings, default_association
 
 __all__ = [
     "ASSOCIATIONS",
+    "OBJECT_ERRORS",
     "Association",
     "Initialization",
     "MapResult",
+    "MappingError",
     "associate_tracks",
     "cost_by_factor",
     "implausibly_flat",
@@ -66,14 +70,45 @@ __all__ = [
     "initialize_from_measurements",
     "map_result",
     "merged_track",
+    "nesting_depths",
+    "object_quality",
     "overlapping_duplicates",
     "run_sequence",
+    "step",
 ]
 
-ASSOCIATIONS = ("instances", "auto")
+ASSOCIATIONS = tuple(a.value for a in Associate)
 #: Where support planes come from: the priors only; else estimated from the initial
 #: objects; else estimated from the objects optimised without planes (then optimised again).
-SUPPORT_PLANES = ("priors", "initial", "optimised")
+SUPPORT_PLANES = tuple(p.value for p in PlaneSource)
+
+#: The errors that a step confines to one object (a singular or non-finite matrix, an
+#: initialiser that cannot fit): the object is moved to ``failed`` with the step and the
+#: reason, and the run goes on. Anything else, or any error of a step over the whole problem,
+#: ends the run as a :class:`MappingError` naming the step.
+OBJECT_ERRORS = (ValueError, ArithmeticError)
+
+
+class MappingError(ValueError):
+    """A step of the run failed for the whole problem: ``"<step>: <reason>"``; ``step`` names
+    it (keyframes, screening, association, initialisation, graph, optimisation, support
+    planes, duplicates, uncertainty, result)."""
+
+    def __init__(self, step: str, reason: str):
+        super().__init__(f"{step}: {reason}")
+        self.step = step
+
+
+@contextlib.contextmanager
+def step(name: str):
+    """Run a step of the pipeline over the whole problem: an error in it (other than a
+    ``MappingError`` of an inner step) becomes ``MappingError(name, …)``."""
+    try:
+        yield
+    except MappingError:
+        raise
+    except Exception as e:  # noqa: BLE001 - re-raised, naming the step
+        raise MappingError(name, str(e) or type(e).__name__) from e
 
 
 @dataclass
@@ -141,7 +176,7 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None) -> Associat
         raise ValueError(f"associate must be one of {', '.join(ASSOCIATIONS)}, got {associate!r}")
     has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
     if associate is None:
-        associate = "instances" if has_ids or not seq.detections else "auto"
+        associate = str(default_association(seq))
     if associate == "instances":
         return Association(tracks_from_instances(seq), {"mode": "instances"})
     found = auto_associate(seq)
@@ -214,6 +249,9 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
         except InitializationError as err:
             failed[tr.id] = str(err)
             continue
+        except OBJECT_ERRORS as err:  # a singular or non-finite fit: this object only
+            failed[tr.id] = f"initialisation: {type(err).__name__}: {err}"
+            continue
         why = degenerate(e, min_radius=0.0, min_ratio=SINGULAR_RATIO)
         if why:  # not a point of SPD(3) the solver can start from (a flat start is one)
             failed[tr.id] = f"the initial ellipsoid is singular ({why}): the boxes do not fix its extent"
@@ -258,13 +296,13 @@ def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
     else:
         cov = marginal_covariances(graph, values, keys, fixed=fixed)
     out = {}
+    inf = [float("inf")] * 3
     for k in ids:
         lm, S = values[L(k)], cov[L(k)]
-        if not np.all(np.isfinite(S)):
-            inf = [float("inf")] * 3
+        J = np.asarray(_summary_jacobian(lm)) if np.all(np.isfinite(S)) else None
+        if J is None or not np.all(np.isfinite(J)):  # not determined, or no chart there
             out[k] = {"center_sigma": inf, "center_sigma_max": float("inf"), "log_radius_sigma": inf}
             continue
-        J = np.asarray(_summary_jacobian(lm))
         C = J @ S @ J.T
         Cc = C[:3, :3]
         out[k] = {
@@ -375,7 +413,7 @@ def _numpy_ellipsoid(e) -> Ellipsoid:
     return Ellipsoid(np.asarray(e.P, dtype=float), np.asarray(e.center, dtype=float))
 
 
-def _visible(e, pose) -> np.ndarray:
+def wholly_in_front(e, pose) -> np.ndarray:
     """Whether the ellipsoid ``e`` lies wholly in front (depth > 1 mm) of each camera of
     ``pose`` (R_wc (n, 3, 3), centres (n, 3)); NumPy, so that no program is compiled per
     track length."""
@@ -394,14 +432,14 @@ def detection_rate(ctx, track, e) -> tuple[int, int]:
     ctx = as_context(ctx)
     cam = ctx.camera
     pose = ctx.camera_axes
-    ok = _visible(e, pose)
+    ok = wholly_in_front(e, pose)
     with np.errstate(divide="ignore", invalid="ignore"):  # boxes of views where it is not in front
         b = np.asarray(project_box(_numpy_ellipsoid(e), pose, cam))
     whole = ok & (b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] <= cam.width) & (b[:, 3] <= cam.height)
     return len(track.frames), int(whole.sum())
 
 
-def _drop_rarely_detected(ctx, tracks, init, keep=()):
+def drop_rarely_detected(ctx, tracks, init, keep=()):
     """Tracks whose object is detected in too few of the frames that see it
     (``MIN_DETECTION_RATE``): {id: reason}."""
     failed = {}
@@ -425,7 +463,7 @@ def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=(
             kept.append(tr)
             continue
         R, C = ctx.camera_axes
-        ok = _visible(init[tr.id], (R[tr.frames], C[tr.frames]))
+        ok = wholly_in_front(init[tr.id], (R[tr.frames], C[tr.frames]))
         if not ok.all():
             notes.append(
                 f"object {tr.id}: {int((~ok).sum())} of {ok.size} views dropped (the initial "
@@ -448,7 +486,7 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     seq = ctx.seq
     init, failed, notes = initialize_objects(ctx, association.tracks, method, min_views)
     measured = measured_objects(ctx)
-    rare = _drop_rarely_detected(ctx, association.tracks, init, keep=measured)
+    rare = drop_rarely_detected(ctx, association.tracks, init, keep=measured)
     failed.update(rare)
     for k in rare:
         init.pop(k)
@@ -471,7 +509,15 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
         measured = {}
     for k, ms in measured.items():
         if k not in init:
-            init[k] = initialize_from_measurements(ctx, ms)
+            try:
+                e = initialize_from_measurements(ctx, ms)
+                bad = degenerate(e, min_radius=0.0, min_ratio=SINGULAR_RATIO)
+            except OBJECT_ERRORS as err:
+                bad = f"{type(err).__name__}: {err}"
+            if bad:
+                failed[k] = f"initialisation from its {len(ms)} measured ellipsoids: {bad}"
+                continue
+            init[k] = e
             why = f" (boxes: {failed.pop(k)})" if k in failed else ""
             notes.append(f"object {k}: initialised from its {len(ms)} measured ellipsoids{why}")
     unassigned = len(seq.ellipsoids or ()) - sum(map(len, measured.values()))
@@ -491,24 +537,47 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     return Initialization(tracks, init, measured, failed, notes, planes)
 
 
+def nesting_depths(ellipsoids) -> np.ndarray:
+    """D[i, j] = max(dᵀ P_i⁻¹ d, dᵀ P_j⁻¹ d) with d = t_j − t_i, for a list of ellipsoids
+    (P, t): below 1 when each centre lies inside the other ellipsoid. ``inf`` on the
+    diagonal and in the row and column of an ellipsoid whose P is not finite or not
+    positive definite (a collapsed object nests in nothing and nothing nests in it)."""
+    n = len(ellipsoids)
+    D = np.full((n, n), np.inf)
+    if n < 2:
+        return D
+    P = np.stack([np.asarray(e.P, float) for e in ellipsoids])
+    C = np.stack([np.asarray(e.center, float) for e in ellipsoids])
+    ok = np.all(np.isfinite(P), axis=(1, 2)) & np.all(np.isfinite(C), axis=1)
+    w = np.zeros((n, 3))
+    w[ok] = np.linalg.eigvalsh(0.5 * (P[ok] + np.swapaxes(P[ok], 1, 2)))
+    ok &= w[:, 0] > np.finfo(float).eps * np.abs(w[:, 2])
+    i = np.flatnonzero(ok)
+    if i.size < 2:
+        return D
+    Pinv = np.linalg.inv(P[i])
+    d = C[i][None, :, :] - C[i][:, None, :]  # d[a, b] = t_b − t_a
+    into_a = np.einsum("abj,ajk,abk->ab", d, Pinv, d)  # b's centre in a
+    sub = np.maximum(into_a, into_a.T)
+    np.fill_diagonal(sub, np.inf)
+    D[np.ix_(i, i)] = sub
+    return D
+
+
 def overlapping_duplicates(ellipsoids: dict, tracks) -> list:
     """Pairs (kept, merged) of objects that are one object mapped twice: the same label and
-    each centre inside the other's ellipsoid, (t_b − t_a)ᵀ P_a⁻¹ (t_b − t_a) < 1 and the
-    same with a, b swapped. Each object is in at most one pair; the most deeply nested pair
-    first; the object with more detections is kept."""
+    each centre inside the other's ellipsoid (``nesting_depths`` < 1). Each object is in at
+    most one pair; the most deeply nested pair first; the object with more detections is
+    kept. A collapsed object (P singular or not finite) is in no pair."""
     by_id = {tr.id: tr for tr in tracks}
     ids = sorted(k for k in ellipsoids if k in by_id)
+    D = nesting_depths([ellipsoids[k] for k in ids])
     pairs = []
     for i, a in enumerate(ids):
-        for b in ids[i + 1:]:
-            if by_id[a].label != by_id[b].label:
-                continue
-            ea, eb = ellipsoids[a], ellipsoids[b]
-            d = np.asarray(eb.center, float) - np.asarray(ea.center, float)
-            depth = max(float(d @ np.linalg.solve(np.asarray(ea.P, float), d)),
-                        float(d @ np.linalg.solve(np.asarray(eb.P, float), d)))
-            if depth < 1.0:
-                pairs.append((depth, a, b))
+        for j in range(i + 1, len(ids)):
+            b = ids[j]
+            if by_id[a].label == by_id[b].label and D[i, j] < 1.0:
+                pairs.append((float(D[i, j]), a, b))
     out, used = [], set()
     for _, a, b in sorted(pairs):
         if a in used or b in used:
@@ -555,7 +624,7 @@ def _planes_note(planes: SupportPlanes, up, source: str) -> str:
 # --- the run ----------------------------------------------------------------------------------
 
 
-def _landmark(e: Ellipsoid, method: Method):
+def as_landmark(e: Ellipsoid, method: Method):
     if method.parameterization == "spd":
         return e
     if method.parameterization == "full":
@@ -566,74 +635,69 @@ def _landmark(e: Ellipsoid, method: Method):
 
 def run_sequence(
     seq: Sequence,
-    method: str | Method = "multi-spd",
+    method: str | Method | RunSettings = "multi-spd",
     *,
     tracks=None,
-    associate: str | None = None,
-    sigmas: dict | None = None,
-    max_iterations: int = 100,
-    min_views: int = 3,
-    keyframes: str | int = "all",
-    support_planes: str = "priors",
     verbose: bool = False,
     progress: Callable[[str], Any] | None = None,
-    tolerance: float = 1e-6,
-    hold_trajectory: bool = False,
-    screen: bool = True,
-    **overrides,
+    **settings,
 ) -> MapResult:
-    """Initialise and jointly optimise a sequence with a named method (or a :class:`Method`);
-    ``overrides`` replace fields of the method (e.g. ``parameterization="rts"``).
+    """Initialise and jointly optimise a sequence in one batch. ``method``: the run's
+    :class:`RunSettings`, or a name of ``METHODS`` (or a :class:`Method`) with ``settings``,
+    the keywords of ``RunSettings.of`` (its fields, and ``Method`` fields as overrides, e.g.
+    ``parameterization="rts"``); all are checked before any work starts.
 
-    Data association: ``tracks`` when given; else ``associate="instances"`` (group by the
-    instance ids), ``"auto"`` (:func:`spdslam.frontend.associate`, which ignores the ids),
-    or None: the ids when every detection has one, automatic otherwise. With automatic
-    association the result records precision and recall against the ids where they exist.
-    ``keyframes`` ("all", "motion" or every k-th frame, ``select_keyframes``): the frames
-    used; the result's trajectory has those frames only (the odometry's σ stays per step
-    between kept frames). ``support_planes`` (``SUPPORT_PLANES``): "priors" uses the
-    priors' planes only; "initial" / "optimised" estimate them, when the priors have none,
-    from the initial objects or from the objects optimised without planes
-    (``frontend.estimate_support_planes``; then optimised again with them).
-    ``progress(message)`` is called at each stage and after each LM iteration; ``tolerance``:
-    LM's relative decrease at which it stops. ``hold_trajectory``: the poses are held at
-    their input values (objects only; no odometry factors). ``screen``: detections that
-    cannot be a box of an object are left out first (``frontend.screen_detections``), with
-    a note. A method's ``robust="auto"`` is resolved by the association (``Method.resolved``).
-    """
+    The steps (``step``): keyframes (``select_keyframes``; the result's trajectory has those
+    frames only), screening (``frontend.screen_detections``, unless ``screen=False`` or
+    ``tracks`` are given), association (``associate_tracks``: ``tracks`` when given, else
+    by instance ids or automatically), initialisation (``initialize``), the graph
+    (``build_graph``) and its optimisation per box-model stage, support planes estimated
+    from the optimised objects (``support_planes="optimised"``, then optimised again),
+    duplicates merged (automatic association: ``overlapping_duplicates``, then optimised
+    again), and the result (``map_result``: uncertainty and each object's quality). A
+    failure confined to one object moves it to ``failed``; one of the whole problem is a
+    ``MappingError`` naming the step. ``progress(message)`` is called at each step and after
+    each LM iteration. A method's ``robust="auto"`` is resolved by the association
+    (``Method.resolved``)."""
     say = progress or (lambda message: None)
-    if isinstance(method, str):
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-        method = METHODS[method]
-    method = method.replace(**overrides)
+    run = as_settings(method, settings)
+    if run.online is not None:
+        raise SettingsError("online", "run_sequence maps in one batch; an online run is run_online's")
+    if not run.class_table:
+        seq = without_class_table(seq)
+    method, keyframes, support_planes = run.method, run.keyframes, run.support_planes
+    sigmas, min_views, hold_trajectory = dict(run.sigma), run.min_views, run.hold_trajectory
+    associate = None if run.associate is None else str(run.associate)
+    max_iterations, tolerance, screen = run.max_iterations, run.tolerance, run.screen
     if parse_keyframes(keyframes) != "all":
         if tracks is not None:
             raise ValueError("keyframes other than 'all' need the run's own association (tracks index frames)")
-        kept = select_keyframes(seq.poses_tum, keyframes)
+        with step("keyframes"):
+            kept = select_keyframes(seq.poses_tum, keyframes)
         say(f"keyframes ({keyframes}): {kept.size} of {len(seq)} frames")
         seq = seq.subset(kept)
     screened = None
     if screen and tracks is None:
-        screened = screen_detections(seq, method.margin)
+        with step("screening"):
+            screened = screen_detections(seq, method.margin)
         seq = screened.sequence
         say(screened.summary())
-    ctx = SequenceContext.of(seq)
-    say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
-    association = associate_tracks(ctx, tracks, associate)
+    with step("association"):
+        ctx = SequenceContext.of(seq)
+        say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
+        association = associate_tracks(ctx, tracks, associate)
     method = method.resolved(association.record.get("mode") == "auto")
     say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
-    if support_planes not in SUPPORT_PLANES:
-        raise ValueError(f"support_planes must be one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
-    front = initialize(ctx, association, method, min_views, support_planes)
-    front.notes.insert(0, "trajectory held at the input poses" if hold_trajectory
-                       else trajectory_noise_note(ctx, sigmas))
+    with step("initialisation"):
+        front = initialize(ctx, association, method, min_views, support_planes)
+        front.notes.insert(0, "trajectory held at the input poses" if hold_trajectory
+                           else trajectory_noise_note(ctx, sigmas))
     if screened is not None and screened.counts():
         front.notes.insert(1, screened.summary())
     say(front.notes[0])
     say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
-    landmarks = {k: _landmark(e, method) for k, e in front.ellipsoids.items()}
+    landmarks = {k: as_landmark(e, method) for k, e in front.ellipsoids.items()}
     values = Values()
     for i, T in enumerate(ctx.poses):
         values[X(i)] = T
@@ -656,10 +720,12 @@ def run_sequence(
     def optimise(stage: str, what: str) -> None:
         """Build the graph of the current tracks, landmarks and planes; optimise ``values``."""
         nonlocal graph, res, values, total_it, first_cost, landmarks
-        graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                            planes, odometry=not hold_trajectory, reuse=made)
+        with step("graph"):
+            graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
+                                planes, odometry=not hold_trajectory, reuse=made)
         say(f"optimisation ({what}): {len(values)} variables, {len(graph)} factors")
-        res = optimizer.optimize(graph, values, fixed=fixed)
+        with step(f"optimisation ({what})"):
+            res = optimizer.optimize(graph, values, fixed=fixed)
         values = res.values
         total_it += res.iterations
         first_cost = res.initial_cost if first_cost is None else first_cost
@@ -669,7 +735,8 @@ def run_sequence(
         optimise(stage, f"{stage} boxes")
     if (support_planes == "optimised" and method.support_plane and ctx.up is not None
             and not ctx.support_planes() and landmarks):
-        estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
+        with step("support planes"):
+            estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
         if len(estimated.planes):
             planes = estimated
             front.notes.append(_planes_note(planes, ctx.up, "optimised"))
@@ -677,17 +744,20 @@ def run_sequence(
 
     labels = {tr.id: tr.label for tr in front.tracks}  # the front end's objects, merged or not
     if association.record.get("mode") == "auto":  # instance ids are trusted as given
-        pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in landmarks.items()},
-                                       front.tracks)
+        with step("duplicates"):
+            pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in landmarks.items()},
+                                           front.tracks)
+            if pairs:
+                front = _merge_duplicates(front, landmarks, pairs)
+                values = Values({k: values[k] for k in values if k not in {L(d) for _, d in pairs}})
         if pairs:
-            front = _merge_duplicates(front, landmarks, pairs)
-            values = Values({k: values[k] for k in values if k not in {L(d) for _, d in pairs}})
             optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
 
     say("uncertainty: marginal covariances of the objects")
-    return map_result(method, graph, values, labels, front.ellipsoids, seq.timestamps,
-                      front.failed, front.notes, association.record, total_it, first_cost, res,
-                      fixed=fixed, priors=ctx.priors)
+    with step("result"):
+        return map_result(method, graph, values, labels, front.ellipsoids, seq.timestamps,
+                          front.failed, front.notes, association.record, total_it, first_cost, res,
+                          fixed=fixed, priors=ctx.priors)
 
 
 def map_result(method: Method, graph, values, labels: dict, initial: dict, timestamps,
@@ -699,7 +769,8 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
     ``initial`` {id: Ellipsoid} the front end's objects; ``res`` the last optimisation's
     result (final cost, convergence)."""
     ids = sorted(k for k in labels if L(k) in values)
-    spread = mapped_uncertainty(graph, values, ids, fixed, res)
+    with step("uncertainty"):
+        spread = mapped_uncertainty(graph, values, ids, fixed, res)
     objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k)) for k in ids]
     first = [MapObject(k, labels[k], initial[k]) for k in sorted(initial)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(timestamps))])
@@ -707,20 +778,32 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
     failed = dict(failed)
     kept = []
     for o in objects:  # reported, not mapped: an object whose extent the data do not fix
-        why = degenerate(o.ellipsoid)
-        flat = implausibly_flat(o.ellipsoid, class_prior(priors, o.label))
+        why = object_quality(o, class_prior(priors, o.label))
         if why:
-            failed[o.id] = f"degenerate after the optimisation ({why}): the boxes do not fix its extent"
-        elif flat:
-            failed[o.id] = f"poorly observed: {flat}"
-        elif poorly_observed(o.uncertainty):
-            failed[o.id] = f"poorly observed ({poorly_observed(o.uncertainty)})"
+            failed[o.id] = why
         else:
             kept.append(o)
     return MapResult(
         method, kept, first, poses_out, iterations, initial_cost, res.final_cost,
         res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values, res),
     )
+
+
+def object_quality(o: MapObject, prior=None) -> str:
+    """Why an optimised object is not mapped ("" if it is): degenerate (``degenerate``),
+    thinner than any of its class (``implausibly_flat``, with its ``ClassPrior``), or poorly
+    observed (``poorly_observed``, from its uncertainty)."""
+    try:
+        why = degenerate(o.ellipsoid)
+        if why:
+            return f"degenerate after the optimisation ({why}): the boxes do not fix its extent"
+        flat = implausibly_flat(o.ellipsoid, prior)
+        if flat:
+            return f"poorly observed: {flat}"
+        seen = poorly_observed(o.uncertainty)
+        return f"poorly observed ({seen})" if seen else ""
+    except OBJECT_ERRORS as err:
+        return f"quality check: {type(err).__name__}: {err}"
 
 
 def _reusable(result, values) -> bool:

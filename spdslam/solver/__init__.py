@@ -8,12 +8,22 @@ linearisation (``_linearize``: whitening, robust weighting, validity), driven tw
 ``LevenbergMarquardt(...).optimize(graph, values)`` / ``Dogleg`` / ``GaussNewton`` run the sparse host
 loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
 ``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
-problems of one structure in one jitted loop (``_batched``). Imports only
-``spdslam.geometry`` and ``spdslam.factors``.
+problems of one structure in one jitted loop (``_batched``). ``enable_compilation_cache`` /
+``ensure_compilation_cache`` (``_cache``) turn on JAX's persistent compilation cache. Imports
+only ``spdslam.geometry`` and ``spdslam.factors``.
 """
 
 from ._batched import BatchedProblem as BatchedProblem
 from ._batched import BatchedResult as BatchedResult
+from ._batched import DEFAULT_LANES as DEFAULT_LANES
+from ._cache import CACHE_ENV as CACHE_ENV
+from ._cache import CACHE_MIN_COMPILE_SECS as CACHE_MIN_COMPILE_SECS
+from ._cache import CACHE_OFF as CACHE_OFF
+from ._cache import DEFAULT_CACHE_DIR as DEFAULT_CACHE_DIR
+from ._cache import cache_dir as cache_dir
+from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._cache import ensure_compilation_cache as ensure_compilation_cache
+from ._compile import AUTO_OPTIMIZE_WORK as AUTO_OPTIMIZE_WORK
 from ._compile import clear_caches as clear_caches
 from ._graph import NonlinearFactorGraph as NonlinearFactorGraph
 from ._keys import L as L
@@ -35,4 +45,5 @@ from ._optimizers import LevenbergMarquardt as LevenbergMarquardt
 from ._optimizers import OptimizationResult as OptimizationResult
 from ._optimizers import Optimizer as Optimizer
 from ._problem import Problem as Problem
+from ._problem import group_kernels as group_kernels
 from ._values import Values as Values

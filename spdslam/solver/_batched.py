@@ -34,25 +34,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._batched_layout import _Kernel, _Layout
+from ._batched_layout import BatchedKernel, BatchedLayout
 from ._batched_loop import (
-    _NONFINITE,
-    _R_COST,
-    _R_COST0,
-    _R_ITS,
-    _R_REASON,
-    _H_ACC,
-    _H_COST,
-    _H_GAIN,
-    _H_LAMBDA,
-    _H_STEP,
-    _H_TRIAL,
-    _Reporter,
-    _cost_fn,
-    _hyper,
-    _solver_fn,
+    HISTORY,
+    NONFINITE,
+    RESULT,
+    Reporter,
+    cost_fn,
+    hyper_array,
+    solver_fn,
 )
-from ._compile import _BUILT, AUTO_OPTIMIZE_WORK, _call, _executable, _shapes
+from ._compile import (
+    AUTO_OPTIMIZE_WORK,
+    BUILT_SOLVERS,
+    call_compiled,
+    compiled_executable,
+    shape_signature,
+)
 from ._lm import (
     CONVERGED_REASONS,
     HYPER,
@@ -195,8 +193,8 @@ class BatchedProblem:
         self.params, self.rule = params, rule
 
     def _init_from_problem(self, problem: Problem):
-        self.layout = lay = _Layout(problem)
-        self._kernel = _Kernel(lay)
+        self.layout = lay = BatchedLayout(problem)
+        self._kernel = BatchedKernel(lay)
         p = problem
         # template arrays (numpy): per type free / fixed stacks, per sub-group data
         self._tvars = [jax.tree.map(np.asarray, v) for v in p.vars]
@@ -391,18 +389,19 @@ class BatchedProblem:
         """
         b = self._prepare(factor_args, values)
         axes = _hashable_axes(b.axes)
-        built = _BUILT.get((self.layout.signature, axes, _shapes((b.x0, b.xfix, b.gdata))))
+        built = BUILT_SOLVERS.get((self.layout.signature, axes,
+                                   shape_signature((b.x0, b.xfix, b.gdata))))
         if built is not None:
             key, fn, lanes, max_iter, optimize = built
-            hyper_arr = _hyper(self.params)
+            hyper_arr = hyper_array(self.params)
             hyper_arr[HYPER.index("absolute_tolerance")] = np.inf  # every problem stops when loaded
-            res0 = np.full((b.B, 4), np.nan)
-            hist0 = np.full((b.B, max_iter, 6), np.nan)
-            out = _call(key, fn, (b.x0, b.xfix, b.gdata, hyper_arr, res0, hist0),
-                        optimize=optimize)
-            return np.asarray(out[1])[:, _R_COST0]
-        key, fn = _cost_fn(self._kernel, self.layout.signature, axes)
-        return np.asarray(_call(key, fn, (b.x0, b.xfix, b.gdata), optimize=False))
+            res0 = np.full((b.B, len(RESULT)), np.nan)
+            hist0 = np.full((b.B, max_iter, len(HISTORY)), np.nan)
+            out = call_compiled(key, fn, (b.x0, b.xfix, b.gdata, hyper_arr, res0, hist0),
+                                optimize=optimize)
+            return np.asarray(out[1])[:, RESULT.COST0]
+        key, fn = cost_fn(self._kernel, self.layout.signature, axes)
+        return np.asarray(call_compiled(key, fn, (b.x0, b.xfix, b.gdata), optimize=False))
 
     def solve(self, factor_args=None, values=None, batch_size: int | None = None
               ) -> BatchedResult:
@@ -435,7 +434,7 @@ class BatchedProblem:
         b = self._prepare(factor_args, values)
         key, fn, args, optimize, _ = self._plan(b, batch_size)
         timings: dict = {}
-        _executable(key, fn, args, timings, optimize)
+        compiled_executable(key, fn, args, timings, optimize)
         return timings
 
     def _plan(self, b: _Batch, batch_size):
@@ -447,57 +446,57 @@ class BatchedProblem:
             raise ValueError(f"batch_size must be ≥ 1, got {batch_size}")
         lanes = min(lanes, b.B)
         report = p.callback is not None or bool(p.verbose)
-        key, fn = _solver_fn(self._kernel, self.layout.signature, _hashable_axes(b.axes),
+        key, fn = solver_fn(self._kernel, self.layout.signature, _hashable_axes(b.axes),
                              lanes, max_iter, self.rule, report)
         optimize = self.optimize
         if optimize is None:
             optimize = b.B * max_iter > AUTO_OPTIMIZE_WORK
         if not report:
-            _BUILT.setdefault((self.layout.signature, _hashable_axes(b.axes),
-                               _shapes((b.x0, b.xfix, b.gdata))),
-                              (key, fn, lanes, max_iter, optimize))
-        res0 = np.full((b.B, 4), np.nan)
-        hist0 = np.full((b.B, max_iter, 6), np.nan)
-        return key, fn, (b.x0, b.xfix, b.gdata, _hyper(p), res0, hist0), optimize, report
+            BUILT_SOLVERS.setdefault((self.layout.signature, _hashable_axes(b.axes),
+                                      shape_signature((b.x0, b.xfix, b.gdata))),
+                                     (key, fn, lanes, max_iter, optimize))
+        res0 = np.full((b.B, len(RESULT)), np.nan)
+        hist0 = np.full((b.B, max_iter, len(HISTORY)), np.nan)
+        return key, fn, (b.x0, b.xfix, b.gdata, hyper_array(p), res0, hist0), optimize, report
 
     def _run(self, b: _Batch, batch_size, t0, make_values=None) -> BatchedResult:
         p = self.params
         key, fn, args, optimize, report = self._plan(b, batch_size)
         t1 = time.perf_counter()
         timings = {"setup": t1 - t0}
-        _Reporter.current = _Reporter(p) if report else None
+        Reporter.current = Reporter(p) if report else None
         try:
-            xout, res, hist, steps = _call(key, fn, args, timings, optimize)
+            xout, res, hist, steps = call_compiled(key, fn, args, timings, optimize)
             xout, res, hist = jax.tree.map(np.asarray, (xout, res, hist))
         finally:
-            _Reporter.current = None
+            Reporter.current = None
         t2 = time.perf_counter()
         timings["solve"] = t2 - t1 - timings["trace"] - timings["compile"]
-        reason_codes = res[:, _R_REASON].astype(int)
-        bad = np.flatnonzero(reason_codes == _NONFINITE)
+        reason_codes = res[:, RESULT.REASON].astype(int)
+        bad = np.flatnonzero(reason_codes == NONFINITE)
         if len(bad):
             self._diagnose(b, int(bad[0]))
             raise ValueError(f"problem {int(bad[0])}: the cost or its gradient is not finite "
                              "at the initial values")
         reasons = [REASONS[int(r)] for r in reason_codes]
-        its = res[:, _R_ITS].astype(int)
+        its = res[:, RESULT.ITS].astype(int)
         vb = self._values_batched(b, xout)
         if make_values is None:
             def make_values():
                 return self._values_list(vb, b.B)
         return BatchedResult(
             values_batched=vb,
-            initial_cost=res[:, _R_COST0].copy(),
-            final_cost=res[:, _R_COST].copy(),
+            initial_cost=res[:, RESULT.COST0].copy(),
+            final_cost=res[:, RESULT.COST].copy(),
             iterations=its,
             converged=np.array([r in CONVERGED_REASONS for r in reasons]),
             reason=reasons,
-            cost_history=hist[:, :, _H_COST].copy(),
-            trial_cost_history=hist[:, :, _H_TRIAL].copy(),
-            step_norm_history=hist[:, :, _H_STEP].copy(),
-            lambda_history=hist[:, :, _H_LAMBDA].copy(),
-            accepted_history=hist[:, :, _H_ACC] == 1.0,
-            gain_history=hist[:, :, _H_GAIN].copy(),
+            cost_history=hist[:, :, HISTORY.COST].copy(),
+            trial_cost_history=hist[:, :, HISTORY.TRIAL].copy(),
+            step_norm_history=hist[:, :, HISTORY.STEP].copy(),
+            lambda_history=hist[:, :, HISTORY.LAMBDA].copy(),
+            accepted_history=hist[:, :, HISTORY.ACC] == 1.0,
+            gain_history=hist[:, :, HISTORY.GAIN].copy(),
             timings=dict(timings, output=time.perf_counter() - t2),
             steps=int(steps),
             _make_values=make_values,

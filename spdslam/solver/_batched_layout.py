@@ -31,7 +31,7 @@ from ..geometry import manifold
 from ._linearize import finish, retract_rows, whitened
 from ._problem import Problem
 
-__all__ = ["DENSE_JACOBIAN_MAX_N"]
+__all__ = ["DENSE_JACOBIAN_MAX_N", "BatchedKernel", "BatchedLayout"]
 
 #: H and g come from the dense Jacobian (rows × n) when n ≤ this, else from scattered
 #: per-factor JᵀJ blocks.
@@ -73,7 +73,7 @@ class _Sub:
         return sum(self.spec.dims[p] for p in self.free_pos)
 
 
-class _Layout:
+class BatchedLayout:
     """Template layout: which rows are free, the sub-groups, tangent offsets."""
 
     def __init__(self, p: Problem):
@@ -161,10 +161,10 @@ def _pushforward(ts, x):
     return jax.vmap(one)(x)
 
 
-class _Kernel:
+class BatchedKernel:
     """The per-problem functions of one static structure (unjitted; traced by drivers)."""
 
-    def __init__(self, layout: _Layout):
+    def __init__(self, layout: BatchedLayout):
         self.tspecs = layout.tspecs
         self.nfree, self.nfixed = layout.nfree, layout.nfixed
         self.subs = layout.subs

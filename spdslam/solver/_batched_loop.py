@@ -15,6 +15,7 @@ host (``jax.experimental.io_callback``), which may stop their problems.
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +23,8 @@ import numpy as np
 from jax.experimental import io_callback
 
 from ..geometry import manifold
-from ._batched_layout import _Kernel
-from ._compile import _CACHE, _jit
+from ._batched_layout import BatchedKernel
+from ._compile import JITTED_PROGRAMS, jit_program
 from ._linearize import violates
 from ._lm import (
     CALLBACK,
@@ -40,9 +41,12 @@ from ._lm import (
     predicted_decrease,
 )
 
-__all__: list[str] = []
+__all__ = ["HISTORY", "NONFINITE", "RESULT", "HistoryColumns", "Reporter", "ResultColumns",
+           "cost_fn", "hyper_array", "solver_fn"]
 
-_NONFINITE = len(REASONS)  # internal: cost or gradient not finite at the initial values
+#: The stopping reason of a problem whose cost or gradient is not finite at its initial
+#: values (a code past ``_lm.REASONS``: ``BatchedProblem.solve`` raises on it).
+NONFINITE = len(REASONS)
 
 # lane status
 _ACTIVE, _LOADING, _IDLE = 0, 1, 2
@@ -82,17 +86,22 @@ def _take(tree, axes, pid):
         axes, tree, is_leaf=lambda x: x is None)
 
 
-def _solver_fn(kern: _Kernel, sig, axes, lanes: int, max_iter: int, rule, report: bool):
+def solver_fn(kern: BatchedKernel, sig, axes, lanes: int, max_iter: int, rule, report: bool):
+    """(cache key, the jitted lane loop) of a structure (``sig``), batching pattern
+    (``axes``), lane count, ``max_iterations``, step rule and ``report``, jitted once and
+    kept in ``_compile.JITTED_PROGRAMS``."""
     key = ("solve", sig, axes, lanes, max_iter, rule, report)
-    fn = _CACHE.get(key)
+    fn = JITTED_PROGRAMS.get(key)
     if fn is None:
-        fn = _CACHE[key] = _jit(_make_solver(kern, axes, lanes, max_iter, rule, report))
+        fn = JITTED_PROGRAMS[key] = jit_program(_make_solver(kern, axes, lanes, max_iter, rule, report))
     return key, fn
 
 
-def _cost_fn(kern: _Kernel, sig, axes):
+def cost_fn(kern: BatchedKernel, sig, axes):
+    """(cache key, the jitted batched cost F(x) of each problem) of a structure (``sig``) and
+    batching pattern (``axes``), jitted once and kept in ``_compile.JITTED_PROGRAMS``."""
     key = ("cost", sig, axes)
-    fn = _CACHE.get(key)
+    fn = JITTED_PROGRAMS.get(key)
     if fn is None:
         fix_ax, data_ax = axes
 
@@ -100,7 +109,7 @@ def _cost_fn(kern: _Kernel, sig, axes):
             return jax.vmap(lambda a, b, c: kern.cost(a, b, c)[0],
                             in_axes=(0, fix_ax, data_ax))(xf, xfix, gdata)
 
-        fn = _CACHE[key] = _jit(batched_cost)
+        fn = JITTED_PROGRAMS[key] = jit_program(batched_cost)
     return key, fn
 
 
@@ -121,20 +130,46 @@ def _unpack(mat, like):
     return jax.tree.unflatten(td, out)
 
 
-#: Columns of the packed history (B, max_iterations, 6).
-_H_COST, _H_TRIAL, _H_STEP, _H_LAMBDA, _H_ACC, _H_GAIN = range(6)
-#: Columns of the packed per-problem results (B, 4).
-_R_COST0, _R_COST, _R_ITS, _R_REASON = range(4)
+class HistoryColumns(NamedTuple):
+    """Column indices of the packed history (B, max_iterations, 6), one row per problem and
+    iteration (NaN past its last): the cost after the iteration (the trial cost if the step
+    was accepted, else the previous cost), the trial cost (inf when the damped system could
+    not be solved), the step norm ‖δ‖ (NaN then), the λ of the step (dogleg: the trust
+    radius Δ), 1.0 if the step was accepted else 0.0, and the gain ratio."""
+
+    COST: int = 0
+    TRIAL: int = 1
+    STEP: int = 2
+    LAMBDA: int = 3
+    ACC: int = 4
+    GAIN: int = 5
+
+
+class ResultColumns(NamedTuple):
+    """Column indices of the packed per-problem results (B, 4): the initial cost, the final
+    cost, the iterations taken and the stopping reason (a code of ``_lm.REASONS``, or
+    ``NONFINITE``)."""
+
+    COST0: int = 0
+    COST: int = 1
+    ITS: int = 2
+    REASON: int = 3
+
+
+#: The history's columns: ``hist[:, :, HISTORY.COST]``.
+HISTORY = HistoryColumns()
+#: The results' columns: ``res[:, RESULT.REASON]``.
+RESULT = ResultColumns()
 #: Columns of the per-lane records handed to the host callback.
 _REPORT = ("problem", "iteration", "cost", "trial_cost", "step_norm", "lambda", "gain", "accepted")
 
 
-class _Reporter:
+class Reporter:
     """The host side of ``callback``/``verbose`` in the batched loop. The compiled program
     calls ``_report``, which forwards to the reporter of the solve in progress (so a cached
     program serves every callback)."""
 
-    current: "_Reporter | None" = None
+    current: "Reporter | None" = None
 
     def __init__(self, params):
         self.callback, self.verbose = params.callback, params.verbose
@@ -156,11 +191,11 @@ class _Reporter:
 
 
 def _report(rows, active):
-    rep = _Reporter.current
+    rep = Reporter.current
     return np.zeros(len(active), bool) if rep is None else rep(np.asarray(rows), np.asarray(active))
 
 
-def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: bool):
+def _make_solver(kern: BatchedKernel, axes, lanes: int, max_iter: int, rule, report: bool):
     """The lane loop. Inputs: x0 (per type, (B, nfree, ...)), fixed values and sub-group
     data (batched or shared, ``axes``), the numbers of the rule (``_lm.HYPER``), and the
     output buffers (filled on the host): results (B, 4) and history (B, max_iter, 6), NaN.
@@ -214,7 +249,7 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
             accepted = active & acc
             # loading lanes: their initial linearisation
             fin0 = fin1 & jnp.isfinite(c1)
-            r_0 = jnp.where(~fin0, _NONFINITE, initial_reason(c1, gmax1, h, jnp))
+            r_0 = jnp.where(~fin0, NONFINITE, initial_reason(c1, gmax1, h, jnp))
             reason = jnp.where(got, r_0, jnp.where(active, r_step, 0))
 
             take_new = got | accepted
@@ -242,11 +277,11 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
                 new["hist"] = st["hist"].at[jnp.where(active, pid, B),
                                             jnp.minimum(it, max_iter - 1)].set(rows, mode="drop")
             # results: initial cost when loaded, the rest when done
-            res = st["res"].at[jnp.where(got, pid, B), _R_COST0].set(c1, mode="drop")
+            res = st["res"].at[jnp.where(got, pid, B), RESULT.COST0].set(c1, mode="drop")
             pd = jnp.where(done, pid, B)
             fin = jnp.stack([cost_n, it_n.astype(float),
                              jnp.where(reason == 0, MAX_ITERATIONS, reason).astype(float)], axis=1)
-            new["res"] = res.at[pd, _R_COST:].set(fin, mode="drop")
+            new["res"] = res.at[pd, RESULT.COST:].set(fin, mode="drop")
             new["xout"] = st["xout"].at[pd].set(_pack(new["x"]), mode="drop")
             # refill the lanes that finished with the next problems of the queue
             status = jnp.where(got, _ACTIVE, status)
@@ -266,7 +301,7 @@ def _make_solver(kern: _Kernel, axes, lanes: int, max_iter: int, rule, report: b
 
 
 
-def _hyper(params) -> np.ndarray:
+def hyper_array(params) -> np.ndarray:
     """The numbers of the rule as one array, in ``_lm.HYPER`` order."""
     h = hyper(params)
     return np.asarray([h[k] for k in HYPER], dtype=float)

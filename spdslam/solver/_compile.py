@@ -19,7 +19,9 @@ import numpy as np
 
 from . import _problem
 
-__all__ = ["clear_caches", "COMPILER_OPTIONS", "FAST_COMPILE_OPTIONS", "AUTO_OPTIMIZE_WORK"]
+__all__ = ["clear_caches", "COMPILER_OPTIONS", "FAST_COMPILE_OPTIONS", "AUTO_OPTIMIZE_WORK",
+           "JITTED_PROGRAMS", "BUILT_SOLVERS", "shape_signature", "jit_program",
+           "compiled_executable", "call_compiled"]
 
 #: XLA options of the batched programs on CPU: without the newer fusion emitters, which
 #: lengthen the compile of these small-array programs and do not speed them up.
@@ -31,10 +33,13 @@ FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_backend_optimization_level": 0}
 #: this: the work at which the longer compile pays for itself (docs/performance.md).
 AUTO_OPTIMIZE_WORK = 100_000
 
-_CACHE: dict[Any, Any] = {}
+#: The jitted batched programs (lane loops and costs) by their cache key
+#: (``_batched_loop.solver_fn``, ``cost_fn``).
+JITTED_PROGRAMS: dict[Any, Any] = {}
 _EXECUTABLES: dict[Any, Any] = {}
-#: solver programs by (structure, batching pattern, input shapes), reused by ``cost``
-_BUILT: dict[Any, Any] = {}
+#: The solver programs built so far, (key, program, lanes, max_iterations, optimize) by
+#: (structure, batching pattern, input shapes): ``BatchedProblem.cost`` reuses them.
+BUILT_SOLVERS: dict[Any, Any] = {}
 
 
 def clear_caches() -> None:
@@ -49,27 +54,30 @@ def clear_caches() -> None:
     _problem._GROUP_KERNELS.clear()
     _problem._RETRACT.clear()
     _problem._RESIDUAL_DIM.clear()
-    _CACHE.clear()
+    JITTED_PROGRAMS.clear()
     _EXECUTABLES.clear()
-    _BUILT.clear()
+    BUILT_SOLVERS.clear()
     jax.clear_caches()
 
 
-def _shapes(tree):
+def shape_signature(tree):
+    """(tree structure, (shape, dtype) of each leaf) of a pytree of arguments: what a
+    compiled executable is specialised to, hashable."""
     leaves, td = jax.tree.flatten(tree)
     return td, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a))
                      for a in leaves)
 
 
-def _jit(f):
+def jit_program(f):
+    """``jax.jit(f)``: how every batched program is jitted (one place to change it)."""
     return jax.jit(f)
 
 
-def _executable(key, fn, args, timings: dict | None = None, optimize: bool = True):
+def compiled_executable(key, fn, args, timings: dict | None = None, optimize: bool = True):
     """The explicitly lowered and compiled executable of the jitted ``fn`` for ``args``
     (cached on ``key``, ``optimize`` and the argument shapes), recording "trace" (tracing
     and lowering) and "compile" (XLA) seconds in ``timings`` when it is built."""
-    sig = (key, optimize, _shapes(args))
+    sig = (key, optimize, shape_signature(args))
     ex = _EXECUTABLES.get(sig)
     if ex is None:
         t0 = time.perf_counter()
@@ -87,7 +95,7 @@ def _executable(key, fn, args, timings: dict | None = None, optimize: bool = Tru
     return ex
 
 
-def _call(key, fn, args, timings: dict | None = None, optimize: bool = True):
-    """Call the jitted ``fn`` through its compiled executable (``_executable``)."""
-    return _executable(key, fn, args, timings, optimize)(*args)
+def call_compiled(key, fn, args, timings: dict | None = None, optimize: bool = True):
+    """Call the jitted ``fn`` through its compiled executable (``compiled_executable``)."""
+    return compiled_executable(key, fn, args, timings, optimize)(*args)
 

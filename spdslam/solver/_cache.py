@@ -5,6 +5,7 @@ program itself (its StableHLO), the compile options, the jax and jaxlib versions
 backend; a changed spdslam (a different program), a new JAX or another machine's backend
 therefore never load a stale entry: it misses and compiles. Tracing and lowering still run in
 each process; what the cache saves is XLA's compilation (docs/performance.md, "Compilation").
+It lives in ``solver``, the lowest layer that compiles; ``spdslam.solver`` exports it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["CACHE_ENV", "CACHE_OFF", "DEFAULT_CACHE_DIR", "cache_dir", "enable_compilation_cache"]
+__all__ = ["CACHE_ENV", "CACHE_MIN_COMPILE_SECS", "CACHE_OFF", "DEFAULT_CACHE_DIR", "cache_dir",
+           "enable_compilation_cache", "ensure_compilation_cache"]
 
 #: Environment variable naming the JAX compilation-cache directory; ``off`` turns it off.
 CACHE_ENV = "SPDSLAM_CACHE_DIR"

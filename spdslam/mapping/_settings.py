@@ -1,0 +1,273 @@
+"""The settings of a run, validated once, where they enter.
+
+``spdslam run``'s options, a manifest's job, the Python API (``run_sequence``,
+``run_online``) and ``OnlineMapper`` all build one :class:`RunSettings` (with an
+:class:`OnlineSettings` for an online run) before any work starts; its fields keep their
+names from the command line (``--max-iterations`` → ``max_iterations``) and a manifest's
+keys to the solver. A bad value is a :class:`SettingsError` naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Mapping
+
+from ._keyframes import parse_keyframes
+from ._methods import METHODS, Method, check_sigma, parse_robust
+
+__all__ = [
+    "Associate",
+    "OnlineSettings",
+    "PlaneSource",
+    "RunSettings",
+    "SettingsError",
+    "as_settings",
+    "default_association",
+    "setting_help",
+]
+
+
+class Associate(enum.StrEnum):
+    """How detections are grouped into objects: by their instance ids, or automatically
+    (``frontend.associate``, which ignores the ids)."""
+
+    INSTANCES = "instances"
+    AUTO = "auto"
+
+
+class PlaneSource(enum.StrEnum):
+    """Where support planes come from: the priors only; else estimated from the initial
+    objects; else from the objects optimised without planes (then optimised again)."""
+
+    PRIORS = "priors"
+    INITIAL = "initial"
+    OPTIMISED = "optimised"
+
+
+class SettingsError(ValueError):
+    """A setting out of its range: ``"<field>: <reason>"``; ``field`` names it (a field of
+    ``RunSettings``, ``online.<field>`` for ``OnlineSettings``, or a ``Method`` field)."""
+
+    def __init__(self, name: str, reason: str):
+        super().__init__(f"{name}: {reason}")
+        self.field = name
+        self.reason = reason
+
+
+def _help(text: str, **more) -> dict:
+    return {"help": text, **more}
+
+
+def _integer(name: str, value, least: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        try:  # NumPy integers and integral floats from a caller's arithmetic
+            ok = not isinstance(value, bool) and float(value) == int(value) and int(value) >= least
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise SettingsError(name, f"expected an integer ≥ {least}, got {value!r}")
+    return int(value)
+
+
+def _boolean(name: str, value) -> bool:
+    if not isinstance(value, bool):
+        raise SettingsError(name, f"expected true or false, got {value!r}")
+    return value
+
+
+def _choice(name: str, kind: type[enum.StrEnum], value):
+    try:
+        return kind(value)
+    except ValueError:
+        raise SettingsError(name, f"expected one of {', '.join(kind)}, got {value!r}") from None
+
+
+@dataclass(frozen=True)
+class OnlineSettings:
+    """An online run (``OnlineMapper``, ``spdslam run --online``): a fixed-lag smoother."""
+
+    window: int = field(default=30, metadata=_help(
+        "frames whose poses the fixed-lag problem keeps free", least=2))
+    every: int = field(default=10, metadata=_help("frames between optimisations", least=1))
+    iterations: int = field(default=5, metadata=_help("LM iterations per optimisation", least=1))
+    final_batch: bool = field(default=True, metadata=_help(
+        "after the last frame, one batch optimisation of every frame and view from the online "
+        "state (max_iterations); without it the map is the online estimates"))
+    warmup: bool = field(default=False, metadata=_help(
+        "compile before the first frame (a synthetic room replayed with the camera; "
+        "OnlineMapper.warmup), as a live mapper would"))
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            name = f"online.{f.name}"
+            v = _boolean(name, v) if f.type == "bool" else _integer(name, v, f.metadata["least"])
+            object.__setattr__(self, f.name, v)
+
+
+def default_association(seq) -> Associate:
+    """Instance ids when every detection of ``seq`` has one (or there is none), else
+    automatic association."""
+    has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
+    return Associate.INSTANCES if has_ids or not seq.detections else Associate.AUTO
+
+
+#: ``Method`` fields that a run may override by name (``spdslam run --parameterization``…).
+METHOD_FIELDS = tuple(f.name for f in dataclasses.fields(Method) if f.name != "name")
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Everything a run is told, checked on construction (``SettingsError``). ``method``: the
+    back end with its overrides applied (``RunSettings.of`` takes a name and overrides)."""
+
+    method: Method = field(default=METHODS["multi-spd"], metadata=_help(
+        "the back end: a name of METHODS with its overrides"))
+    associate: Associate | None = field(default=None, metadata=_help(
+        "data association: instances (the instance ids) or auto; default: instances when "
+        "every detection has an id, else auto"))
+    sigma: Mapping[str, float] = field(default_factory=dict, metadata=_help(
+        "noise overrides NAME: VALUE (DEFAULT_MAPPING_SIGMAS)"))
+    max_iterations: int = field(default=100, metadata=_help("LM iteration budget per stage"))
+    tolerance: float = field(default=1e-6, metadata=_help(
+        "LM stops at this relative decrease of the cost"))
+    min_views: int = field(default=3, metadata=_help("views an object needs to be initialised"))
+    keyframes: str | int = field(default="all", metadata=_help(
+        "frames to use: all, motion (a keyframe per 5 cm or 5°) or K (every K-th)"))
+    support_planes: PlaneSource = field(default=PlaneSource.PRIORS, metadata=_help(
+        "support planes: priors (priors.yaml's only), initial (estimated from the initial "
+        "objects) or optimised (from the objects optimised without planes)"))
+    hold_trajectory: bool = field(default=False, metadata=_help(
+        "hold the poses at their input values (objects only, no odometry)"))
+    screen: bool = field(default=True, metadata=_help(
+        "leave out detections that cannot be a box of an object first"))
+    class_table: bool = field(default=True, metadata=_help(
+        "classes without a priors.yaml entry take the built-in size table"))
+    online: OnlineSettings | None = field(default=None, metadata=_help(
+        "replay frame by frame through the online mapper (OnlineSettings) instead of one "
+        "batch optimisation"))
+
+    def __post_init__(self):
+        if not isinstance(self.method, Method):
+            raise SettingsError("method", f"expected a Method, got {self.method!r} (RunSettings.of takes a name)")
+        if self.associate is not None:
+            object.__setattr__(self, "associate", _choice("associate", Associate, self.associate))
+        object.__setattr__(self, "support_planes",
+                           _choice("support_planes", PlaneSource, self.support_planes))
+        sig = {}
+        for name, value in dict(self.sigma or {}).items():
+            try:
+                sig[name] = check_sigma(name, value)
+            except (TypeError, ValueError) as e:
+                raise SettingsError("sigma", str(e)) from None
+        object.__setattr__(self, "sigma", MappingProxyType(sig))
+        object.__setattr__(self, "max_iterations", _integer("max_iterations", self.max_iterations, 1))
+        object.__setattr__(self, "min_views", _integer("min_views", self.min_views, 1))
+        tol = self.tolerance
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (math.isfinite(tol) and tol >= 0):
+            raise SettingsError("tolerance", f"expected a finite number ≥ 0, got {tol!r}")
+        try:
+            object.__setattr__(self, "keyframes", parse_keyframes(self.keyframes))
+        except ValueError as e:
+            raise SettingsError("keyframes", str(e).removeprefix("keyframes ")) from None
+        for name in ("hold_trajectory", "screen", "class_table"):
+            _boolean(name, getattr(self, name))
+        if self.online is not None:
+            if not isinstance(self.online, OnlineSettings):
+                raise SettingsError("online", f"expected OnlineSettings, got {self.online!r}")
+            if self.keyframes != "all":
+                raise SettingsError("keyframes", "an online run uses every frame: expected all, "
+                                    f"got {self.keyframes!r}")
+            if self.support_planes != PlaneSource.PRIORS:
+                raise SettingsError("support_planes", "an online run takes support planes from the "
+                                    f"priors only: expected priors, got {self.support_planes!r}")
+            if self.method.parameterization not in ("spd", "rts"):
+                raise SettingsError("parameterization", "online mapping takes SPD or RTS landmarks, "
+                                    f"not {self.method.parameterization!r}")
+            if self.method.box_model not in ("inverse", "semi"):
+                raise SettingsError("box_model", "online mapping takes one box model (inverse or "
+                                    f"semi), not {self.method.box_model!r}")
+
+    @classmethod
+    def of(cls, method: str | Method = "multi-spd", **settings) -> RunSettings:
+        """Settings from a method name (or ``Method``) and keywords: the fields of
+        ``RunSettings``, ``Method`` fields as overrides (None: the method's), ``robust`` also
+        as a list of the command line's KERNEL or TYPE=KERNEL[:K] items, and ``online`` also
+        as True or a mapping of ``OnlineSettings``' fields."""
+        if isinstance(method, str):
+            if method not in METHODS:
+                raise SettingsError("method", f"expected one of {', '.join(METHODS)}, got {method!r}")
+            method = METHODS[method]
+        elif not isinstance(method, Method):
+            raise SettingsError("method", f"expected a name of METHODS or a Method, got {method!r}")
+        own = {f.name for f in dataclasses.fields(cls)} - {"method"}
+        unknown = set(settings) - own - set(METHOD_FIELDS)
+        if unknown:
+            raise TypeError(f"unknown settings {', '.join(sorted(unknown))}; expected fields of "
+                            "RunSettings or Method")
+        overrides = {k: v for k, v in settings.items() if k in METHOD_FIELDS and v is not None}
+        robust = overrides.get("robust")
+        if robust is not None and not isinstance(robust, str):
+            overrides.pop("robust")
+            try:
+                parsed = parse_robust(list(robust), overrides.pop("robust_k", None))
+            except ValueError as e:
+                raise SettingsError("robust", str(e)) from None
+            overrides.update(parsed)
+        try:
+            method = method.replace(**overrides)
+        except ValueError as e:
+            bad = next((k for k in overrides if str(e).startswith(k)), "method")
+            raise SettingsError(bad, str(e).removeprefix(f"{bad} ")) from None
+        online = settings.get("online")
+        if online is True:
+            online = OnlineSettings()
+        elif online is False:
+            online = None
+        elif isinstance(online, Mapping):
+            unknown = set(online) - {f.name for f in dataclasses.fields(OnlineSettings)}
+            if unknown:
+                raise SettingsError("online", f"expected keys among {', '.join(f.name for f in dataclasses.fields(OnlineSettings))}, got {', '.join(sorted(unknown))}")
+            online = OnlineSettings(**online)
+        mine = {k: v for k, v in settings.items() if k in own and k != "online"}
+        return cls(method=method, online=online, **mine)
+
+    def replace(self, **changes) -> RunSettings:
+        """A copy with ``changes`` (checked again)."""
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain values (map.json's record of a run)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["method"] = dataclasses.asdict(self.method)
+        out["sigma"] = dict(self.sigma)
+        out["online"] = None if self.online is None else dataclasses.asdict(self.online)
+        for k, v in out.items():
+            if isinstance(v, enum.Enum):
+                out[k] = v.value
+        return out
+
+
+def setting_help(name: str) -> str:
+    """The help text of a field of ``RunSettings`` or (``online.NAME``) ``OnlineSettings``
+    (the CLI's help and the manifest's documentation)."""
+    cls = OnlineSettings if name.startswith("online.") else RunSettings
+    rest = name.removeprefix("online.")
+    for f in dataclasses.fields(cls):
+        if f.name == rest:
+            return f.metadata["help"]
+    raise KeyError(name)
+
+
+def as_settings(method, settings: dict) -> RunSettings:
+    """``method`` when it is a ``RunSettings`` (then ``settings`` must be empty), else
+    ``RunSettings.of(method, **settings)``: the Python API's one way in."""
+    if isinstance(method, RunSettings):
+        if settings:
+            raise TypeError(f"settings given twice: a RunSettings and {', '.join(sorted(settings))}")
+        return method
+    return RunSettings.of(method, **settings)
