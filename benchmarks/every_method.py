@@ -6,7 +6,7 @@
 
 For each part (fr2_desk whole, each half and each third of its frames; fr3_cabinet) and each
 method of ``mapping.METHODS``, the run that ``spdslam run`` makes (``experiments.map_sequence``,
-then ``evaluation.write_run`` into a temporary folder). Prints one row per run: whether it
+then ``experiments.write_run`` into a temporary folder). Prints one row per run: whether it
 ended (``ok``) or raised (the exception, as the CLI would report it), the objects mapped and
 not mapped (the reasons, counted by their first words), and the ATE of the input and of the
 optimised trajectory (mm). A failure confined to one object must show as a row of its own
@@ -25,10 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from spdslam.evaluation import write_run
-from spdslam.experiments import map_sequence
+from spdslam.experiments import map_sequence, write_run
 from spdslam.io import read_sequence
-from spdslam.mapping import METHODS
+from spdslam.mapping import METHODS, RunSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 PARTS = ("whole", "half1", "half2", "third1", "third2", "third3", "cabinet")
@@ -66,7 +65,7 @@ def main() -> None:
         for method in a.methods.split(","):
             t = time.perf_counter()
             try:
-                result, _ = map_sequence(seq, method)
+                result, _ = map_sequence(seq, RunSettings.of(method))
                 with tempfile.TemporaryDirectory() as out:
                     metrics = write_run(Path(out) / "run", seq, result, overlay=False)
             except Exception as e:  # noqa: BLE001 - the row says what ended the run

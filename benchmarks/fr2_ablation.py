@@ -193,11 +193,11 @@ def main() -> None:
     pipeline_row("B2 the pipeline, poses held", seq, table, hold_trajectory=True)
     pipeline_row("B3 the pipeline, default noise model", seq, table)
     pipeline_row("B4 the pipeline, the noise model before issue 27", seq, table, screen=False, robust="none",
-                 sigmas={"odometry_translation": 1e-3, "odometry_rotation": 1e-3,
+                 sigma={"odometry_translation": 1e-3, "odometry_rotation": 1e-3,
                          "absolute_translation": np.inf, "absolute_rotation": np.inf})
     for sa in (0.005, 0.01, 0.02):  # the bound on each pose (default 2 mm, 2 mrad)
         pipeline_row(f"B5 the pipeline, each pose within {1e3 * sa:g} mm and {1e3 * sa:g} mrad", seq, table,
-                     sigmas={"absolute_translation": sa, "absolute_rotation": sa})
+                     sigma={"absolute_translation": sa, "absolute_rotation": sa})
     for kernel, k in (("none", 1.0), ("huber", 6.0), ("cauchy", 2.0)):  # the box kernel (default cauchy 6)
         pipeline_row(f"B6 the pipeline, box kernel {kernel}" + (f" {k:g}" if kernel != "none" else ""), seq, table,
                      robust=kernel, robust_k=k)

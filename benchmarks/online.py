@@ -80,7 +80,7 @@ def fr2(args) -> dict:
         by_frame.setdefault(d.frame, []).append(d)
     for rep in ("first", "second"):
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="auto", window=args.window,
-                         every=args.every, max_iterations=args.iterations)
+                         every=args.every, iterations=args.iterations)
         for i in range(len(seq)):
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
         r = stats(m.records, seq.timestamps)
@@ -111,9 +111,9 @@ def demo_rooms(args) -> dict:
         seq = make_room_sequence(seed)
         batch = run_sequence(seq, "multi-spd", tolerance=1e-10, max_iterations=300)
         online, _ = run_online(seq, final_batch=False, window=args.window, every=args.every,
-                               max_iterations=args.iterations)
-        final, _ = run_online(seq, window=args.window, every=args.every, max_iterations=args.iterations,
-                              final_iterations=300, final_tolerance=1e-10)
+                               iterations=args.iterations)
+        final, _ = run_online(seq, window=args.window, every=args.every, iterations=args.iterations,
+                              max_iterations=300, tolerance=1e-10)
         r = dict(batch_cost=batch.final_cost, final_cost=final.final_cost,
                  cost_rel_diff=abs(final.final_cost - batch.final_cost) / batch.final_cost,
                  iou_batch=mean_iou(batch, seq), iou_online=mean_iou(online, seq),
@@ -138,7 +138,7 @@ def room(args) -> dict:
     out = {}
     for rep in ("first", "second"):
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
-                         every=args.every, max_iterations=args.iterations)
+                         every=args.every, iterations=args.iterations)
         t0 = time.perf_counter()
         for i in range(len(seq)):
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))

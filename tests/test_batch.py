@@ -11,6 +11,7 @@ from conftest import cli_invoke
 
 from spdslam.experiments import LocalEngine, read_manifest
 from spdslam.io import SequenceFormatError, write_sequence
+from spdslam.mapping import OnlineSettings, RunSettings
 from spdslam.synthetic import make_room_sequence
 
 
@@ -39,11 +40,10 @@ jobs:
     assert [j.name for j in jobs] == ["a-multi-rts", "a-multi-spd", "a-online"]
     assert [j.method for j in jobs] == ["multi-rts", "multi-spd", "multi-spd"]
     assert jobs[0].sequence == tmp_path / "seqs" / "a"
-    assert jobs[0].settings == {"max_iterations": 40, "sigma": {"inverse_box": 3.0}}
-    assert jobs[2].settings["max_iterations"] == 7
-    assert jobs[2].settings["online"] == {"window": 12, "every": 10, "iterations": 5, "final_batch": True,
-                                          "warmup": False}
-    assert jobs[2].settings["robust"] == ["huber"]
+    assert jobs[0].settings == RunSettings.of("multi-rts", max_iterations=40, sigma={"inverse_box": 3.0})
+    assert jobs[2].settings.max_iterations == 7
+    assert jobs[2].settings.online == OnlineSettings(window=12)
+    assert (jobs[2].settings.method.robust, jobs[2].settings.method.robust_k) == ("huber", 1.0)
     assert [j.line for j in jobs] == [5, 5, 7]
 
 
@@ -54,14 +54,19 @@ jobs:
         ("jobs:\n  - sequence: a\n    colour: red\n", 3, "a key of a job among"),
         ("jobs:\n  - method: multi-spd\n", 2, "a sequence for the job"),
         ("jobs:\n  - sequence: a\n  - sequence: a\n", 3, "unique job names"),
-        ("jobs:\n  - sequence: a\n    sigma: {inverse_box: -1}\n", 3, "a positive sigma inverse_box"),
+        ("jobs:\n  - sequence: a\n    sigma: {inverse_box: -1}\n", 3, "sigma: expected a finite positive value for inverse_box"),
         ("jobs:\n  - sequence: a\n    sigma: {nonsense: 1}\n", 3, "a sigma among"),
-        ("jobs:\n  - sequence: a\n    online: true\n    keyframes: 3\n", 2, "keyframes all for an online job"),
+        ("jobs:\n  - sequence: a\n    online: true\n    keyframes: 3\n", 4, "keyframes: an online run uses every frame: expected all, got 3"),
+        ("jobs:\n  - sequence: a\n    parameterization: full\n    online: true\n", 3,
+         "parameterization: online mapping takes SPD or RTS landmarks: expected spd or rts, got 'full'"),
+        ("defaults:\n  max_iterations: 0\njobs:\n  - sequence: a\n", 2, "max_iterations: expected an integer ≥ 1, got 0"),
+        ("jobs:\n  - sequence: a\n    tolerance: -1\n", 3, "tolerance: expected a finite number ≥ 0"),
         ("jobs:\n  - sequence: a\n    name: x/y\n", 3, "a plain folder name"),
         ("jobs:\n  - sequence: a\n    methods: [multi-spd, multi-rts]\n    name: n\n", 4, "no name for a job of several methods"),
         ("jobs:\n  - sequence: a\n    max_iterations: 0\n", 3, "an integer ≥ 1"),
         ("jobs:\n  - sequence: a\n    robust: [bogus]\n", 3, "robust: expected KERNEL"),
-        ("jobs:\n  - sequence: a\n    online: {window: 1}\n", 3, "online window: an integer ≥ 2"),
+        ("jobs:\n  - sequence: a\n    online: {window: 1}\n", 3, "online.window: expected an integer ≥ 2, got 1"),
+        ("jobs:\n  - sequence: a\n    online:\n      every: 2\n      window: 1\n", 5, "online.window: expected an integer ≥ 2"),
         ("jobs: []\n", 1, "a non-empty list of jobs"),
         ("defaults:\n  sequence: a\njobs:\n  - sequence: a\n", 2, "defaults without sequence or name"),
         ("jobs:\n  - sequence: a\n    method: multi-spd\n    methods: [multi-rts]\n", 4, "method or methods, not both"),
@@ -114,32 +119,43 @@ def two_sequences(tmp_path_factory):
     return root
 
 
-def test_batch_runs_the_good_jobs_and_reports_the_bad_ones(two_sequences, tmp_path):
+def test_batch_runs_the_good_jobs_and_reports_the_bad_ones(two_sequences, tmp_path, monkeypatch):
     m = _manifest(two_sequences, """\
 jobs:
   - sequence: room
     method: multi-spd
   - sequence: broken
   - sequence: room
-    name: full-online
-    parameterization: full
-    online: true
+    name: crash
 """)
+    import spdslam.mapping
+
+    real = spdslam.mapping.run_sequence
+
+    def crash(seq, settings, **kw):  # a failure of the whole problem, in the job "crash"
+        if crash.calls:
+            raise spdslam.mapping.MappingError("optimisation (inverse boxes)", "Singular matrix")
+        crash.calls += 1
+        return real(seq, settings, **kw)
+
+    crash.calls = 0
+    monkeypatch.setattr(spdslam.mapping, "run_sequence", crash)
     out = tmp_path / "out"
     r = cli_invoke("batch", m, "--out", out, "--retries", "0")
     assert r.exit_code == 1, r.output
     rows = list(csv.DictReader(open(out / "batch.csv")))
-    assert [x["job"] for x in rows] == ["room-multi-spd", "broken-multi-spd", "full-online"]
+    assert [x["job"] for x in rows] == ["room-multi-spd", "broken-multi-spd", "crash"]
     assert [x["status"] for x in rows] == ["done", "failed", "failed"]
     assert [x["stage"] for x in rows] == ["", "read", "map"]
     assert "detections.txt:3:" in rows[1]["error"]
-    assert "Full" in rows[2]["error"] or "full" in rows[2]["error"]
+    assert "optimisation (inverse boxes): Singular matrix" in rows[2]["error"]
     assert (out / "room-multi-spd" / "map.json").is_file()
-    assert not (out / "broken-multi-spd").exists() and not (out / "full-online").exists()
+    assert not (out / "broken-multi-spd").exists() and not (out / "crash").exists()
     report = json.loads((out / "batch.json").read_text())
     assert report["engine"]["name"] == "local" and len(report["jobs"]) == 3
     assert float(rows[0]["mean_iou"]) > 0.5
     # the same run through spdslam run: the same map
+    monkeypatch.undo()
     single = tmp_path / "single"
     r = cli_invoke("run", two_sequences / "room", "--out", single, "--no-overlay")
     assert r.exit_code == 0, r.output
@@ -168,4 +184,4 @@ def test_the_manifest_of_docs_scaling_md_reads(tmp_path):
     jobs = read_manifest(_manifest(tmp_path, block))
     assert [j.name for j in jobs] == ["room0-quadric-slam", "room0-multi-rts", "room0-multi-spd",
                                       "room1-online"]
-    assert jobs[3].settings["online"]["window"] == 30 and jobs[3].settings["sigma"] == {"inverse_box": 3.0}
+    assert jobs[3].settings.online.window == 30 and jobs[3].settings.sigma == {"inverse_box": 3.0}

@@ -184,7 +184,7 @@ def test_evaluate_accepts_the_map_json_path(run_out, seq_dir, tmp_path):
     "args, fragments",
     [
         (["--method", "bogus"], ["--method", "'bogus'", "multi-spd"]),
-        (["--sigma", "bogus=1"], ["--sigma", "'bogus=1'", "inverse_box"]),
+        (["--sigma", "bogus=1"], ["--sigma", "'bogus'", "inverse_box"]),
         (["--sigma", "inverse_box=abc"], ["--sigma", "'abc' is not a number"]),
         (["--sigma", "inverse_box"], ["--sigma", "NAME=VALUE"]),
         (["--sigma", "inverse_box=-1"], ["--sigma", "finite positive"]),
@@ -193,7 +193,7 @@ def test_evaluate_accepts_the_map_json_path(run_out, seq_dir, tmp_path):
         (["--robust", "boxes=huber"], ["--robust", "'boxes=huber'", "odometry"]),
         (["--robust", "box=huber:-1"], ["--robust", "K > 0"]),
         (["--robust", "box=huber:x"], ["--robust", "'x' is not a number"]),
-        (["--associate", "bogus"], ["--associate", "instances or auto", "'bogus'"]),
+        (["--associate", "bogus"], ["--associate", "instances, auto", "'bogus'"]),
         (["--object-shape", "box"], ["--object-shape", "cuboid", "'box'"]),
     ],
     ids=["method", "sigma-name", "sigma-value", "sigma-no-equals", "sigma-negative", "sigma-zero",

@@ -538,7 +538,7 @@ def test_cli_demo_no_ids(demo_cli, tmp_path):
     assert r.exit_code == 0, (r.stdout, r.stderr, r.exception)
     # mapped with automatic association; the generator's ids are kept only to score it
     seq, _, run_out, args = calls[-1]
-    assert run_out == out / "run" and args[-1] == "auto"
+    assert run_out == out / "run" and calls[-1][1].associate == "auto"
     assert all(d.instance is not None for d in seq.detections)
     r = invoke("--out", out, "--frames", 40, "--objects", 3, "--no-ids", "--associate", "instances")
     assert r.exit_code == 2 and "expected auto" in r.stderr

@@ -64,7 +64,7 @@ def test_methods_mirror_table_iii_and_validate():
     with pytest.raises(ValueError, match="classic shape"):
         Method("x", parameterization="spd", orientation="improved", shape_form="classic")
     seq = make_room_sequence(0, frames=30, objects=1)
-    with pytest.raises(ValueError, match="unknown method"):
+    with pytest.raises(ValueError, match="method: expected one of quadric-slam, .*, got 'orb-slam'"):
         run_sequence(seq, "orb-slam")
     with pytest.raises(ValueError, match="unknown sigma"):
         mapping_sigmas(seq, {"inverse_boxx": 1.0})

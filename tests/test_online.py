@@ -153,10 +153,11 @@ def test_bad_frames_are_refused_with_a_message(room, call, message):
 @pytest.mark.parametrize("kwargs, message", [
     ({"parameterization": "full"}, "SPD or RTS landmarks"),
     ({"box_model": "semi-then-inverse"}, "one box model"),
-    ({"associate": "ids"}, "instances or auto"),
-    ({"window": 1}, "window must be an integer >= 2"),
-    ({"every": 0}, "every must be an integer >= 1"),
-    ({"method": "nope"}, "unknown method"),
+    ({"associate": "ids"}, "associate: expected one of instances, auto, got 'ids'"),
+    ({"window": 1}, "online.window: expected an integer ≥ 2, got 1"),
+    ({"every": 0}, "online.every: expected an integer ≥ 1, got 0"),
+    ({"iterations": 1.5}, "online.iterations: expected an integer ≥ 1, got 1.5"),
+    ({"method": "nope"}, "method: expected one of quadric-slam"),
 ])
 def test_bad_settings_are_refused(room, kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -221,9 +222,11 @@ def test_run_online_cli_writes_the_batch_outputs_and_the_latency(tmp_path, room)
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--keyframes", "motion"], "--online: every frame is used; --keyframes must be all"),
-    (["--support-planes", "initial"], "--online: support planes come from the priors only"),
-    (["--box-model", "semi-then-inverse"], "one box model"),
+    (["--keyframes", "motion"], "--keyframes: an online run uses every frame: expected all, got 'motion'"),
+    (["--support-planes", "initial"], "--support-planes: an online run takes support planes from the priors only"),
+    (["--box-model", "semi-then-inverse"], "--box-model: online mapping takes one box model"),
+    (["--window", "1"], "--window: expected an integer ≥ 2, got 1"),
+    (["--online-iterations", "0"], "--online-iterations: expected an integer ≥ 1, got 0"),
 ])
 def test_run_online_cli_refuses_what_it_cannot_do(tmp_path, room, args, message):
     seq_dir = tmp_path / "room"

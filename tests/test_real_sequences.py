@@ -286,7 +286,8 @@ def test_the_evaluation_aligns_the_trajectory_to_the_ground_truth(tmp_path):
     """The same room with its trajectory, detections' world and ground truth objects moved
     by a rigid motion into another frame: the map is in the trajectory's frame, map.json
     records to_groundtruth, and the metrics are those of the unmoved room."""
-    from spdslam.evaluation import to_groundtruth, write_run
+    from spdslam.evaluation import to_groundtruth
+    from spdslam.experiments import write_run
 
     seq = make_room_sequence(0, frames=40, objects=3)
     assert seq.groundtruth_tum is not None

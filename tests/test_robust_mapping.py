@@ -64,7 +64,7 @@ def test_run_sequence_association_modes(small):
         small, detections=[dataclasses.replace(d, instance=None) for d in small.detections])
     r = run_sequence(no_ids, max_iterations=2)
     assert r.association == {"mode": "auto"}  # nothing to score against
-    with pytest.raises(ValueError, match="associate must be one of"):
+    with pytest.raises(ValueError, match="associate: expected one of instances, auto, got 'hungarian'"):
         run_sequence(small, associate="hungarian")
     with pytest.raises(ValueError, match="instance column"):
         run_sequence(no_ids, associate="instances")

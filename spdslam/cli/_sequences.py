@@ -6,25 +6,24 @@ Their choices and help come from the factor registry (robust-kernel groups) and 
 
 from __future__ import annotations
 
+import enum
 import math
 import os
 from pathlib import Path
 
 import typer
 
-from ..factors import DEFAULT_TRUNCATION_MARGIN, robust_groups
+from ..factors import robust_groups
 from ..mapping import (
-    ASSOCIATIONS,
     AUTO_BOX_KERNEL,
-    BOX_MODELS,
     DEFAULT_MAPPING_SIGMAS,
     METHODS,
-    OBJECT_SHAPE_CHOICES,
-    PARAMETERIZATIONS,
     ROBUST_CHOICES,
     ROBUST_KERNELS,
-    SUPPORT_PLANES,
-    parse_keyframes,
+    RUN_OVERRIDES,
+    OnlineSettings,
+    RunSettings,
+    setting_help,
 )
 from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
                    console, err_console, fail, open_engine)
@@ -44,6 +43,21 @@ _ROBUST_HELP = (
     f"({', '.join(robust_groups())}; KERNEL one of {', '.join(ROBUST_KERNELS)})."
 )
 _METHOD_HELP = f"The back end: {', '.join(METHODS)}."
+
+
+def _default(name: str):
+    """The default of a settings field (``RunSettings``, or ``online.NAME``: ``OnlineSettings``),
+    as a command-line default."""
+    cls = OnlineSettings if name.startswith("online.") else RunSettings
+    value = cls.__dataclass_fields__[name.removeprefix("online.")].default
+    return value.value if isinstance(value, enum.Enum) else value
+
+
+def _help(name: str, prefix: str = "") -> str:
+    """An option's help from the run's settings (``mapping.setting_help``, or the method
+    overrides' ``RUN_OVERRIDES``), as a sentence."""
+    text = RUN_OVERRIDES[name] if name in RUN_OVERRIDES else setting_help(name)
+    return f"{prefix + ': ' if prefix else ''}{text[0].upper()}{text[1:]}."
 
 
 def _formats_help() -> str:
@@ -104,22 +118,35 @@ def _load_sequence(path: Path, options: dict | None = None):
 
 
 def _parse_sigmas(items) -> dict:
-    from ..mapping import check_sigma
-
+    """``--sigma NAME=VALUE`` items as {NAME: number} (the values are checked by
+    ``RunSettings``)."""
     out = {}
     for item in items or []:
         name, sep, value = item.partition("=")
-        if not sep or name.strip() not in DEFAULT_MAPPING_SIGMAS:
+        if not sep:
             fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got {item!r}")
         try:
-            v = float(value)
+            out[name.strip()] = float(value)
         except ValueError:
             fail(f"--sigma: {value!r} is not a number (in {item!r})")
-        try:
-            out[name.strip()] = check_sigma(name.strip(), v)
-        except ValueError:
-            fail(f"--sigma: expected a finite positive value, got {item!r}")
     return out
+
+
+#: The command-line option of a settings field whose option is not ``--<field>``.
+_OPTION_OF = {"online.iterations": "--online-iterations", "online.warmup": "--warmup",
+              "online": "--online"}
+
+
+def _settings(method: str, **options):
+    """``RunSettings.of(method, **options)``: the run's settings, checked before anything is
+    read; a bad one ends the command in one line naming its option."""
+    from ..mapping import RunSettings, SettingsError
+
+    try:
+        return RunSettings.of(method, **options)
+    except SettingsError as e:
+        option = _OPTION_OF.get(e.field, "--" + e.field.split(".")[-1].replace("_", "-"))
+        fail(f"{option}: {e.reason}")
 
 
 def _print_metrics(metrics: dict) -> None:
@@ -142,16 +169,6 @@ def _check_out(out: Path, overwrite: bool) -> None:
         fail(f"--out: {out} exists and is not empty (use --overwrite)")
 
 
-def _parse_robust(items, robust_k):
-    """``--robust`` values → Method overrides (``mapping.parse_robust``), or a one-line error."""
-    from ..mapping import parse_robust
-
-    try:
-        return parse_robust(items, robust_k)
-    except ValueError as e:
-        fail(f"--robust: {e}")
-
-
 def _progress(message: str) -> None:
     """The run's stages and LM iterations, on stderr (stdout keeps the results)."""
     err_console.print(f"[dim]{message}[/dim]", highlight=False)
@@ -166,27 +183,21 @@ def _print_latency(records, rate) -> None:
                   + (f" (frame period {1e3 / rate:.3g} ms)" if rate else ""))
 
 
-def _run_and_write(seq, method, out, overwrite, overlay, sigmas, max_iterations, associate=None,
-                   keyframes="all", support_planes="priors", source=None, online=None,
-                   **overrides):
-    from ..evaluation import write_run
-    from ..experiments import latency_writer, map_sequence
+def _run_and_write(seq, settings, out, overwrite, overlay, source=None):
+    """Map ``seq`` with ``settings`` (``experiments.map_sequence``) and write the run's folder
+    ``out`` (``experiments.write_outputs``); errors as one line."""
+    from ..experiments import frame_rate, map_sequence, write_run
 
     _check_out(out, overwrite)
-    extra = None
     try:
-        result, records = map_sequence(seq, method, online=online, max_iterations=max_iterations,
-                                       sigma=sigmas, associate=associate, keyframes=keyframes,
-                                       support_planes=support_planes, progress=_progress,
-                                       **overrides)
+        result, records = map_sequence(seq, settings, progress=_progress)
     except ValueError as e:
         fail(f"{seq.name}: {e}")
     if records is not None:
-        extra, rate = latency_writer(seq, records)
-        _print_latency(records, rate)
+        _print_latency(records, frame_rate(seq))
     try:
-        metrics = write_run(out, seq, result, overlay=overlay, overwrite=overwrite, source=source,
-                            extra=extra)
+        metrics = write_run(out, seq, result, records, overlay=overlay, overwrite=overwrite,
+                            source=source)
     except FileExistsError as e:
         fail(f"--out: {e}")
     except OSError as e:  # the folder became unwritable, the disk is full, …
@@ -247,27 +258,27 @@ def run(
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
     option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, NAME=VALUE, repeatable (e.g. min_score=0.3 for an OA-SLAM folder; docs/formats.md)."),
-    parameterization: str | None = typer.Option(None, help=f"Override: {', '.join(PARAMETERIZATIONS)}."),
-    box_model: str | None = typer.Option(None, help=f"Override: {', '.join(BOX_MODELS)}."),
-    associate: str | None = typer.Option(None, help="Data association: instances (the instance column) or auto; default: instances when every detection has an id, else auto."),
-    object_shape: str | None = typer.Option(None, help=f"Silhouette model: {', '.join(OBJECT_SHAPE_CHOICES)} (priors: per class, priors.yaml 'shape')."),
-    truncation_margin: float | None = typer.Option(None, help=f"Box edges within this many px of the image border carry no bound (negative: keep all; default {DEFAULT_TRUNCATION_MARGIN:g})."),
+    parameterization: str | None = typer.Option(None, help=_help("parameterization")),
+    box_model: str | None = typer.Option(None, help=_help("box_model")),
+    associate: str | None = typer.Option(None, help=_help("associate")),
+    object_shape: str | None = typer.Option(None, help=_help("object_shape")),
+    truncation_margin: float | None = typer.Option(None, help=_help("truncation_margin")),
     robust: list[str] | None = typer.Option(None, help=_ROBUST_HELP),
     robust_k: float | None = typer.Option(None, help="Threshold of a plain --robust KERNEL (whitened units, default 1)."),
     sigma: list[str] | None = typer.Option(None, help=_SIGMA_HELP),
-    max_iterations: int = typer.Option(100, min=1, help="LM iteration budget per stage."),
-    keyframes: str = typer.Option("all", help="Frames to use: all, motion (a keyframe per 5 cm or 5°) or K (every K-th)."),
-    support_planes: str = typer.Option("priors", help=f"Support planes: {', '.join(SUPPORT_PLANES)} (priors.yaml's only; else estimated from the initial objects; else from the objects optimised without planes)."),
-    class_table: bool = typer.Option(True, "--class-table/--no-class-table", help="Classes without a priors.yaml entry take the built-in size table (docs/formats.md)."),
+    max_iterations: int = typer.Option(_default("max_iterations"), help=_help("max_iterations")),
+    keyframes: str = typer.Option(_default("keyframes"), help=_help("keyframes")),
+    support_planes: str = typer.Option(_default("support_planes"), help=_help("support_planes")),
+    class_table: bool = typer.Option(_default("class_table"), "--class-table/--no-class-table", help=_help("class_table")),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
     rerun: Path | None = typer.Option(None, "--rerun", help="Also write a rerun recording of the run to this .rrd file (needs rerun-sdk, the viewer extra; open it with: rerun FILE)."),
     online: bool = typer.Option(False, "--online", help="Replay the sequence frame by frame through the online mapper (a fixed-lag smoother) instead of one batch optimisation; also writes OUT/latency.csv and OUT/latency.png."),
-    window: int = typer.Option(30, min=2, help="--online: frames whose poses the fixed-lag problem keeps free."),
-    every: int = typer.Option(10, min=1, help="--online: frames between optimisations."),
-    online_iterations: int = typer.Option(5, min=1, help="--online: LM iterations per optimisation."),
-    warmup_first: bool = typer.Option(False, "--warmup", help="--online: compile before the first frame (a synthetic room replayed with this camera; OnlineMapper.warmup), as a live mapper would, so that latency.csv holds no compilation."),
-    final_batch: bool = typer.Option(True, "--final-batch/--no-final-batch", help="--online: after the last frame, one batch optimisation of every frame and view from the online state (--max-iterations); without it the map is the online estimates."),
+    window: int = typer.Option(_default("online.window"), help=_help("online.window", "--online")),
+    every: int = typer.Option(_default("online.every"), help=_help("online.every", "--online")),
+    online_iterations: int = typer.Option(_default("online.iterations"), help=_help("online.iterations", "--online")),
+    warmup_first: bool = typer.Option(_default("online.warmup"), "--warmup", help=_help("online.warmup", "--online")),
+    final_batch: bool = typer.Option(_default("online.final_batch"), "--final-batch/--no-final-batch", help=_help("online.final_batch", "--online")),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
 
@@ -277,45 +288,21 @@ def run(
     mapped one at a time (docs/online.md), and OUT/latency.csv and OUT/latency.png say how
     long each took.
     """
-    if method not in METHODS:
-        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    sigmas = _parse_sigmas(sigma)
-    robust_overrides = _parse_robust(robust, robust_k)
-    if associate not in (None, *ASSOCIATIONS):
-        fail(f"--associate: expected {' or '.join(ASSOCIATIONS)}, got {associate!r}")
-    if object_shape not in (None, *OBJECT_SHAPE_CHOICES):
-        fail(f"--object-shape: expected one of {', '.join(OBJECT_SHAPE_CHOICES)}, got {object_shape!r}")
-    if truncation_margin is not None and not math.isfinite(truncation_margin):
-        fail(f"--truncation-margin: expected a finite number of pixels, got {truncation_margin!r}")
-    try:
-        keyframes = parse_keyframes(keyframes)
-    except ValueError as e:
-        fail(f"--keyframes: {e}")
-    if support_planes not in SUPPORT_PLANES:
-        fail(f"--support-planes: expected one of {', '.join(SUPPORT_PLANES)}, got {support_planes!r}")
-    online_settings = None
-    if online:
-        if keyframes != "all":
-            fail("--online: every frame is used; --keyframes must be all")
-        if support_planes != "priors":
-            fail("--online: support planes come from the priors only; --support-planes must be priors")
-        online_settings = {"window": window, "every": every, "iterations": online_iterations,
-                           "final_batch": final_batch, "warmup": warmup_first}
+    on = {"window": window, "every": every, "iterations": online_iterations,
+          "final_batch": final_batch, "warmup": warmup_first} if online else None
+    settings = _settings(
+        method, sigma=_parse_sigmas(sigma), robust=robust, robust_k=robust_k,
+        parameterization=parameterization, box_model=box_model, associate=associate,
+        object_shape=object_shape, truncation_margin=truncation_margin,
+        max_iterations=max_iterations, keyframes=keyframes, support_planes=support_planes,
+        class_table=class_table, online=on)
     options = _format_options(option)
     _sequence_path(sequence)
     check_output(out, [sequence])
     if rerun is not None:
         _check_recording(rerun, "--rerun")
     seq = _load_sequence(sequence, options)
-    if not class_table:
-        from ..io import without_class_table
-
-        seq = without_class_table(seq)
-    result, metrics = _run_and_write(
-        seq, method, out, overwrite, overlay, sigmas, max_iterations, associate,
-        keyframes=keyframes, support_planes=support_planes, source=sequence, online=online_settings,
-        parameterization=parameterization, box_model=box_model,
-        object_shape=object_shape, truncation_margin=truncation_margin, **robust_overrides)
+    result, metrics = _run_and_write(seq, settings, out, overwrite, overlay, source=sequence)
     if rerun is not None:
         _write_recording(rerun, "--rerun", result.objects, result.poses_tum, seq,
                          metrics.get("to_groundtruth"))
@@ -586,13 +573,9 @@ def demo(
     from ..io import write_sequence
     from ..synthetic import make_room_sequence
 
-    if method not in METHODS:
-        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    if associate not in (None, *ASSOCIATIONS):
-        fail(f"--associate: expected {' or '.join(ASSOCIATIONS)}, got {associate!r}")
-    if associate is None:
-        associate = "auto" if no_ids else "instances"
-    if no_ids and associate != "auto":
+    settings = _settings(method, associate=associate if associate is not None
+                         else "auto" if no_ids else "instances")
+    if no_ids and settings.associate != "auto":
         fail("--associate: the detections have no instance ids (--no-ids): expected auto")
     if out.exists() and not out.is_dir():
         fail(f"--out: {out} exists and is not a folder")
@@ -620,8 +603,7 @@ def demo(
         f"({n_false} false) -> {out / 'sequence'}"
     )
     # automatic association ignores the ids; the generator's (scored_seq) only score it
-    _run_and_write(scored_seq, method, out / "run", True, False, {}, 100, associate,
-                   source=out / "sequence")
+    _run_and_write(scored_seq, settings, out / "run", True, False, source=out / "sequence")
 
 
 @app.command()
@@ -686,19 +668,18 @@ def warmup(
     from ..solver import ensure_compilation_cache
     from ..synthetic import make_room_sequence
 
-    if method not in METHODS:
-        fail(f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    settings = _settings(method)
     where = ensure_compilation_cache()
     if where is None:
         fail("the compilation cache is off (SPDSLAM_CACHE_DIR=off) or cannot be written: nothing to warm up")
     t0 = time.perf_counter()
     demo = make_room_sequence(0)
     base = _load_sequence(sequence) if sequence is not None else demo
-    run_sequence(demo, method)
+    run_sequence(demo, settings)
     console.print(f"warmup: batch run of the demo room, {time.perf_counter() - t0:.1f} s")
     room = make_room_sequence(0, frames, objects, camera=base.camera, truncation=True)
     try:
-        mapper = OnlineMapper(base.camera, base.priors, method, associate="auto")
+        mapper = OnlineMapper(base.camera, base.priors, settings.replace(associate="auto"))
     except ValueError as e:
         fail(f"--method: {e}")
     seconds = mapper.warmup(room)

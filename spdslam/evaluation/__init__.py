@@ -1,6 +1,7 @@
 """Evaluation against ground truth: 3D IoU of oriented cuboids, orientation error up to
 axis order and sign, trajectory error, confidence intervals, the run's report and figures.
-Imports ``geometry`` and ``io``; it evaluates any map, however it was made.
+Imports ``geometry`` and ``io``; it evaluates any map, however it was made, and writes no
+run folder (``experiments.write_run`` does).
 """
 
 from ..io import dumps_strict as dumps_strict  # strict JSON, for the layers above io
@@ -43,7 +44,6 @@ from ._report import report_markdown as report_markdown
 from ._report import shown as shown
 from ._report import table_iii as table_iii
 from ._report import to_groundtruth as to_groundtruth
-from ._report import write_run as write_run
 from ._rerun import RERUN_MISSING as RERUN_MISSING
 from ._rerun import write_recording as write_recording  # needs rerun-sdk (the viewer extra) when called
 from ._stats import Interval as Interval

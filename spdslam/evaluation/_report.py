@@ -1,4 +1,5 @@
-"""Metrics, tables and output folders of a sequence run (``spdslam run`` / ``evaluate``).
+"""Metrics and tables of a sequence run (``spdslam run`` / ``evaluate``); the folder is
+``experiments.write_run``'s.
 
 Per object (matched to the ground truth by id when every estimated id is a ground-truth id,
 else by a Hungarian assignment on 3D IoU among objects of the same label):
@@ -25,19 +26,17 @@ evo's ``--align``): the map is judged with the trajectory it was estimated with.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..geometry import Cuboid, Ellipsoid
-from ..io import MapObject, dumps_strict, tum_text, write_folder_atomically, write_map
+from ..io import MapObject
 from ._metrics import (
     absolute_trajectory_error,
     cuboid_iou,
     orientation_error_deg,
     trajectory_alignment,
 )
-from ._plots import plot_map_top, write_overlays
 
 __all__ = [
     "FRONT_END_NAMES",
@@ -342,44 +341,3 @@ def ground_truth_in_map_frame(seq, T):
         traj[:, 1:4] = traj[:, 1:4] @ R.T + p
         traj[:, 4:8] = (Rotation.from_matrix(R) * Rotation.from_quat(traj[:, 4:8])).as_quat()
     return cuboids, traj
-
-
-def write_run(out, seq, result, overlay: bool = True, max_overlays: int | None = 60,
-              overwrite: bool = False, source=None, extra=None) -> dict:
-    """Write map.json, trajectory.txt, report.md + metrics.json (with ground truth),
-    map_top.png and overlay/ (with images) into ``out``, atomically. ``result`` is a
-    ``mapping.MapResult`` (anything with its fields and ``as_dict()``); ``source``: the
-    sequence folder it was read from, recorded (absolute) as map.json's ``sequence`` so that
-    ``spdslam view OUT`` finds it; ``extra(folder)`` writes more files into the folder
-    before it is put in place (an online run's latency.csv). Returns the metrics."""
-
-    def write(tmp: Path) -> dict:
-        m = result.as_dict()
-        if source is not None:
-            m["sequence"] = str(Path(source).resolve())
-        metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)
-        if "to_groundtruth" in metrics:
-            m["to_groundtruth"] = metrics["to_groundtruth"]
-        write_map(tmp / "map.json", m)
-        (tmp / "trajectory.txt").write_text(tum_text(result.poses_tum), encoding="utf-8")
-        if "summary" in metrics or "ate" in metrics:
-            (tmp / "metrics.json").write_text(dumps_strict(metrics) + "\n", encoding="utf-8")
-            (tmp / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
-        up = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
-        T = np.asarray(metrics["to_groundtruth"]) if "to_groundtruth" in metrics else None
-        gt_cuboids, gt_traj = ground_truth_in_map_frame(seq, T)
-        plot_map_top(
-            tmp / "map_top.png", [o.ellipsoid for o in result.objects],
-            labels=[f"{o.label} {o.id}" for o in result.objects],
-            gt_cuboids=gt_cuboids, trajectory=result.poses_tum, gt_trajectory=gt_traj, up=up,
-            title=f"{result.method.name} on {seq.name}",
-        )
-        if overlay and seq.images:
-            write_overlays(tmp / "overlay", seq, [o.ellipsoid for o in result.objects],
-                           result.poses_tum, max_frames=max_overlays,
-                           labels=[f"{o.label} {o.id}" for o in result.objects])
-        if extra is not None:
-            extra(tmp)
-        return metrics
-
-    return write_folder_atomically(out, write, overwrite)

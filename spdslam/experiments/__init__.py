@@ -10,7 +10,6 @@ from ._batch import BATCH_COLUMNS as BATCH_COLUMNS
 from ._batch import JOB_SETTINGS as JOB_SETTINGS
 from ._batch import Job as Job
 from ._batch import JobReport as JobReport
-from ._batch import latency_writer as latency_writer
 from ._batch import map_sequence as map_sequence
 from ._batch import read_manifest as read_manifest
 from ._batch import run_batch as run_batch
@@ -28,6 +27,8 @@ from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
 from ._paper import PAPER_SUCCESS_IOU as PAPER_SUCCESS_IOU
 from ._paper import PARAM_NAMES as PARAM_NAMES
 from ._reference import compare_with_reference as compare_with_reference
+from ._run_folder import frame_rate as frame_rate
+from ._run_folder import write_run as write_run
 from ._reference import reference_solve as reference_solve
 from ._reference import reference_table as reference_table
 from ._study import StudyConfig as StudyConfig

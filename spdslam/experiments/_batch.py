@@ -26,30 +26,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
+from ..mapping import RUN_OVERRIDES, RUN_SETTING_NAMES, RunSettings, SettingsError, setting_help
 
-__all__ = ["BATCH_COLUMNS", "JOB_SETTINGS", "Job", "JobReport", "latency_writer", "map_sequence",
+__all__ = ["BATCH_COLUMNS", "JOB_SETTINGS", "Job", "JobReport", "map_sequence",
            "read_manifest", "run_batch", "write_batch_report"]
 
-#: The settings a job may set (``spdslam run``'s options), with what each expects.
+#: The settings a job may set, with what each means: the fields of ``mapping.RunSettings``
+#: (the method aside), the ``Method`` fields a run may override (``mapping.RUN_OVERRIDES``)
+#: and ``overlay`` (``write_run``'s); ``spdslam run``'s options have the same names.
 JOB_SETTINGS = {
-    "max_iterations": "a positive integer (LM iterations per stage)",
-    "associate": "instances or auto",
-    "keyframes": "all, motion or a positive integer",
-    "support_planes": "priors, estimate or optimized",
-    "sigma": "a mapping NAME: VALUE",
-    "parameterization": "a parameterisation",
-    "box_model": "a box model",
-    "object_shape": "a silhouette model",
-    "truncation_margin": "a number of pixels",
-    "robust": "a list of KERNEL or TYPE=KERNEL[:K]",
-    "robust_k": "a positive number",
-    "class_table": "true or false",
-    "overlay": "true or false",
-    "online": "false, true or a mapping window/every/iterations/final_batch/warmup",
+    **{name: setting_help(name) for name in RUN_SETTING_NAMES if name != "method"},
+    **RUN_OVERRIDES,
+    "overlay": "write overlay/ frames when the sequence has images (true or false)",
 }
-#: ``online``'s keys and defaults (``spdslam run --online``'s).
-ONLINE_DEFAULTS = {"window": 30, "every": 10, "iterations": 5, "final_batch": True, "warmup": False}
 #: The synthetic room an online run with ``warmup`` replays first (``OnlineMapper.warmup``):
 #: frames and objects, seen with the sequence's camera.
 WARMUP_ROOM = (300, 40)
@@ -57,13 +46,15 @@ WARMUP_ROOM = (300, 40)
 
 @dataclass(frozen=True)
 class Job:
-    """One run: ``sequence`` mapped by ``method`` with ``settings`` (keys of
-    :data:`JOB_SETTINGS`), written to the folder ``name``; ``line``: its manifest line."""
+    """One run: ``sequence`` mapped with ``settings`` (its method named ``method``), written
+    to the folder ``name`` (with overlay/ frames when ``overlay``); ``line``: its manifest
+    line."""
 
     name: str
     sequence: Path
     method: str
-    settings: dict = field(default_factory=dict)
+    settings: RunSettings = field(default_factory=RunSettings)
+    overlay: bool = True
     line: int | None = None
 
 
@@ -93,103 +84,61 @@ class JobReport:
 
 
 # --- the manifest -------------------------------------------------------------------------
-def _settings(name, pairs, where: str) -> dict:
-    """The settings of a job or of ``defaults`` from (key, key node, value node) pairs, checked."""
+def _plain(name, node):
+    """A YAML node as plain values: a scalar, a list or a mapping of them."""
     import yaml
 
-    from ..io import SequenceFormatError, yaml_kind, yaml_line, yaml_mapping, yaml_number, yaml_scalar
-    from ..mapping import (ASSOCIATIONS, BOX_MODELS, DEFAULT_MAPPING_SIGMAS, OBJECT_SHAPE_CHOICES,
-                           PARAMETERIZATIONS, SUPPORT_PLANES, check_sigma, parse_keyframes,
-                           parse_robust)
+    from ..io import yaml_mapping, yaml_scalar
 
-    def err(node, expected, got=None):
-        raise SequenceFormatError(name, yaml_line(node), expected, yaml_kind(node) if got is None else got)
+    if isinstance(node, yaml.MappingNode):
+        return {k: _plain(name, v) for k, _, v in yaml_mapping(name, node, "a mapping")}
+    if isinstance(node, yaml.SequenceNode):
+        return [_plain(name, i) for i in node.value]
+    return yaml_scalar(node)
 
-    def choice(node, allowed, what):
-        v = yaml_scalar(node)
-        if v not in allowed:
-            err(node, f"{what}: one of {', '.join(allowed)}")
-        return v
 
-    def boolean(node, what):
-        v = yaml_scalar(node)
-        if not isinstance(v, bool):
-            err(node, f"{what}: true or false")
-        return v
+def _settings(name, pairs, where: str) -> dict:
+    """{key: (value, key node, value node)} of a job's or ``defaults``' settings (keys of
+    :data:`JOB_SETTINGS`); the values are checked by ``RunSettings`` (``_job``)."""
+    from ..io import SequenceFormatError, yaml_line
 
-    def positive_int(node, what, least=1):
-        v = yaml_scalar(node)
-        if isinstance(v, bool) or not isinstance(v, int) or v < least:
-            err(node, f"{what}: an integer ≥ {least}")
-        return v
-
-    out, robust_node = {}, None
+    out = {}
     for key, knode, v in pairs:
-        if key == "max_iterations":
-            out[key] = positive_int(v, key)
-        elif key == "associate":
-            out[key] = choice(v, ASSOCIATIONS, key)
-        elif key == "keyframes":
-            try:
-                out[key] = parse_keyframes(yaml_scalar(v))
-            except ValueError:
-                err(v, "keyframes: all, motion or a positive integer")
-        elif key == "support_planes":
-            out[key] = choice(v, SUPPORT_PLANES, key)
-        elif key == "parameterization":
-            out[key] = choice(v, PARAMETERIZATIONS, key)
-        elif key == "box_model":
-            out[key] = choice(v, BOX_MODELS, key)
-        elif key == "object_shape":
-            out[key] = choice(v, OBJECT_SHAPE_CHOICES, key)
-        elif key == "truncation_margin":
-            out[key] = yaml_number(name, v, key)
-        elif key == "robust_k":
-            k = yaml_number(name, v, key)
-            if not k > 0:
-                err(v, "robust_k: a positive number", repr(k))
-            out[key] = k
-        elif key == "robust":
-            items = [v] if isinstance(v, yaml.ScalarNode) else v.value if isinstance(v, yaml.SequenceNode) else None
-            if items is None or not all(isinstance(yaml_scalar(i), str) for i in items):
-                err(v, "robust: a kernel or a list of KERNEL or TYPE=KERNEL[:K]")
-            out[key] = [yaml_scalar(i) for i in items]
-            robust_node = v
-        elif key in ("class_table", "overlay"):
-            out[key] = boolean(v, key)
-        elif key == "sigma":
-            sig = {}
-            for sname, sk, sv in yaml_mapping(name, v, "sigma"):
-                if sname not in DEFAULT_MAPPING_SIGMAS:
-                    err(sk, f"a sigma among {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}", repr(sname))
-                value = yaml_number(name, sv, f"sigma {sname}")
-                try:
-                    sig[sname] = check_sigma(sname, value)
-                except ValueError:
-                    err(sv, f"a positive sigma {sname}", repr(value))
-            out[key] = sig
-        elif key == "online":
-            if isinstance(v, yaml.MappingNode):
-                on = dict(ONLINE_DEFAULTS)
-                for ok, okn, ov in yaml_mapping(name, v, "online"):
-                    if ok in ("final_batch", "warmup"):
-                        on[ok] = boolean(ov, f"online {ok}")
-                    elif ok in ONLINE_DEFAULTS:
-                        on[ok] = positive_int(ov, f"online {ok}", 2 if ok == "window" else 1)
-                    else:
-                        raise SequenceFormatError(name, yaml_line(okn), f"a key of online among {', '.join(ONLINE_DEFAULTS)}", repr(ok))
-                out[key] = on
-            else:
-                out[key] = dict(ONLINE_DEFAULTS) if boolean(v, "online") else None
-        else:
+        if key not in JOB_SETTINGS:
             raise SequenceFormatError(
                 name, yaml_line(knode), f"a key of {where} among {', '.join(JOB_SETTINGS)}", repr(key))
-    if robust_node is not None:
-        try:
-            parse_robust(out["robust"], out.get("robust_k"))
-        except ValueError as e:
-            err(robust_node, "robust: " + str(e).rsplit(", got", 1)[0], str(out["robust"]))
+        value = _plain(name, v)
+        if key == "robust" and not isinstance(value, list):
+            value = [value]
+        out[key] = (value, knode, v)
     return out
+
+
+def _job(name, method: str, settings: dict, node) -> tuple[RunSettings, bool]:
+    """(``RunSettings``, overlay) of a job's ``settings`` (``_settings``), or
+    ``SequenceFormatError`` at the line of the setting that is wrong (the job's line when
+    it came from a combination)."""
+    import yaml
+
+    from ..io import SequenceFormatError, yaml_line
+
+    values = {k: v for k, (v, _, _) in settings.items() if k != "overlay"}
+    overlay = settings.get("overlay", (True,))[0]
+    if not isinstance(overlay, bool):
+        raise SequenceFormatError(name, yaml_line(settings["overlay"][2]), "overlay: true or false",
+                                  repr(overlay))
+    try:
+        return RunSettings.of(method, **values), overlay
+    except SettingsError as e:
+        key, _, sub = e.field.partition(".")
+        where = node
+        if key in settings:
+            where = settings[key][2]
+            if sub and isinstance(where, yaml.MappingNode):
+                where = next((vn for kn, vn in where.value if kn.value == sub), where)
+        expected, sep, got = e.reason.rpartition(", got ")
+        raise SequenceFormatError(name, yaml_line(where), f"{e.field}: {expected if sep else e.reason}",
+                                  got if sep else "a combination the settings refuse") from None
 
 
 def read_manifest(path) -> list[Job]:
@@ -241,12 +190,6 @@ def read_manifest(path) -> list[Job]:
         settings = {k: v for k, v in defaults.items() if k != "_methods"}
         settings.update(_settings(name, [p for p in pairs if p[0] not in
                                          ("sequence", "method", "methods", "name")], "a job"))
-        if settings.get("online"):
-            if settings.get("keyframes", "all") != "all":
-                raise SequenceFormatError(name, yaml_line(node), "keyframes all for an online job", repr(settings["keyframes"]))
-            if settings.get("support_planes", "priors") != "priors":
-                raise SequenceFormatError(name, yaml_line(node), "support_planes priors for an online job",
-                                          repr(settings["support_planes"]))
         folder = Path(seq_value).expanduser()
         folder = folder if folder.is_absolute() else path.parent / folder
         for m in methods:
@@ -259,7 +202,8 @@ def read_manifest(path) -> list[Job]:
                 raise SequenceFormatError(name, yaml_line(node), f"unique job names ({job_name!r} is the job "
                                           f"of line {names[job_name]})", f"{job_name!r} twice")
             names[job_name] = yaml_line(node)
-            jobs.append(Job(job_name, folder, m, dict(settings), yaml_line(node)))
+            run, overlay = _job(name, m, settings, node)
+            jobs.append(Job(job_name, folder, m, run, overlay, yaml_line(node)))
     return jobs
 
 
@@ -288,69 +232,32 @@ def _methods(name, pairs, allowed) -> list[str]:
 
 
 # --- running ------------------------------------------------------------------------------
-def map_sequence(seq, method: str, *, online: dict | None = None, max_iterations: int = 100,
-                 sigma: dict | None = None, associate: str | None = None,
-                 keyframes: str | int = "all", support_planes: str = "priors", progress=None,
-                 **overrides):
+def map_sequence(seq, settings: RunSettings, progress=None):
     """Map a sequence as ``spdslam run`` does: (``MapResult``, the online run's
-    ``FrameRecord``s or None). ``online``: ``run_online``'s window, every, iterations
-    (per optimisation), final_batch and warmup (a ``WARMUP_ROOM`` replayed first); without it one batch optimisation
-    (``run_sequence``). The other keywords are ``Method`` overrides (None: the method's)."""
+    ``FrameRecord`` s or None): one batch optimisation (``mapping.run_sequence``), or, with
+    ``settings.online``, a replay through the online mapper (``mapping.run_online``; with
+    ``online.warmup`` a ``WARMUP_ROOM`` replayed first)."""
     from ..mapping import run_online, run_sequence
 
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    if online is None:
-        return run_sequence(seq, method, sigmas=sigma or {}, max_iterations=max_iterations,
-                            associate=associate, keyframes=keyframes,
-                            support_planes=support_planes, progress=progress, **overrides), None
-    on = {**ONLINE_DEFAULTS, **online}
+    if settings.online is None:
+        return run_sequence(seq, settings, progress=progress), None
     warmup = None
-    if on["warmup"]:
+    if settings.online.warmup:
         from ..synthetic import make_room_sequence
 
         warmup = make_room_sequence(0, *WARMUP_ROOM, camera=seq.camera, truncation=True)
-    return run_online(seq, method, associate=associate, sigmas=sigma or {},
-                      final_iterations=max_iterations, progress=progress, window=on["window"],
-                      every=on["every"], max_iterations=on["iterations"],
-                      final_batch=on["final_batch"], warmup=warmup, **overrides)
-
-
-def latency_writer(seq, records):
-    """(``extra``, ``rate``): ``write_run``'s ``extra``, which writes latency.csv and
-    latency.png of an online run's ``records``, and the frame rate of ``seq`` (None when its
-    timestamps give none)."""
-    from ..evaluation import latency_csv, plot_latency
-
-    dt = np.diff(np.asarray(seq.timestamps, float))
-    rate = 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else None
-
-    def extra(folder):
-        (folder / "latency.csv").write_text(latency_csv(records), encoding="utf-8")
-        plot_latency(folder / "latency.png", records, rate=rate, title=f"online mapping of {seq.name}")
-
-    return extra, rate
-
-
-def _job_settings(job: Job) -> dict:
-    """A job's settings as ``map_sequence``'s keywords."""
-    from ..mapping import parse_robust
-
-    kw = {k: v for k, v in job.settings.items()
-          if k not in ("class_table", "overlay", "robust", "robust_k")}
-    kw.update(parse_robust(job.settings.get("robust"), job.settings.get("robust_k")))
-    return kw
+    return run_online(seq, settings, progress=progress, warmup=warmup)
 
 
 def _map_task(job: Job, seq):
     """One job's mapping (runs in a worker): (MapResult, FrameRecords or None)."""
-    return map_sequence(seq, job.method, **_job_settings(job))
+    return map_sequence(seq, job.settings)
 
 
 def _read(job: Job):
-    from ..io import read_sequence, without_class_table
+    from ..io import read_sequence
 
-    seq = read_sequence(job.sequence)
-    return seq if job.settings.get("class_table", True) else without_class_table(seq)
+    return read_sequence(job.sequence)
 
 
 def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
@@ -360,8 +267,8 @@ def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
     leaves no folder). A job whose sequence cannot be read, whose mapping raises in every
     attempt or whose outputs cannot be written is reported failed with its error; the
     others are unaffected. ``progress(report, done, total)`` as each job ends."""
-    from ..evaluation import write_run
     from ._engines import LocalEngine, error_line
+    from ._run_folder import write_run
 
     engine = engine or LocalEngine()
     out = Path(out)
@@ -389,10 +296,9 @@ def run_batch(jobs: list[Job], out, engine=None, overwrite: bool = False,
             reports[i] = JobReport(job, "failed", "map", o.error, o.attempts, o.seconds, o.where)
         else:
             result, records = o.value
-            extra = latency_writer(seq, records)[0] if records is not None else None
             try:
-                metrics = write_run(out / job.name, seq, result, overlay=job.settings.get("overlay", True),
-                                    overwrite=overwrite, source=job.sequence, extra=extra)
+                metrics = write_run(out / job.name, seq, result, records, overlay=job.overlay,
+                                    overwrite=overwrite, source=job.sequence)
                 reports[i] = JobReport(job, "done", "", "", o.attempts, o.seconds, o.where,
                                        len(result.objects), metrics)
             except Exception as e:  # noqa: BLE001 - a full disk, a folder made meanwhile, …

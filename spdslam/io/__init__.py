@@ -36,7 +36,9 @@ from ._fr3_cabinet import import_fr3_cabinet as import_fr3_cabinet
 from ._fr3_cabinet import is_fr3_cabinet as is_fr3_cabinet
 from ._json import dumps_strict as dumps_strict
 from ._map import MapFormatError as MapFormatError
+from ._map import MAP_KEYS as MAP_KEYS
 from ._map import MapObject as MapObject
+from ._map import map_document as map_document
 from ._map import read_map as read_map
 from ._map import write_map as write_map
 from ._oaslam import COCO80 as COCO80

@@ -14,7 +14,24 @@ from ._parse import SequenceFormatError, read_text
 
 from ..geometry import Ellipsoid
 
-__all__ = ["MapObject", "MapFormatError", "read_map", "write_map"]
+__all__ = ["MAP_KEYS", "MapObject", "MapFormatError", "map_document", "read_map", "write_map"]
+
+#: The keys of map.json, in order, with what each holds (``map_document``; docs/formats.md).
+MAP_KEYS = {
+    "method": "the method's name",
+    "parameterization": "spd, rts or full",
+    "iterations": "LM iterations of all the run's optimisations",
+    "final_cost": "the cost at the end",
+    "initial_cost": "the cost at the start of the first optimisation",
+    "converged": "whether the last optimisation converged",
+    "reason": "why the last optimisation stopped",
+    "settings": "the method's fields",
+    "objects": "the mapped objects: id, label, center, rotation, radii, P, uncertainty",
+    "failed": "{id: why it is not mapped, with the step}",
+    "notes": "what the run noticed",
+    "association": "how detections were grouped (mode; precision and recall against ids)",
+    "cost_by_factor": "{factor kind: its part of the final cost}",
+}
 
 
 class MapFormatError(ValueError):
@@ -44,6 +61,29 @@ class MapObject:
         if self.uncertainty is not None:
             out["uncertainty"] = self.uncertainty
         return out
+
+
+def map_document(*, method: str, parameterization: str, iterations: int, final_cost: float,
+                 initial_cost: float, converged: bool, reason: str, settings: dict, objects,
+                 failed: dict, notes, association: dict, cost_by_factor: dict) -> dict:
+    """The content of map.json (``MAP_KEYS``, in that order) from a run's figures;
+    ``objects`` are ``MapObject`` s. ``spdslam run`` may add ``sequence`` (the folder it
+    read) and ``to_groundtruth`` (4×4) after them."""
+    return {
+        "method": method,
+        "parameterization": parameterization,
+        "iterations": int(iterations),
+        "final_cost": float(final_cost),
+        "initial_cost": float(initial_cost),
+        "converged": bool(converged),
+        "reason": reason,
+        "settings": settings,
+        "objects": [o.as_dict() for o in objects],
+        "failed": {str(k): v for k, v in failed.items()},
+        "notes": list(notes),
+        "association": dict(association),
+        "cost_by_factor": {k: float(v) for k, v in cost_by_factor.items()},
+    }
 
 
 def write_map(path, map_dict: dict) -> None:

@@ -6,6 +6,11 @@ the run (associate → initialise → build the graph → solve). Imports ``geom
 from ._context import SequenceContext as SequenceContext
 from ._context import object_shape as object_shape
 from ._graph import BOX_FACTORS as BOX_FACTORS
+from ._graph import OBJECT_FACTORS as OBJECT_FACTORS
+from ._graph import ObjectFactorRule as ObjectFactorRule
+from ._graph import ObjectInputs as ObjectInputs
+from ._graph import box_factors as box_factors
+from ._graph import object_factors as object_factors
 from ._graph import build_graph as build_graph
 from ._graph import mapping_sigmas as mapping_sigmas
 from ._graph import measured_objects as measured_objects
@@ -29,7 +34,6 @@ from ._methods import Method as Method
 from ._methods import check_sigma as check_sigma
 from ._methods import parse_robust as parse_robust
 from ._methods import robust_kernel as robust_kernel
-from ._methods import sigma_units as sigma_units
 from ._online import FrameRecord as FrameRecord
 from ._online import OnlineMap as OnlineMap
 from ._online import OnlineMapper as OnlineMapper
@@ -65,4 +69,15 @@ from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import run_sequence as run_sequence
+from ._settings import METHOD_FIELDS as METHOD_FIELDS
+from ._settings import RUN_OVERRIDES as RUN_OVERRIDES
+from ._settings import RUN_SETTING_NAMES as RUN_SETTING_NAMES
+from ._settings import Associate as Associate
+from ._settings import OnlineSettings as OnlineSettings
+from ._settings import PlaneSource as PlaneSource
+from ._settings import RunSettings as RunSettings
+from ._settings import SettingsError as SettingsError
+from ._settings import as_settings as as_settings
+from ._settings import default_association as default_association
+from ._settings import setting_help as setting_help
 from ._run import step as step

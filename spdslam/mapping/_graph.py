@@ -28,6 +28,9 @@ Robust kernels: ``Method.robust`` on the box and measured-ellipsoid factors, the
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any, Callable
+
 import jaxlie
 import numpy as np
 
@@ -62,8 +65,9 @@ from ._methods import (
 )
 from ._noise import estimate_step_sigma
 
-__all__ = ["absolute_sigma", "build_graph", "mapping_sigmas", "measured_objects", "support_plane",
-           "trajectory_noise_note"]
+__all__ = ["OBJECT_FACTORS", "ObjectFactorRule", "ObjectInputs", "absolute_sigma", "box_factors",
+           "build_graph", "mapping_sigmas", "measured_objects", "measurement_factors",
+           "object_factors", "support_plane", "trajectory_noise_note", "with_robust_by_type"]
 
 #: Cauchy threshold (whitened units) of the shape and size factors of a built-in class
 #: prior (``io.BUILTIN_CLASSES``): typical of a class, not certain for an object, and wrong
@@ -181,6 +185,104 @@ def _odometry(ctx: SequenceContext, s: dict) -> list:
     return out
 
 
+@dataclass(frozen=True)
+class ObjectInputs:
+    """What an object's own factors are made from: the run's context, the object's track,
+    key ``L(id)`` and landmark value, the method, its silhouette model ("ellipsoid" or
+    "cuboid"), the sigmas in use and the estimated support planes (None: the priors')."""
+
+    ctx: SequenceContext
+    track: Any
+    key: Any
+    landmark: Any
+    method: Method
+    shape: str
+    sigmas: dict
+    planes: Any = None
+
+    @property
+    def class_prior(self):
+        """The ``ClassPrior`` of the object's label (priors.yaml's, else the built-in table's)."""
+        return self.ctx.class_prior(self.track.label)
+
+
+@dataclass(frozen=True)
+class ObjectFactorRule:
+    """One kind of an object's own factors in a run (``OBJECT_FACTORS``): ``uses(method)``
+    says whether a method adds them, ``make(ObjectInputs)`` makes them for one object (none
+    when the priors do not allow), reading the sigmas named in ``sigmas``."""
+
+    name: str
+    uses: Callable[[Method], bool]
+    make: Callable[[ObjectInputs], list]
+    sigmas: tuple = ()
+
+
+def _orientation(o: ObjectInputs) -> list:
+    """Against ``up``: improved (Log P m) × m (per axis for cuboid objects), classic (the
+    landmark's third axis ∥ up) or classic-nearest (the initial axis nearest up)."""
+    up, s, form = o.ctx.up, o.sigmas, o.method.orientation
+    if up is None:
+        return []
+    if form == "improved":
+        if o.shape == "cuboid":
+            return [AxisOrientationFactor(o.key, up, sigma=s["axis_orientation"])]
+        return [OrientationFactor(o.key, up, sigma=s["orientation"])]
+    axis = 2 if form == "classic" else \
+        int(np.argmax(np.abs(np.asarray(o.landmark.orientation.as_matrix()).T @ up)))
+    return [ClassicOrientationFactor(o.key, up, axis, sigma=s["classic_orientation"])]
+
+
+def _support_plane(o: ObjectInputs) -> list:
+    """On the priors' plane nearest to the object, or on its estimated plane."""
+    plane = (support_plane(o.ctx.priors, as_ellipsoid(o.landmark)) if o.planes is None
+             else o.planes.plane_of(o.track.id))
+    return [] if plane is None else [SupportPlaneFactor(o.key, plane, sigma=o.sigmas["support_plane"])]
+
+
+def _prior_kernel(o: ObjectInputs):
+    """The Cauchy kernel of a built-in class prior's factors (``BUILTIN_PRIOR_CAUCHY``), None
+    for a prior priors.yaml states."""
+    stated = o.ctx.priors is not None and o.track.label in o.ctx.priors.classes
+    return robust_kernel("cauchy", BUILTIN_PRIOR_CAUCHY) \
+        if o.method.robust_builtin_priors and not stated else None
+
+
+def _shape(o: ObjectInputs) -> list:
+    """The class's shape: sorted ratios, or classic (in the landmark's axis order)."""
+    cp = o.class_prior
+    if cp is None:
+        return []
+    if o.method.shape_form == "classic":
+        return [ClassicShapeFactor(o.key, cp.radii, sigma=o.sigmas["classic_shape"], robust=_prior_kernel(o))]
+    return [ShapeFactor(o.key, cp.radii, sigma=o.sigmas["shape"], robust=_prior_kernel(o))]
+
+
+def _size(o: ObjectInputs) -> list:
+    cp = o.class_prior
+    return [] if cp is None else [SizeFactor(o.key, cp.radii, sigma=o.sigmas["size"], robust=_prior_kernel(o))]
+
+
+def _radius_floor(o: ObjectInputs) -> list:
+    """A floor on the smallest radius: a quarter of the class's smallest, at least
+    ``RADIUS_FLOOR``."""
+    cp = o.class_prior
+    floor = RADIUS_FLOOR if cp is None else max(RADIUS_FLOOR, 0.25 * float(np.min(cp.radii)))
+    return [RadiusFloorFactor(o.key, floor, sigma=o.sigmas["radius_floor"])]
+
+
+#: An object's own factors, in the graph's order: a new kind reaches ``spdslam run`` through
+#: its factor class and one entry here (docs/extending.md).
+OBJECT_FACTORS: dict[str, ObjectFactorRule] = {r.name: r for r in (
+    ObjectFactorRule("orientation", lambda m: m.orientation != "none", _orientation,
+                     ("orientation", "axis_orientation", "classic_orientation")),
+    ObjectFactorRule("support_plane", lambda m: m.support_plane, _support_plane, ("support_plane",)),
+    ObjectFactorRule("shape", lambda m: m.shape, _shape, ("shape", "classic_shape")),
+    ObjectFactorRule("size", lambda m: m.size, _size, ("size",)),
+    ObjectFactorRule("radius_floor", lambda m: m.radius_floor, _radius_floor, ("radius_floor",)),
+)}
+
+
 def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
                  robust) -> list:
     """The box factor of each of the track's detections (module docstring)."""
@@ -204,8 +306,7 @@ def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_mo
     """The box factors of the track (``boxes``; taken from ``reuse`` when an earlier build
     made them for the same track object and settings) and the object's own factors."""
     key = L(track.id)
-    priors = ctx.priors
-    shape = object_shape(method, priors, track.label)
+    shape = object_shape(method, ctx.priors, track.label)
     out = []
     if boxes:
         memo = (id(track), id(ctx), box_model, robust, method.margin, shape,
@@ -220,36 +321,10 @@ def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_mo
             out = box_factors(ctx, track, method, box_model, s, robust)
             if reuse is not None:  # the track and context kept alive, so their ids stay theirs
                 reuse[memo] = (track, ctx, tuple(out))
-    up = ctx.up
-    if up is not None and method.orientation == "improved":
-        if shape == "cuboid":
-            out.append(AxisOrientationFactor(key, up, sigma=s["axis_orientation"]))
-        else:
-            out.append(OrientationFactor(key, up, sigma=s["orientation"]))
-    elif up is not None and method.orientation == "classic":  # the landmark's third axis
-        out.append(ClassicOrientationFactor(key, up, 2, sigma=s["classic_orientation"]))
-    elif up is not None and method.orientation == "classic-nearest":
-        axis = int(np.argmax(np.abs(np.asarray(landmark.orientation.as_matrix()).T @ up)))
-        out.append(ClassicOrientationFactor(key, up, axis, sigma=s["classic_orientation"]))
-    if method.support_plane:
-        plane = (support_plane(priors, as_ellipsoid(landmark)) if planes is None
-                 else planes.plane_of(track.id))
-        if plane is not None:
-            out.append(SupportPlaneFactor(key, plane, sigma=s["support_plane"]))
-    cp = ctx.class_prior(track.label)
-    if cp is not None and (method.shape or method.size):
-        stated = ctx.priors is not None and track.label in ctx.priors.classes
-        kernel = robust_kernel("cauchy", BUILTIN_PRIOR_CAUCHY) \
-            if method.robust_builtin_priors and not stated else None
-        if method.shape and method.shape_form == "classic":
-            out.append(ClassicShapeFactor(key, cp.radii, sigma=s["classic_shape"], robust=kernel))
-        elif method.shape:
-            out.append(ShapeFactor(key, cp.radii, sigma=s["shape"], robust=kernel))
-        if method.size:
-            out.append(SizeFactor(key, cp.radii, sigma=s["size"], robust=kernel))
-    if method.radius_floor:
-        floor = RADIUS_FLOOR if cp is None else max(RADIUS_FLOOR, 0.25 * float(np.min(cp.radii)))
-        out.append(RadiusFloorFactor(key, floor, sigma=s["radius_floor"]))
+    obj = ObjectInputs(ctx, track, key, landmark, method, shape, s, planes)
+    for rule in OBJECT_FACTORS.values():
+        if rule.uses(method):
+            out += rule.make(obj)
     return out
 
 

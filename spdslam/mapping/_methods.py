@@ -111,13 +111,6 @@ DEFAULT_MAPPING_SIGMAS = {
 }
 
 
-def sigma_units() -> dict[str, str]:
-    """{name: unit and meaning} of every sigma of the table."""
-    out = {name: s.unit for name, s in default_sigmas().items()}
-    out.update({name: unit for name, (_, unit) in MAPPING_SIGMAS.items()})
-    return out
-
-
 @dataclass(frozen=True)
 class Method:
     """One back end: parameterisation, initialisation, box model and which constraints."""

@@ -47,7 +47,7 @@ from ..geometry import (
 )
 from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
-from ..io import MapObject, Sequence, class_prior, without_class_table
+from ..io import MapObject, Sequence, class_prior, map_document, without_class_table
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
 from ._graph import build_graph, measured_objects, support_plane, trajectory_noise_note
@@ -135,22 +135,13 @@ class MapResult:
     costs: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        """The content of map.json."""
-        return {
-            "method": self.method.name,
-            "parameterization": self.method.parameterization,
-            "iterations": int(self.iterations),
-            "final_cost": float(self.final_cost),
-            "initial_cost": float(self.initial_cost),
-            "converged": bool(self.converged),
-            "reason": self.reason,
-            "settings": dataclasses.asdict(self.method),
-            "objects": [o.as_dict() for o in self.objects],
-            "failed": {str(k): v for k, v in self.failed.items()},
-            "notes": list(self.notes),
-            "association": dict(self.association),
-            "cost_by_factor": {k: float(v) for k, v in self.costs.items()},
-        }
+        """The content of map.json (``io.map_document``)."""
+        return map_document(
+            method=self.method.name, parameterization=self.method.parameterization,
+            iterations=self.iterations, final_cost=self.final_cost,
+            initial_cost=self.initial_cost, converged=self.converged, reason=self.reason,
+            settings=dataclasses.asdict(self.method), objects=self.objects, failed=self.failed,
+            notes=self.notes, association=self.association, cost_by_factor=self.costs)
 
 
 # --- association ------------------------------------------------------------------------------

@@ -17,12 +17,24 @@ from types import MappingProxyType
 from typing import Any, Mapping
 
 from ._keyframes import parse_keyframes
-from ._methods import METHODS, Method, check_sigma, parse_robust
+from ..factors import DEFAULT_TRUNCATION_MARGIN
+from ._methods import (
+    BOX_MODELS,
+    METHODS,
+    OBJECT_SHAPE_CHOICES,
+    PARAMETERIZATIONS,
+    Method,
+    check_sigma,
+    parse_robust,
+)
 
 __all__ = [
     "Associate",
+    "METHOD_FIELDS",
     "OnlineSettings",
     "PlaneSource",
+    "RUN_OVERRIDES",
+    "RUN_SETTING_NAMES",
     "RunSettings",
     "SettingsError",
     "as_settings",
@@ -116,8 +128,19 @@ def default_association(seq) -> Associate:
     return Associate.INSTANCES if has_ids or not seq.detections else Associate.AUTO
 
 
-#: ``Method`` fields that a run may override by name (``spdslam run --parameterization``…).
+#: ``Method`` fields that a run may override by name (``RunSettings.of``).
 METHOD_FIELDS = tuple(f.name for f in dataclasses.fields(Method) if f.name != "name")
+#: The ``Method`` overrides of ``spdslam run``'s options and a manifest's keys, with their help.
+RUN_OVERRIDES = {
+    "parameterization": f"override the landmark's parameterisation: {', '.join(PARAMETERIZATIONS)}",
+    "box_model": f"override the box model: {', '.join(BOX_MODELS)}",
+    "object_shape": f"silhouette model: {', '.join(OBJECT_SHAPE_CHOICES)} (priors: per class, "
+                    "priors.yaml 'shape')",
+    "truncation_margin": "box edges within this many px of the image border carry no bound "
+                         f"(negative: keep all; default {DEFAULT_TRUNCATION_MARGIN:g})",
+    "robust": "robust kernels: KERNEL or TYPE=KERNEL[:K], a list",
+    "robust_k": "threshold of a plain KERNEL (whitened units, default 1)",
+}
 
 
 @dataclass(frozen=True)
@@ -186,11 +209,11 @@ class RunSettings:
                 raise SettingsError("support_planes", "an online run takes support planes from the "
                                     f"priors only: expected priors, got {self.support_planes!r}")
             if self.method.parameterization not in ("spd", "rts"):
-                raise SettingsError("parameterization", "online mapping takes SPD or RTS landmarks, "
-                                    f"not {self.method.parameterization!r}")
+                raise SettingsError("parameterization", "online mapping takes SPD or RTS landmarks: "
+                                    f"expected spd or rts, got {self.method.parameterization!r}")
             if self.method.box_model not in ("inverse", "semi"):
-                raise SettingsError("box_model", "online mapping takes one box model (inverse or "
-                                    f"semi), not {self.method.box_model!r}")
+                raise SettingsError("box_model", "online mapping takes one box model: expected "
+                                    f"inverse or semi, got {self.method.box_model!r}")
 
     @classmethod
     def of(cls, method: str | Method = "multi-spd", **settings) -> RunSettings:
@@ -211,7 +234,8 @@ class RunSettings:
                             "RunSettings or Method")
         overrides = {k: v for k, v in settings.items() if k in METHOD_FIELDS and v is not None}
         robust = overrides.get("robust")
-        if robust is not None and not isinstance(robust, str):
+        if robust is not None:
+            robust = [robust] if isinstance(robust, str) else robust
             overrides.pop("robust")
             try:
                 parsed = parse_robust(list(robust), overrides.pop("robust_k", None))
@@ -250,6 +274,10 @@ class RunSettings:
             if isinstance(v, enum.Enum):
                 out[k] = v.value
         return out
+
+
+#: The fields of ``RunSettings``, in order.
+RUN_SETTING_NAMES = tuple(f.name for f in dataclasses.fields(RunSettings))
 
 
 def setting_help(name: str) -> str:
