@@ -167,7 +167,7 @@ def test_an_implausibly_flat_result_is_reported_not_mapped():
     reason (``map_result``), whatever made it."""
     from spdslam.factors import LandmarkPriorFactor, PriorFactor
     from spdslam.geometry.se3 import from_tum
-    from spdslam.mapping import map_result
+    from spdslam.mapping import Optimised, map_result
     from spdslam.solver import L, NonlinearFactorGraph, Values, X
 
     seq = make_room_sequence(0, frames=3, objects=1)
@@ -179,7 +179,8 @@ def test_an_implausibly_flat_result_is_reported_not_mapped():
     class _Res:
         final_cost, converged, reason = 0.0, True, "test"
 
-    r = map_result(METHODS["multi-spd"], graph, values, {0: "book"}, {}, seq.timestamps[:1],
-                   {}, [], {"mode": "instances"}, 0, 0.0, _Res(), priors=Priors())
+    solved = Optimised(values=values, graph=graph, result=_Res(), initial_cost=0.0)
+    r = map_result(METHODS["multi-spd"], solved, {0: "book"}, {}, seq.timestamps[:1],
+                   {}, [], {"mode": "instances"}, priors=Priors())
     assert not r.objects and "poorly observed: flat" in r.failed[0]
 

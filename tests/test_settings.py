@@ -129,6 +129,9 @@ def test_the_cli_and_the_manifest_take_their_names_and_help_from_the_settings():
                          ("online_iterations", "online.iterations")):
         text = setting_help(name)
         assert text[1:] in params[option].help, option
+    assert params["method"].default == RunSettings.method.name
+    for name in set(RUN_SETTING_NAMES) - {"online", "method"}:  # every setting is an option
+        assert name in params and params[name].default in (getattr(RunSettings, name, None), None), name
     online = {f.name: f.default for f in dataclasses.fields(OnlineSettings)}
     assert (params["window"].default, params["every"].default) == (online["window"], online["every"])
     assert params["max_iterations"].default == RunSettings.max_iterations

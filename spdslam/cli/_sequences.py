@@ -269,6 +269,10 @@ def run(
     max_iterations: int = typer.Option(_default("max_iterations"), help=_help("max_iterations")),
     keyframes: str = typer.Option(_default("keyframes"), help=_help("keyframes")),
     support_planes: str = typer.Option(_default("support_planes"), help=_help("support_planes")),
+    tolerance: float = typer.Option(_default("tolerance"), help=_help("tolerance")),
+    min_views: int = typer.Option(_default("min_views"), help=_help("min_views")),
+    hold_trajectory: bool = typer.Option(_default("hold_trajectory"), "--hold-trajectory/--free-trajectory", help=_help("hold_trajectory")),
+    screen: bool = typer.Option(_default("screen"), "--screen/--no-screen", help=_help("screen")),
     class_table: bool = typer.Option(_default("class_table"), "--class-table/--no-class-table", help=_help("class_table")),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
@@ -295,7 +299,8 @@ def run(
         parameterization=parameterization, box_model=box_model, associate=associate,
         object_shape=object_shape, truncation_margin=truncation_margin,
         max_iterations=max_iterations, keyframes=keyframes, support_planes=support_planes,
-        class_table=class_table, online=on)
+        class_table=class_table, tolerance=tolerance, min_views=min_views,
+        hold_trajectory=hold_trajectory, screen=screen, online=on)
     options = _format_options(option)
     _sequence_path(sequence)
     check_output(out, [sequence])

@@ -52,6 +52,7 @@ from ._run import Initialization as Initialization
 from ._run import OBJECT_ERRORS as OBJECT_ERRORS
 from ._run import MapResult as MapResult
 from ._run import MappingError as MappingError
+from ._run import Optimised as Optimised
 from ._run import associate_tracks as associate_tracks
 from ._run import cost_by_factor as cost_by_factor
 from ._run import degenerate as degenerate

@@ -74,6 +74,7 @@ from ._run import (
     drop_rarely_detected,
     as_landmark,
     wholly_in_front,
+    Optimised,
     initialize_objects,
     map_result,
     nesting_depths,
@@ -709,9 +710,10 @@ class OnlineMapper:
         if self._screened:
             notes.append(screen_summary(self._screened, self._n_detections))
         record = {"mode": "online-" + self.associate}
-        return map_result(self.method, graph, values, labels, dict(self._initial), seq.timestamps,
-                          failed, notes, record, res.iterations, res.initial_cost, res,
-                          priors=seq.priors)
+        solved = Optimised(values=values, graph=graph, result=res, iterations=res.iterations,
+                           initial_cost=res.initial_cost)
+        return map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
+                          failed, notes, record, priors=seq.priors)
 
 
 class _Unchanged:

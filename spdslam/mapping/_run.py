@@ -62,6 +62,7 @@ __all__ = [
     "Initialization",
     "MapResult",
     "MappingError",
+    "Optimised",
     "associate_tracks",
     "cost_by_factor",
     "implausibly_flat",
@@ -703,27 +704,23 @@ def run_sequence(
     optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
                                    relative_tolerance=tolerance,
                                    callback=each_iteration if progress else None)
-    total_it, first_cost, res, graph = 0, None, None, None
-    planes = front.planes
     fixed = [X(i) for i in range(len(ctx.poses))] if hold_trajectory else []
+    solve = Optimised(values=values, fixed=fixed)
+    planes = front.planes
     made: dict = {}  # box factors per track, across this run's graphs (build_graph's reuse)
 
-    def optimise(stage: str, what: str) -> None:
-        """Build the graph of the current tracks, landmarks and planes; optimise ``values``."""
-        nonlocal graph, res, values, total_it, first_cost, landmarks
+    def optimise(stage: str, what: str) -> dict:
+        """The graph of the current tracks, landmarks and planes, optimised: the landmarks."""
         with step("graph"):
             graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
                                 planes, odometry=not hold_trajectory, reuse=made)
-        say(f"optimisation ({what}): {len(values)} variables, {len(graph)} factors")
+        say(f"optimisation ({what}): {len(solve.values)} variables, {len(graph)} factors")
         with step(f"optimisation ({what})"):
-            res = optimizer.optimize(graph, values, fixed=fixed)
-        values = res.values
-        total_it += res.iterations
-        first_cost = res.initial_cost if first_cost is None else first_cost
-        landmarks = {k: values[L(k)] for k in landmarks}
+            solve.add(graph, optimizer.optimize(graph, solve.values, fixed=fixed))
+        return {k: solve.values[L(k)] for k in landmarks}
 
     for stage in stages:
-        optimise(stage, f"{stage} boxes")
+        landmarks = optimise(stage, f"{stage} boxes")
     if (support_planes == "optimised" and method.support_plane and ctx.up is not None
             and not ctx.support_planes() and landmarks):
         with step("support planes"):
@@ -731,7 +728,7 @@ def run_sequence(
         if len(estimated.planes):
             planes = estimated
             front.notes.append(_planes_note(planes, ctx.up, "optimised"))
-            optimise(stages[-1], "with the estimated support planes")
+            landmarks = optimise(stages[-1], "with the estimated support planes")
 
     labels = {tr.id: tr.label for tr in front.tracks}  # the front end's objects, merged or not
     if association.record.get("mode") == "auto":  # instance ids are trusted as given
@@ -740,25 +737,45 @@ def run_sequence(
                                            front.tracks)
             if pairs:
                 front = _merge_duplicates(front, landmarks, pairs)
-                values = Values({k: values[k] for k in values if k not in {L(d) for _, d in pairs}})
+                gone = {L(d) for _, d in pairs}
+                solve.values = Values({k: v for k, v in solve.values.items() if k not in gone})
         if pairs:
-            optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
+            landmarks = optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
 
     say("uncertainty: marginal covariances of the objects")
     with step("result"):
-        return map_result(method, graph, values, labels, front.ellipsoids, seq.timestamps,
-                          front.failed, front.notes, association.record, total_it, first_cost, res,
-                          fixed=fixed, priors=ctx.priors)
+        return map_result(method, solve, labels, front.ellipsoids, seq.timestamps, front.failed,
+                          front.notes, association.record, priors=ctx.priors)
 
 
-def map_result(method: Method, graph, values, labels: dict, initial: dict, timestamps,
-               failed: dict, notes: list, association: dict, iterations: int,
-               initial_cost: float, res, fixed=(), priors=None) -> MapResult:
-    """The ``MapResult`` of an optimised graph: the objects L(id) of ``labels`` {id: label}
-    in ``values`` with their uncertainty (``mapped_uncertainty``), those degenerate or
-    poorly observed moved to the failures; the poses X(0…) as TUM rows with ``timestamps``;
-    ``initial`` {id: Ellipsoid} the front end's objects; ``res`` the last optimisation's
-    result (final cost, convergence)."""
+@dataclass
+class Optimised:
+    """A run's optimisations so far: the last graph and its result (``OptimizationResult``,
+    or anything with ``final_cost``, ``converged`` and ``reason``), the values it ended at,
+    the LM iterations of all of them, the cost before the first, and the keys held fixed."""
+
+    values: Any
+    graph: Any = None
+    result: Any = None
+    iterations: int = 0
+    initial_cost: float | None = None
+    fixed: list = field(default_factory=list)
+
+    def add(self, graph, result) -> None:
+        """One more optimisation of ``graph``, which ended with ``result``."""
+        self.graph, self.result, self.values = graph, result, result.values
+        self.iterations += result.iterations
+        if self.initial_cost is None:
+            self.initial_cost = result.initial_cost
+
+
+def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, timestamps,
+               failed: dict, notes: list, association: dict, priors=None) -> MapResult:
+    """The ``MapResult`` of a run's optimisations ``solved``: the objects L(id) of ``labels``
+    {id: label} in its values with their uncertainty (``mapped_uncertainty``), each checked
+    (``object_quality``) and those that fail it moved to ``failed``; the poses X(0…) as TUM
+    rows with ``timestamps``; ``initial`` {id: Ellipsoid} the front end's objects."""
+    graph, values, res, fixed = solved.graph, solved.values, solved.result, solved.fixed
     ids = sorted(k for k in labels if L(k) in values)
     with step("uncertainty"):
         spread = mapped_uncertainty(graph, values, ids, fixed, res)
@@ -775,7 +792,7 @@ def map_result(method: Method, graph, values, labels: dict, initial: dict, times
         else:
             kept.append(o)
     return MapResult(
-        method, kept, first, poses_out, iterations, initial_cost, res.final_cost,
+        method, kept, first, poses_out, solved.iterations, solved.initial_cost, res.final_cost,
         res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values, res),
     )
 
