@@ -208,7 +208,8 @@ def info() -> None:
         backend, devices = "unavailable", f"error: {exc}"
     versions.add_row("jax backend", backend)
     versions.add_row("jax devices", devices)
-    versions.add_row("float64 (jax_enable_x64)", "enabled" if jax.config.jax_enable_x64 else "DISABLED")
+    x64 = jax.config.jax_enable_x64  # type: ignore[attr-defined]  # JAX's options are dynamic
+    versions.add_row("float64 (jax_enable_x64)", "enabled" if x64 else "DISABLED")
     versions.add_row(
         "compilation cache",
         str(_cache_dir_in_use) if _cache_dir_in_use is not None else "off",

@@ -47,9 +47,12 @@ def _print_report(report: dict) -> None:
 @app.command()
 def check(
     sequence: Path = typer.Argument(..., help="A sequence folder (any layout spdslam run reads)."),
-    map_: Path | None = typer.Option(None, "--map", help="Check against the objects of this run (its folder or map.json; the run's trajectory.txt when present) instead of the ground-truth objects."),
+    map_: Path | None = typer.Option(
+        None, "--map", help="Check against the objects of this run (its folder or map.json; the run's "
+                            "trajectory.txt when present) instead of the ground-truth objects."),
     json_path: Path | None = typer.Option(None, "--json", help="Also write the report as JSON to this file."),
-    min_iou: float = typer.Option(0.3, help="A detection pairs with a projected object of its label above this box IoU."),
+    min_iou: float = typer.Option(
+        0.3, help="A detection pairs with a projected object of its label above this box IoU."),
 ) -> None:
     """Check that the detection boxes agree with objects projected with the poses and the
     camera: per object and overall IoU, centre offset and size ratio, the time offset
@@ -57,8 +60,16 @@ def check(
     ground-truth objects when the sequence has them; else against a map (--map, or the
     map spdslam run makes with its defaults, made first)."""
     from ..evaluation import check_sequence
-    from ..io import (MapFormatError, SequenceFormatError, dumps_strict, read_map,
-                      check_sequence_path, read_measured_boxes, read_sequence, read_tum)
+    from ..io import (
+        MapFormatError,
+        SequenceFormatError,
+        check_sequence_path,
+        dumps_strict,
+        read_map,
+        read_measured_boxes,
+        read_sequence,
+        read_tum,
+    )
 
     if not (math.isfinite(min_iou) and 0 < min_iou < 1):
         fail(f"--min-iou: expected a number in (0, 1), got {min_iou}")

@@ -25,8 +25,18 @@ from ..mapping import (
     RunSettings,
     setting_help,
 )
-from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
-                   console, err_console, fail, open_engine)
+from ._app import (
+    RAY_ADDRESS_HELP,
+    RAY_HELP,
+    RETRIES_HELP,
+    WORKERS_HELP,
+    app,
+    check_output,
+    console,
+    err_console,
+    fail,
+    open_engine,
+)
 from ._simulate import split_option
 
 __all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup", "DEMO_MARKER"]
@@ -69,6 +79,12 @@ def _formats_help() -> str:
     except ImportError:  # a broken entry point: reported when a command looks a path up
         known = list(FORMATS.values())
     return "; ".join(f.describe() for f in known)
+
+
+#: The help of a SEQUENCE argument and of ``import``'s SOURCE: the registered formats, listed
+#: once when the CLI is imported.
+_SEQUENCE_HELP = f"The sequence, in a registered format (docs/formats.md): {_formats_help()}."
+_INPUT_HELP = f"The input, in a registered format (docs/formats.md): {_formats_help()}."
 
 
 def _format_options(items) -> dict:
@@ -124,7 +140,8 @@ def _parse_sigmas(items) -> dict:
     for item in items or []:
         name, sep, value = item.partition("=")
         if not sep:
-            fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got {item!r}")
+            fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got "
+                f"{item!r}")
         try:
             out[name.strip()] = float(value)
         except ValueError:
@@ -156,7 +173,8 @@ def _print_metrics(metrics: dict) -> None:
     if s:
         console.print(
             f"mean IoU {shown(s['mean_iou'])}, orientation error {shown(s['mean_orientation_deg'], '.2f', '°')}, "
-            f"centre error {shown(s['mean_center_error'], '.3f', ' m')} ({s['matched']}/{s['ground_truth_objects']} objects)"
+            f"centre error {shown(s['mean_center_error'], '.3f', ' m')} ({s['matched']}/{s['ground_truth_objects']} "
+                f"objects)"
         )
     if "ate" in metrics:
         console.print(ate_line(metrics["ate"]))
@@ -254,35 +272,41 @@ def _write_recording(path: Path, option: str, objects, trajectory, seq, to_groun
 
 @app.command()
 def run(
-    sequence: Path = typer.Argument(..., help=f"The sequence, in a registered format (docs/formats.md): {_formats_help()}."),
+    sequence: Path = typer.Argument(..., help=_SEQUENCE_HELP),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
-    option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, NAME=VALUE, repeatable (e.g. min_score=0.3 for an OA-SLAM folder; docs/formats.md)."),
+    option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, "
+        "NAME=VALUE, repeatable (e.g. min_score=0.3 for an OA-SLAM folder; docs/formats.md)."),
     parameterization: str | None = typer.Option(None, help=_help("parameterization")),
     box_model: str | None = typer.Option(None, help=_help("box_model")),
     associate: str | None = typer.Option(None, help=_help("associate")),
     object_shape: str | None = typer.Option(None, help=_help("object_shape")),
     truncation_margin: float | None = typer.Option(None, help=_help("truncation_margin")),
     robust: list[str] | None = typer.Option(None, help=_ROBUST_HELP),
-    robust_k: float | None = typer.Option(None, help="Threshold of a plain --robust KERNEL (whitened units, default 1)."),
+    robust_k: float | None = typer.Option(None, help=_help("robust_k")),
     sigma: list[str] | None = typer.Option(None, help=_SIGMA_HELP),
     max_iterations: int = typer.Option(_default("max_iterations"), help=_help("max_iterations")),
     keyframes: str = typer.Option(_default("keyframes"), help=_help("keyframes")),
     support_planes: str = typer.Option(_default("support_planes"), help=_help("support_planes")),
     tolerance: float = typer.Option(_default("tolerance"), help=_help("tolerance")),
     min_views: int = typer.Option(_default("min_views"), help=_help("min_views")),
-    hold_trajectory: bool = typer.Option(_default("hold_trajectory"), "--hold-trajectory/--free-trajectory", help=_help("hold_trajectory")),
+    hold_trajectory: bool = typer.Option(_default("hold_trajectory"), "--hold-trajectory/--free-trajectory",
+                                         help=_help("hold_trajectory")),
     screen: bool = typer.Option(_default("screen"), "--screen/--no-screen", help=_help("screen")),
-    class_table: bool = typer.Option(_default("class_table"), "--class-table/--no-class-table", help=_help("class_table")),
+    class_table: bool = typer.Option(_default("class_table"), "--class-table/--no-class-table",
+                                     help=_help("class_table")),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
-    rerun: Path | None = typer.Option(None, "--rerun", help="Also write a rerun recording of the run to this .rrd file (needs rerun-sdk, the viewer extra; open it with: rerun FILE)."),
-    online: bool = typer.Option(False, "--online", help="Replay the sequence frame by frame through the online mapper (a fixed-lag smoother) instead of one batch optimisation; also writes OUT/latency.csv and OUT/latency.png."),
+    rerun: Path | None = typer.Option(None, "--rerun", help="Also write a rerun recording of the run to this .rrd "
+        "file (needs rerun-sdk, the viewer extra; open it with: rerun FILE)."),
+    online: bool = typer.Option(False, "--online", help="Replay the sequence frame by frame through the online mapper "
+        "(a fixed-lag smoother) instead of one batch optimisation; also writes OUT/latency.csv and OUT/latency.png."),
     window: int = typer.Option(_default("online.window"), help=_help("online.window", "--online")),
     every: int = typer.Option(_default("online.every"), help=_help("online.every", "--online")),
     online_iterations: int = typer.Option(_default("online.iterations"), help=_help("online.iterations", "--online")),
     warmup_first: bool = typer.Option(_default("online.warmup"), "--warmup", help=_help("online.warmup", "--online")),
-    final_batch: bool = typer.Option(_default("online.final_batch"), "--final-batch/--no-final-batch", help=_help("online.final_batch", "--online")),
+    final_batch: bool = typer.Option(_default("online.final_batch"), "--final-batch/--no-final-batch",
+                                     help=_help("online.final_batch", "--online")),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
 
@@ -378,18 +402,26 @@ _IMPORT_OPTIONS = {
 
 @app.command("import")
 def import_(
-    source: Path = typer.Argument(..., help=f"The input, in a registered format (docs/formats.md): {_formats_help()}."),
+    source: Path = typer.Argument(..., help=_INPUT_HELP),
     dest: Path = typer.Argument(..., help="Destination folder (canonical format)."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty DEST."),
-    trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual SLAM's, as the paper) or groundtruth (a ROS 2 bag's poses come from --pose-topic)."),
+    trajectory: str = typer.Option("odometry", help="OA-SLAM layout: the poses to map with, odometry (the visual "
+        "SLAM's, as the paper) or groundtruth (a ROS 2 bag's poses come from --pose-topic)."),
     min_score: float = typer.Option(0.5, help="OA-SLAM layout and ROS 2 bags: leave out detections scored below this."),
-    undistort: bool = typer.Option(True, help="OA-SLAM layout and ROS 2 bags: replace each box by the pinhole box of its undistorted outline (--no-undistort keeps the measured boxes)."),
-    camera_info_topic: str | None = typer.Option(None, help="ROS 2 bags: the sensor_msgs/msg/CameraInfo topic (default: the bag's only one)."),
-    detections_topic: str | None = typer.Option(None, help="ROS 2 bags: the vision_msgs/msg/Detection2DArray topic (default: the bag's only one)."),
-    pose_topic: str | None = typer.Option(None, help="ROS 2 bags: the camera poses, a geometry_msgs/msg/PoseStamped, nav_msgs/msg/Odometry or tf2_msgs/msg/TFMessage (/tf) topic (default: the bag's only one)."),
-    world_frame: str | None = typer.Option(None, help="ROS 2 bags: the world frame of the poses (tf: default the root of the camera's tf tree; PoseStamped, Odometry: checked against header.frame_id)."),
-    camera_frame: str | None = typer.Option(None, help="ROS 2 bags: the camera's optical frame (tf: default CameraInfo's header.frame_id; Odometry: checked against child_frame_id)."),
-    option: list[str] | None = typer.Option(None, "--option", help="Any other option of the format's reader, NAME=VALUE, repeatable (a format a package adds; docs/extending.md)."),
+    undistort: bool = typer.Option(True, help="OA-SLAM layout and ROS 2 bags: replace each box by the pinhole box of "
+        "its undistorted outline (--no-undistort keeps the measured boxes)."),
+    camera_info_topic: str | None = typer.Option(None, help="ROS 2 bags: the sensor_msgs/msg/CameraInfo topic "
+        "(default: the bag's only one)."),
+    detections_topic: str | None = typer.Option(None, help="ROS 2 bags: the vision_msgs/msg/Detection2DArray topic "
+        "(default: the bag's only one)."),
+    pose_topic: str | None = typer.Option(None, help="ROS 2 bags: the camera poses, a geometry_msgs/msg/PoseStamped, "
+        "nav_msgs/msg/Odometry or tf2_msgs/msg/TFMessage (/tf) topic (default: the bag's only one)."),
+    world_frame: str | None = typer.Option(None, help="ROS 2 bags: the world frame of the poses (tf: default the root "
+        "of the camera's tf tree; PoseStamped, Odometry: checked against header.frame_id)."),
+    camera_frame: str | None = typer.Option(None, help="ROS 2 bags: the camera's optical frame (tf: default "
+        "CameraInfo's header.frame_id; Odometry: checked against child_frame_id)."),
+    option: list[str] | None = typer.Option(None, "--option", help="Any other option of the format's reader, "
+        "NAME=VALUE, repeatable (a format a package adds; docs/extending.md)."),
 ) -> None:
     """Convert a sequence in any registered format (an fr3_cabinet- or OA-SLAM-style
     folder, a ROS 2 bag: CameraInfo, vision_msgs Detection2DArray, and PoseStamped,
@@ -505,7 +537,7 @@ def compare(
     if not seq.objects_gt:
         fail(f"{sequence}: expected object ground truth (objects_gt.txt) to compare methods, got none")
     _check_out(out, overwrite)
-    jobs = [Job(name, sequence, name, {"overlay": False}) for name in names]
+    jobs = [Job(name, sequence, name, _settings(name), overlay=False) for name in names]
     reports = _run_jobs(jobs, out, ray, ray_address, workers, retries, overwrite)
     failed = [r for r in reports if r.status != "done"]
     if failed:
@@ -525,8 +557,10 @@ def compare(
 
 @app.command()
 def batch(
-    manifest: Path = typer.Argument(..., help="The manifest (YAML): jobs of sequence, method and settings (docs/scaling.md)."),
-    out: Path = typer.Option(Path("batch"), "--out", help="Output folder: a sub-folder per job, batch.csv and batch.json."),
+    manifest: Path = typer.Argument(..., help="The manifest (YAML): jobs of sequence, method and settings "
+        "(docs/scaling.md)."),
+    out: Path = typer.Option(Path("batch"), "--out", help="Output folder: a sub-folder per job, batch.csv and "
+        "batch.json."),
     overwrite: bool = typer.Option(False, help="Replace non-empty job folders."),
     ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
     ray_address: str | None = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
@@ -556,17 +590,22 @@ DEMO_MARKER = ".spdslam-demo"
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("spdslam-demo"), "--out", help="Output folder (replaced if it holds an earlier demo)."),
+    out: Path = typer.Option(Path("spdslam-demo"), "--out",
+                             help="Output folder (replaced if it holds an earlier demo)."),
     seed: int = typer.Option(0, help="Seed of the generator."),
     frames: int = typer.Option(120, min=3, help="Camera frames."),
     objects: int = typer.Option(8, min=1, help="Objects in the room."),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
-    truncation: bool = typer.Option(False, "--truncation/--no-truncation", help="Keep objects partly outside the image (boxes clipped to it)."),
-    outliers: float = typer.Option(0.0, help="False detections (instance -1), as a fraction of the true ones, in [0, 1)."),
+    truncation: bool = typer.Option(False, "--truncation/--no-truncation", help="Keep objects partly outside the "
+        "image (boxes clipped to it)."),
+    outliers: float = typer.Option(0.0, help="False detections (instance -1), as a fraction of the true ones, in [0, "
+        "1)."),
     missed: float = typer.Option(0.0, help="Fraction of the true detections dropped, in [0, 1)."),
     cuboids: bool = typer.Option(False, "--cuboids", help="Box-shaped objects (boxes of their 8 projected corners)."),
-    no_ids: bool = typer.Option(False, "--no-ids", help="Write the detections without the instance column (then mapped with automatic association)."),
-    associate: str | None = typer.Option(None, help="Data association: instances or auto (default: auto with --no-ids, else instances)."),
+    no_ids: bool = typer.Option(False, "--no-ids", help="Write the detections without the instance column (then "
+        "mapped with automatic association)."),
+    associate: str | None = typer.Option(None, help="Data association: instances or auto (default: auto with "
+        "--no-ids, else instances)."),
 ) -> None:
     """The embedded default: generate a synthetic room sequence (OUT/sequence, canonical
     format) and map it with a method (OUT/run), end to end, without any download.
@@ -604,7 +643,7 @@ def demo(
     (out / DEMO_MARKER).write_text("written by spdslam demo\n", encoding="utf-8")
     write_sequence(seq, out / "sequence", overwrite=True)
     console.print(
-        f"demo: {len(seq)} frames, {len(seq.objects_gt)} objects, {len(seq.detections)} boxes "
+        f"demo: {len(seq)} frames, {len(seq.objects_gt or ())} objects, {len(seq.detections)} boxes "
         f"({n_false} false) -> {out / 'sequence'}"
     )
     # automatic association ignores the ids; the generator's (scored_seq) only score it
@@ -614,9 +653,12 @@ def demo(
 @app.command()
 def view(
     out: Path = typer.Argument(..., help="Output folder of spdslam run (map.json and trajectory.txt)."),
-    sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, detections, images, ground truth); default: the folder map.json records (spdslam run writes it), else the demo's sequence/ beside a demo's run/, else none."),
+    sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, "
+        "detections, images, ground truth); default: the folder map.json records (spdslam run writes it), else the "
+        "demo's sequence/ beside a demo's run/, else none."),
     recording: Path | None = typer.Option(None, "--out", help="The recording to write (default OUT/recording.rrd)."),
-    images: bool = typer.Option(True, "--images/--no-images", help="Embed the sequence's images (a long sequence's recording grows with them)."),
+    images: bool = typer.Option(True, "--images/--no-images", help="Embed the sequence's images (a long sequence's "
+        "recording grows with them)."),
 ) -> None:
     """Write a rerun recording (.rrd) of a run: the ellipsoids, the trajectories, the camera
     per frame and, with the sequence, its ground truth, images, detections and the projected
@@ -658,7 +700,8 @@ def view(
 
 @app.command()
 def warmup(
-    sequence: Path | None = typer.Argument(None, help="A sequence whose camera and priors to warm up for (default: the demo room's)."),
+    sequence: Path | None = typer.Argument(None, help="A sequence whose camera and priors to warm up for (default: "
+        "the demo room's)."),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     frames: int = typer.Option(300, min=3, help="Frames of the synthetic room replayed online."),
     objects: int = typer.Option(40, min=1, help="Objects in that room."),

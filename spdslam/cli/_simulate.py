@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import typer
 
-from ._app import (RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output,
-                   console, fail, open_engine)
+from ._app import RAY_ADDRESS_HELP, RAY_HELP, RETRIES_HELP, WORKERS_HELP, app, check_output, console, fail, open_engine
 
 __all__ = ["simulate", "split_option"]
 
@@ -95,7 +95,7 @@ def simulate(
     --ray the grid is solved in tasks (cells x trial batches of one method) on Ray, with the
     same trials.csv (docs/scaling.md).
     """
-    cfg_kwargs = dict(
+    cfg_kwargs: dict[str, Any] = dict(
         trials=trials,
         seed=seed,
         params=split_option("params", params, ("F", "S", "O")),

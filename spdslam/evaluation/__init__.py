@@ -5,6 +5,16 @@ run folder (``experiments.write_run`` does).
 """
 
 from ..io import dumps_strict as dumps_strict  # strict JSON, for the layers above io
+from ._check import BOX_CONVENTIONS as BOX_CONVENTIONS
+from ._check import CheckReference as CheckReference
+from ._check import box_iou as box_iou
+from ._check import camera_frame_offset as camera_frame_offset
+from ._check import check_findings as check_findings
+from ._check import check_sequence as check_sequence
+from ._check import interpolate_poses as interpolate_poses
+from ._check import match_detections as match_detections
+from ._check import pair_detections as pair_detections
+from ._check import reference_of_ground_truth as reference_of_ground_truth
 from ._metrics import MAX_ORIENTATION_ERROR_DEG as MAX_ORIENTATION_ERROR_DEG
 from ._metrics import absolute_trajectory_error as absolute_trajectory_error
 from ._metrics import align_rigid as align_rigid
@@ -17,13 +27,13 @@ from ._metrics import orientation_errors_deg as orientation_errors_deg
 from ._metrics import signed_permutations as signed_permutations
 from ._metrics import trajectory_alignment as trajectory_alignment
 from ._metrics import translation_error as translation_error
+from ._plots import LATENCY_COLUMNS as LATENCY_COLUMNS
 from ._plots import camera_centers as camera_centers
 from ._plots import conic_ellipse as conic_ellipse
 from ._plots import conic_ellipses as conic_ellipses
 from ._plots import conic_outline as conic_outline
 from ._plots import ellipse_points as ellipse_points
 from ._plots import ellipses_points as ellipses_points
-from ._plots import LATENCY_COLUMNS as LATENCY_COLUMNS
 from ._plots import latency_csv as latency_csv
 from ._plots import plane_basis as plane_basis
 from ._plots import plot_latency as plot_latency
@@ -51,13 +61,3 @@ from ._stats import PairedComparison as PairedComparison
 from ._stats import bootstrap as bootstrap
 from ._stats import paired_comparison as paired_comparison
 from ._stats import wilson as wilson
-from ._check import BOX_CONVENTIONS as BOX_CONVENTIONS
-from ._check import CheckReference as CheckReference
-from ._check import box_iou as box_iou
-from ._check import camera_frame_offset as camera_frame_offset
-from ._check import check_findings as check_findings
-from ._check import check_sequence as check_sequence
-from ._check import interpolate_poses as interpolate_poses
-from ._check import match_detections as match_detections
-from ._check import pair_detections as pair_detections
-from ._check import reference_of_ground_truth as reference_of_ground_truth

@@ -28,14 +28,22 @@ comparisons; the scan forms them again at each δ. Nothing here optimises.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import (Ellipsoid, distort_points, dual_quadric, in_front, project_box,
-                        project_cuboid_box, project_dual_quadric)
+from ..geometry import (
+    Ellipsoid,
+    distort_points,
+    dual_quadric,
+    in_front,
+    project_box,
+    project_cuboid_box,
+    project_dual_quadric,
+)
 from ..geometry.se3 import from_tum
 from ._metrics import associate_timestamps
 from ._plots import conic_ellipses, ellipses_points
@@ -231,8 +239,8 @@ def _source(seq, ref: CheckReference, offsets, min_iou, max_gap, raw=None, disto
         return proj, cuboid, vis, whole, ok, d, k, iou
 
     proj, cuboid, vis, whole, ok, d, k, iou = pairs_at(0.0)
-    out = {"reference": ref.name, "detections": len(dets),
-           "detections_with_pose": int(ok[slot].sum()) if len(dets) else 0}
+    out: dict[str, Any] = {"reference": ref.name, "detections": len(dets),
+                           "detections_with_pose": int(ok[slot].sum()) if len(dets) else 0}
     out["overall"] = _box_stats(boxes[d], proj[slot[d], k])
     per = []
     for j in range(K):
@@ -408,7 +416,8 @@ def check_findings(report: dict) -> list[str]:
                          f"{dd['undistorted_vs_pinhole']:.3f}, measured boxes against the distorted "
                          f"projection {dd['measured_vs_distorted']:.3f} (the exact model), measured boxes "
                          f"uncorrected {dd['measured_vs_pinhole']:.3f}: the undistortion "
-                         + ("agrees with the lens model" if agree else "loses against the exact model: check the coefficients"))
+                         + ("agrees with the lens model" if agree
+                            else "loses against the exact model: check the coefficients"))
         if max(abs(du), abs(dv)) > 3.0:
             same = [r for r in s["objects"] if r["pairs"] and max(abs(v) for v in r["center_offset_px"]) > 2.0]
             lines.append(f"{name}: a systematic image offset ({du:+.1f}, {dv:+.1f}) px, {len(same)} of "
@@ -419,7 +428,8 @@ def check_findings(report: dict) -> list[str]:
         if box_like:
             lines.append(f"{name}: the boxes fit the circumscribed cuboid's silhouette better than the "
                          f"ellipsoid's: {', '.join(box_like)} (box-like objects: shape: cuboid in priors.yaml)")
-        other = [f"{r['label']} ({r['id']}) is boxed as " + ", ".join(f"{a} ({b})" for a, b in r["other_labels"].items())
+        other = [f"{r['label']} ({r['id']}) is boxed as "
+                 + ", ".join(f"{a} ({b})" for a, b in r["other_labels"].items())
                  for r in s["objects"] if r.get("other_labels")]
         if other:
             lines.append(f"{name}: no box of the object's own label, boxes of others: {'; '.join(other)}")

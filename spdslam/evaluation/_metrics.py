@@ -45,8 +45,8 @@ def _signed_permutations() -> np.ndarray:
             G = np.zeros((3, 3))
             G[list(perm), range(3)] = signs
             mats.append(G)
-    mats = np.array(mats)
-    return mats[np.argsort(-np.round(np.linalg.det(mats)), kind="stable")]
+    stack = np.array(mats)
+    return stack[np.argsort(-np.round(np.linalg.det(stack)), kind="stable")]
 
 
 _SIGNED_PERMS = _signed_permutations()
@@ -269,10 +269,10 @@ def associate_timestamps(t_a, t_b, tolerance: float = 0.02):
             used_a[i] = used_b[j] = True
             out_a.append(i)
             out_b.append(order[j])
-    out_a = np.asarray(out_a, dtype=int)
-    out_b = np.asarray(out_b, dtype=int)
-    s = np.argsort(out_a, kind="stable")
-    return out_a[s], out_b[s]
+    pa = np.asarray(out_a, dtype=int)
+    pb = np.asarray(out_b, dtype=int)
+    s = np.argsort(pa, kind="stable")
+    return pa[s], pb[s]
 
 
 def _tum_array(x, name: str) -> np.ndarray:

@@ -200,7 +200,7 @@ def _place_labels(fig, ax, anchors, texts, colors, fontsize: float = 7.0) -> Non
     frame = ax.get_window_extent(renderer)
     rings = [(0.0, 0.0)] + [(r * np.cos(a), r * np.sin(a)) for r in (11, 22, 34, 48, 64)
                             for a in np.linspace(0, 2 * np.pi, 12, endpoint=False) + r]
-    placed = []
+    placed: list = []
     for xy, text, color in zip(anchors, texts, colors):
         for k, (dx, dy) in enumerate(rings):
             t = ax.annotate(

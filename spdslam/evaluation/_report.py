@@ -13,7 +13,8 @@ else by a Hungarian assignment on 3D IoU among objects of the same label):
 Per sequence: the mean IoU over the ground-truth objects (an object the method did not
 map counts 0; the headline), the mean over the matched ones, the mean orientation and
 centre errors over the matched ones (and the orientation error over the matched objects
-whose ground truth has a clear orientation: three distinct half-extents), and the trajectory ATE (RMSE after SE(3) alignment)
+whose ground truth has a clear orientation: three distinct half-extents), and the trajectory ATE
+(RMSE after SE(3) alignment)
 when ground-truth poses exist.
 
 The frame: the map stays in its trajectory's frame. With ground-truth poses the objects
@@ -48,7 +49,6 @@ __all__ = [
     "report_markdown",
     "table_iii",
     "to_groundtruth",
-    "write_run",
 ]
 
 
@@ -94,7 +94,8 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
     gts = {int(g.id): g for g in gt_objects}
     rows = []
     for o in objects:
-        g = gts.get(match.get(int(o.id)))
+        gid = match.get(int(o.id))
+        g = None if gid is None else gts.get(gid)
         if g is None:
             rows.append(ObjectMetrics(o.id, o.label, None, 0.0, float("nan"), float("nan")))
             continue
@@ -105,7 +106,7 @@ def evaluate_objects(objects, gt_objects, by_id: bool = True) -> tuple[list, dic
             float(np.linalg.norm(c.center - g.cuboid.center)),
         ))
     matched = [r for r in rows if r.gt_id is not None]
-    oriented = [r for r in matched if clearly_oriented(gts[r.gt_id].cuboid.half_extents)]
+    oriented = [r for r in matched if clearly_oriented(gts[r.gt_id].cuboid.half_extents)]  # type: ignore[index]
     n_gt = len(gt_objects)
     summary = {
         "objects": len(objects),
@@ -208,14 +209,14 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
             out["front_end"] = {"objects": [r.as_dict() for r in rows0], "summary": summary0}
     if seq.groundtruth_tum is not None:
         traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
-        out["ate"], why = {}, {}
+        out["ate"], ate_failures = {}, {}
         for key, traj in (("input", traj_in), ("optimized", np.asarray(poses_tum))):
             try:
                 out["ate"][key] = absolute_trajectory_error(traj, seq.groundtruth_tum)
             except ValueError as e:  # too few common poses, a path that fixes no alignment
-                out["ate"][key], why[key] = None, str(e)
-        if why:
-            out["ate"]["not_computed"] = why
+                out["ate"][key], ate_failures[key] = None, str(e)
+        if ate_failures:
+            out["ate"]["not_computed"] = ate_failures
     return out
 
 
@@ -275,7 +276,8 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
                       f"counts 0): {shown(s['mean_iou'])}; over the {s['matched']} matched: "
                       f"{shown(s['mean_iou_matched'])}. Orientation error over the "
                       f"{s.get('oriented_matched', 0)} matched objects with a clear orientation "
-                      f"(three distinct half-extents): {shown(s.get('mean_orientation_deg_oriented'), '.2f', '°')}.", ""]
+                      "(three distinct half-extents): "
+                      f"{shown(s.get('mean_orientation_deg_oriented'), '.2f', '°')}.", ""]
         if "precision" in s:
             lines += [f"Objects: {s['objects']} mapped for {s['ground_truth_objects']} in the ground "
                       f"truth; precision {shown(s['precision'])} (matched / mapped; objects the ground "

@@ -131,12 +131,13 @@ def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, see
     ma, mb = (np.concatenate(m) for m in zip(*means))
     q = [(1 - confidence) / 2, (1 + confidence) / 2]
     d = a - b
-    diff = Interval(float(d.mean()), *map(float, np.quantile(ma - mb, q)), n)
+    lo, hi = map(float, np.quantile(ma - mb, q))
+    diff = Interval(float(d.mean()), lo, hi, n)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = ma / mb  # a resample whose mean of b is 0 has no ratio: left out
         r = r[np.isfinite(r)]
-        ratio = Interval(float(a.mean() / b.mean()),
-                         *(map(float, np.quantile(r, q)) if r.size else (np.nan, np.nan)), n)
+        lo, hi = map(float, np.quantile(r, q)) if r.size else (np.nan, np.nan)
+        ratio = Interval(float(a.mean() / b.mean()), lo, hi, n)
     if np.all(d == 0):
         p = 1.0
     else:

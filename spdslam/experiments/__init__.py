@@ -27,10 +27,10 @@ from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
 from ._paper import PAPER_SUCCESS_IOU as PAPER_SUCCESS_IOU
 from ._paper import PARAM_NAMES as PARAM_NAMES
 from ._reference import compare_with_reference as compare_with_reference
-from ._run_folder import frame_rate as frame_rate
-from ._run_folder import write_run as write_run
 from ._reference import reference_solve as reference_solve
 from ._reference import reference_table as reference_table
+from ._run_folder import frame_rate as frame_rate
+from ._run_folder import write_run as write_run
 from ._study import StudyConfig as StudyConfig
 from ._study import StudyResult as StudyResult
 from ._study import run_study as run_study

@@ -171,7 +171,8 @@ def read_manifest(path) -> list[Job]:
         raise SequenceFormatError(name, None, "a list of jobs (jobs:)", "none")
     if not isinstance(jobs_node, yaml.SequenceNode) or not jobs_node.value:
         raise SequenceFormatError(name, yaml_line(jobs_node), "a non-empty list of jobs", yaml_kind(jobs_node))
-    jobs, names = [], {}
+    jobs: list[Job] = []
+    names: dict[str, int | None] = {}
     for node in jobs_node.value:
         pairs = yaml_mapping(name, node, "a job")
         seq = next((p for p in pairs if p[0] == "sequence"), None)

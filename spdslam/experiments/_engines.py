@@ -233,12 +233,12 @@ def _compilation_cache_env() -> dict:
     the workers of a local instance (they read them when JAX starts)."""
     import jax
 
-    d = jax.config.jax_compilation_cache_dir
+    d = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # JAX's options are dynamic
     if not d:
         return {}
     return {"JAX_COMPILATION_CACHE_DIR": str(d),
             "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS":
-                str(jax.config.jax_persistent_cache_min_compile_time_secs)}
+                str(jax.config.jax_persistent_cache_min_compile_time_secs)}  # type: ignore[attr-defined]
 
 
 def make_engine(ray: str | None, workers: int | None = None, retries: int = 1):

@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import time
 import threading
+import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable, cast
 
 import jax
 import jax.numpy as jnp
@@ -212,7 +212,7 @@ def _to_ellipsoid(x) -> Ellipsoid:
 def _template(model: str, scenes: Scenes, cfg: StudyConfig, landmark0):
     factor = _MODEL_FACTORS[model]
     graph, values = NonlinearFactorGraph(), Values()
-    for i in range(cfg.n_views):
+    for i in range(cast(int, cfg.n_views)):  # (resolved by StudyConfig)
         values[X(i)] = jaxlie.SE3(scenes.poses.wxyz_xyz[0, i])
         graph.add(factor(X(i), OBJECT, scenes.boxes[0, i], scenes.camera,
                          sigma=box_sigma(model, cfg)))
@@ -224,7 +224,7 @@ def _batched_args(scenes: Scenes, cfg: StudyConfig):
     """Per-factor batched args (box, camera) for the template's factors."""
     B = len(scenes)
     cam = jax.tree.map(lambda x: jnp.full((B,), x), scenes.camera)
-    return {i: (jnp.asarray(scenes.boxes[:, i]), cam) for i in range(cfg.n_views)}
+    return {i: (jnp.asarray(scenes.boxes[:, i]), cam) for i in range(cast(int, cfg.n_views))}
 
 
 def _build_structure(model, param, scenes, cfg):
@@ -397,8 +397,9 @@ def run_study(
     ``engine`` (``LocalEngine``, ``RayEngine``): shard the grid into tasks of
     ``trials_per_task`` problems of one (model, param) (default: each structure in twice as
     many tasks as the engine has workers, at least 16 and at most ``MAX_TRIALS_PER_TASK``
-    problems each), one batched solve per task; the trials, costs and estimates are those of the run without an engine (each
-    problem runs in a lane of its own, with the compile options the whole batch would get).
+    problems each), one batched solve per task; the trials, costs and estimates are those of the
+    run without an engine (each problem runs in a lane of its own, with the compile options the
+    whole batch would get).
     A task that fails every attempt raises ``RuntimeError`` naming it.
     """
     if engine is not None:
@@ -423,8 +424,8 @@ def run_study(
         progress("scenes", 1, total)
     parts: dict = {s_: [] for s_ in structures}
     hist: dict = {s_: [] for s_ in structures}
-    timings = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0,
-               "chunks": len(chunks), "chunk": size}
+    timings: dict[str, Any] = {"scenes": time.perf_counter() - t_start, "solve": 0.0, "evaluate": 0.0,
+                               "chunks": len(chunks), "chunk": size}
     done = 1
     for c, (lo, hi) in enumerate(chunks):
         n = hi - lo
@@ -452,7 +453,7 @@ def run_study(
             st["seconds"] += out["seconds"]
             for k2, v in out["timings"].items():
                 if np.isscalar(v):
-                    st[k2] = st.get(k2, 0.0) + float(v)
+                    st[k2] = st.get(k2, 0.0) + float(v)  # type: ignore[arg-type]  # a number
             timings["evaluate"] += time.perf_counter() - t_eval
             done += 1
             if progress:
@@ -476,7 +477,7 @@ def _compile_all(built) -> list:
     (XLA compiles in parallel; a daemon thread does not keep a stalled process alive), in
     at most ``COMPILE_TIMEOUT`` seconds, else ``RuntimeError`` naming what to change."""
     timeout = float(os.environ.get("SPDSLAM_COMPILE_TIMEOUT", COMPILE_TIMEOUT))
-    futures = [Future() for _ in built]
+    futures: list[Future] = [Future() for _ in built]
     todo = list(enumerate(built))
     lock = threading.Lock()
 
@@ -526,7 +527,8 @@ def _solve_task(cfg: StudyConfig, model: str, param: str, scenes: Scenes, n: int
     ev = _evaluate(out, scenes.truth, cfg)
     ev = {k: v[:n] for k, v in ev.items()}
     ev["evaluate"] = time.perf_counter() - t_eval
-    ev["timings"] = {k: float(v) for k, v in out["timings"].items() if np.isscalar(v)}
+    ev["timings"] = {k: float(v) for k, v in out["timings"].items()  # type: ignore[arg-type]  # numbers
+                     if np.isscalar(v)}
     ev["seconds"] = out["seconds"]
     ev["B"] = len(scenes)
     return ev

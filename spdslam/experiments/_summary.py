@@ -169,9 +169,11 @@ def table_markdown(summary: dict) -> str:
         lines += grid(f"## Average success IoU, {'+'.join(params)} pooled (paper's row, all three pooled)",
                       pooled_iou)
     lines += ["", "## 95 % confidence intervals", ""]
-    lines += [f"Collapsed: the estimate's smallest radius is below {COLLAPSED_RATIO:g} of its largest (a flat disc or a needle)."]
+    lines += [f"Collapsed: the estimate's smallest radius is below {COLLAPSED_RATIO:g} of its largest "
+              "(a flat disc or a needle)."]
     lines += [""]
-    lines += ["| range | noise | model | param | success rate (Wilson) | IoU all (bootstrap) | IoU successful | iterations to tol | failed (collapsed) |"]
+    lines += ["| range | noise | model | param | success rate (Wilson) | IoU all (bootstrap) | IoU successful "
+              "| iterations to tol | failed (collapsed) |"]
     lines += ["| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in summary["cells"]:
         sr, ia, isu, it = c["success_rate"], c["iou_all"], c["iou_success"], c["iterations_to_tol"]
@@ -183,7 +185,8 @@ def table_markdown(summary: dict) -> str:
         )
     if summary["paired_iterations_O_vs_S"]:
         lines += ["", "## Iterations to tolerance, SPD (O) vs RTS (S), paired on trials where both succeed", ""]
-        lines += ["| model, trials | pairs | mean O | mean S | O/S ratio of means [95 % CI] | Wilcoxon p | O faster in |"]
+        lines += ["| model, trials | pairs | mean O | mean S | O/S ratio of means [95 % CI] | Wilcoxon p "
+                  "| O faster in |"]
         lines += ["| --- | --- | --- | --- | --- | --- | --- |"]
         for k, c in summary["paired_iterations_O_vs_S"].items():
             r = c["ratio_of_means"]

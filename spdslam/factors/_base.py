@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, cast
 
 import jax
 import jax.numpy as jnp
@@ -226,6 +226,11 @@ class Factor:
     variables: ClassVar[tuple[str, ...]] = ()
 
     __slots__ = ("keys", "args", "sqrt_info", "robust", "_flat")
+    keys: tuple
+    args: tuple
+    sqrt_info: np.ndarray | None
+    robust: RobustKernel | None
+    _flat: tuple
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -267,7 +272,8 @@ class Factor:
         """The default σ per residual component (dim,), None for W = I."""
         if not cls.sigmas:
             return None
-        return np.concatenate([np.full(cls.dim if s.size is None else s.size, float(s.value))
+        # (a type with sigmas declares its dim: __init_subclass__)
+        return np.concatenate([np.full(cast(int, cls.dim) if s.size is None else s.size, float(s.value))
                                for s in cls.sigmas])
 
     def _whitening(self, sigma, information, covariance, noise, sqrt_info):
@@ -363,6 +369,7 @@ class CustomFactor(Factor):
     """
 
     __slots__ = ("residual", "valid", "name")
+    name: str
 
     def __init__(self, residual: Callable[..., Any], keys, args: tuple = (), sqrt_info: Any = None,
                  robust: RobustKernel | None = None, valid: Callable[..., Any] | None = None,
@@ -373,7 +380,7 @@ class CustomFactor(Factor):
         super().__init__(keys, args, noise=noise, robust=robust, sqrt_info=sqrt_info)
 
     @property
-    def kind(self) -> str:
+    def kind(self) -> str:  # type: ignore[override]  # per instance, not the ClassVar of a registered type
         return self.name or getattr(self.residual, "__name__", "factor")
 
 
@@ -386,7 +393,7 @@ def robust_groups() -> dict[str, tuple[str, ...]]:
     """{group: kinds}: the factor kinds a robust kernel chosen for a group applies to."""
     out: dict[str, list[str]] = {}
     for kind, cls in _REGISTRY.items():
-        out.setdefault(cls.group, []).append(kind)
+        out.setdefault(cast(str, cls.group), []).append(kind)  # registered types declare one
     return {g: tuple(k) for g, k in out.items()}
 
 

@@ -21,6 +21,8 @@ measurement data only when a margin is given, so factors built alike batch toget
 
 from __future__ import annotations
 
+from typing import Any, Callable, ClassVar
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -121,7 +123,7 @@ class _BoxFactor(Factor):
     variables = ("pose", "landmark")
     dim = 4
     group = "box"
-    valid = staticmethod(box_visible)
+    valid: ClassVar[Callable[..., Any] | None] = staticmethod(box_visible)
 
     def __init__(self, pose_key, landmark_key, box, camera: Camera, *,
                  truncation_margin: float | None = None, **noise):
@@ -130,7 +132,7 @@ class _BoxFactor(Factor):
             raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
         if not isinstance(camera, Camera):
             raise TypeError("camera must be a spdslam Camera")
-        args = (box, camera)
+        args: tuple = (box, camera)
         if truncation_margin is not None:
             if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
                 raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")

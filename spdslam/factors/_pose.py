@@ -44,7 +44,7 @@ def pose_between_residual(T1: jaxlie.SE3, T2: jaxlie.SE3, T12: jaxlie.SE3):
 
 def as_se3(pose: Any) -> jaxlie.SE3:
     """``se3.as_pose`` with a numpy leaf, so that factor data stacks without device copies."""
-    return jaxlie.SE3(np.asarray(as_pose(pose).wxyz_xyz, dtype=float))
+    return jaxlie.SE3(np.asarray(as_pose(pose).wxyz_xyz, dtype=float))  # type: ignore[arg-type]  # numpy leaf
 
 
 class PriorFactor(Factor):

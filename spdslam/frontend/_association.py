@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -215,6 +216,19 @@ class _Scene:
     per detection) serve the time-local landmarks of the batch re-assignment.
     """
 
+    # the per-detection arrays (``_terms``), set with setattr
+    frame: np.ndarray
+    box: np.ndarray
+    label: np.ndarray
+    w_ok: np.ndarray
+    h_ok: np.ndarray
+    ray: np.ndarray
+    origin: np.ndarray
+    radius0: np.ndarray
+    terms: np.ndarray
+    up: np.ndarray | None
+    planes: np.ndarray | None
+
     def __init__(self, seq: Sequence, s: AssociationSettings):
         dets = seq.detections
         self._setup(seq.camera, seq.priors, s)
@@ -330,7 +344,8 @@ class _Scene:
         """The coarse landmark of detections ``idx`` (see the class docstring)."""
         idx = np.asarray(idx, dtype=int)
         W = np.ones(idx.size)
-        plane, r_v = None, None
+        plane = None
+        r_v: Any = None  # none in the first pass, then the previous pass's vertical radius
         for _ in range(2 if self.planes is not None else 1):
             A, b = self._normal(idx, W, plane, r_v)
             try:
@@ -503,7 +518,7 @@ def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]
                 costs[(a, b)] = c
     merges = 0
     while costs:
-        a, b = min(costs, key=costs.get)
+        a, b = min(costs, key=costs.__getitem__)
         groups.append(np.sort(np.concatenate([groups[a], groups[b]])))
         fits.append(sc.fit(groups[-1]))
         covs.append(np.linalg.inv(fits[-1].info) if fits[-1].ok else None)
@@ -583,7 +598,8 @@ def associate_detailed(seq: Sequence, settings: AssociationSettings | None = Non
     sc = _Scene(seq, s)
     tracklets = _tracklets(sc, s)
     groups = [g for g in tracklets if g.size >= s.min_detections]
-    stats = {"tracklets": len(tracklets), "tentative_discarded": len(tracklets) - len(groups)}
+    stats: dict[str, int | float] = {"tracklets": len(tracklets),
+                                     "tentative_discarded": len(tracklets) - len(groups)}
     groups, merges = _merge(sc, groups, s)
     rounds = 0
     for _ in range(s.iterations):
@@ -671,7 +687,8 @@ class OnlineTracker:
         sc = _Scene.__new__(_Scene)
         sc._setup(camera, priors, s)
         sc.labels, sc.F = [], 0
-        self._sc, self._lab = sc, {}
+        self._sc = sc
+        self._lab: dict = {}
         self._dets, self._frames = _Grow(), _Grow()
         self._state = _Tracking()
         self._mapped: dict = {}
@@ -846,7 +863,8 @@ def association_scores(tracks, seq: Sequence) -> dict:
         raise ValueError("association scores need the instance ids of the detections")
     idx = _detection_indices(tracks, seq)
     best: dict = {}  # instance -> (count, -order, track order)
-    target = []
+    target: list[int | None] = []
+    m: int | None  # an instance id
     for k, g in enumerate(idx):
         ids, counts = np.unique(inst[g][inst[g] >= 0], return_counts=True)
         if ids.size == 0:

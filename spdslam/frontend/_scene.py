@@ -72,7 +72,8 @@ def estimate_support_planes(ellipsoids: dict, up, min_objects: int = 3, toleranc
     h, pts = lowest_points([np.asarray(ellipsoids[k].center) for k in ids],
                            [np.asarray(ellipsoids[k].P) for k in ids], u)
     free = np.ones(len(ids), bool)
-    planes, assignment = [], {}
+    planes: list = []
+    assignment: dict = {}
     while free.sum() >= min_objects:
         hf = np.where(free, h, np.inf)
         # the densest window [h_i − tol, h_i + tol] over free objects

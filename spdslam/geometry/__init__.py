@@ -24,6 +24,7 @@ from ._camera import conic_box as conic_box
 from ._camera import cuboid_depth_range as cuboid_depth_range
 from ._camera import cuboid_in_front as cuboid_in_front
 from ._camera import depth_range as depth_range
+from ._camera import distort_points as distort_points
 from ._camera import in_front as in_front
 from ._camera import look_at as look_at
 from ._camera import normalize_plane as normalize_plane
@@ -33,7 +34,6 @@ from ._camera import project_dual_quadric as project_dual_quadric
 from ._camera import project_points as project_points
 from ._camera import projection_matrix as projection_matrix
 from ._camera import truncation_mask as truncation_mask
-from ._camera import distort_points as distort_points
 from ._camera import undistort_boxes as undistort_boxes
 from ._camera import undistort_points as undistort_points
 from ._cuboid import CORNER_SIGNS as CORNER_SIGNS

@@ -28,7 +28,7 @@ right-handed rotation whose columns are the axes, ``dual_quadric()``, ``volume()
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -96,6 +96,9 @@ def _split_quadric(Q):
 class _Views:
     """The views every parameterisation shares, all from (P, t)."""
 
+    if TYPE_CHECKING:
+        def to_ellipsoid(self) -> Ellipsoid: ...  # each parameterisation defines it
+
     def axes(self):
         """(rotation, radii): columns of ``rotation`` are the world-frame axes, radii descending."""
         return sorted_axes(self.to_ellipsoid().P)
@@ -134,8 +137,9 @@ class Ellipsoid(_Views):
     P = R diag(s²) Rᵀ (shape and orientation together), ``center`` = t.
     """
 
-    P: jax.Array
-    center: jax.Array
+    # JAX or NumPy arrays (readers, results and stacked factor data hold NumPy leaves)
+    P: jax.Array | np.ndarray
+    center: jax.Array | np.ndarray
     tangent_dim: ClassVar[int] = 9
 
     # --- construction -----------------------------------------------------------------
@@ -188,7 +192,7 @@ class EllipsoidRTS(_Views):
     """
 
     orientation: jaxlie.SO3
-    center: jax.Array
+    center: jax.Array | np.ndarray
     scale: jax.Array
     tangent_dim: ClassVar[int] = 9
 
@@ -211,7 +215,7 @@ class EllipsoidRTS(_Views):
         return Ellipsoid(sym((R * self.scale**2) @ R.T), self.center)
 
     @property
-    def P(self) -> jax.Array:
+    def P(self) -> jax.Array | np.ndarray:
         return self.to_ellipsoid().P
 
     def dual_quadric(self) -> jax.Array:
@@ -277,11 +281,11 @@ class EllipsoidFull(_Views):
         return Ellipsoid.from_dual_quadric(self.matrix())
 
     @property
-    def P(self) -> jax.Array:
+    def P(self) -> jax.Array | np.ndarray:
         return self.to_ellipsoid().P
 
     @property
-    def center(self) -> jax.Array:
+    def center(self) -> jax.Array | np.ndarray:
         return self.to_ellipsoid().center
 
     def regularized(self) -> "EllipsoidFull":

@@ -8,16 +8,10 @@ Every malformed file gives a one-line ``file:line: expected …, got …`` error
 """
 
 from ._classes import BUILTIN_CLASSES as BUILTIN_CLASSES
-from ._classes import ClassPrior as ClassPrior
 from ._classes import CLASS_SOURCES as CLASS_SOURCES
+from ._classes import ClassPrior as ClassPrior
 from ._classes import builtin_class_prior as builtin_class_prior
 from ._classes import class_prior as class_prior
-from ._g2o import Edge as Edge
-from ._g2o import PoseGraph as PoseGraph
-from ._g2o import parse_g2o as parse_g2o
-from ._g2o import pose_graph_factors as pose_graph_factors
-from ._g2o import read_g2o as read_g2o
-from ._g2o import rpy_to_quaternion as rpy_to_quaternion
 from ._formats import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
 from ._formats import FORMATS as FORMATS
 from ._formats import SequenceFormat as SequenceFormat
@@ -27,16 +21,20 @@ from ._formats import formats as formats
 from ._formats import formats_table as formats_table
 from ._formats import read_measured_boxes as read_measured_boxes
 from ._formats import read_sequence as read_sequence
-# the built-in formats, registered in this order (canonical first)
-from ._readers import CanonicalFolder as CanonicalFolder
 from ._fr3_cabinet import COCO_LABELS as COCO_LABELS
 from ._fr3_cabinet import FR3_TRAJECTORY_SIGMA as FR3_TRAJECTORY_SIGMA
 from ._fr3_cabinet import Fr3CabinetFolder as Fr3CabinetFolder
 from ._fr3_cabinet import import_fr3_cabinet as import_fr3_cabinet
 from ._fr3_cabinet import is_fr3_cabinet as is_fr3_cabinet
+from ._g2o import Edge as Edge
+from ._g2o import PoseGraph as PoseGraph
+from ._g2o import parse_g2o as parse_g2o
+from ._g2o import pose_graph_factors as pose_graph_factors
+from ._g2o import read_g2o as read_g2o
+from ._g2o import rpy_to_quaternion as rpy_to_quaternion
 from ._json import dumps_strict as dumps_strict
-from ._map import MapFormatError as MapFormatError
 from ._map import MAP_KEYS as MAP_KEYS
+from ._map import MapFormatError as MapFormatError
 from ._map import MapObject as MapObject
 from ._map import map_document as map_document
 from ._map import read_map as read_map
@@ -54,6 +52,7 @@ from ._parse import SequenceFormatError as SequenceFormatError
 from ._parse import nearest_stamps as nearest_stamps
 from ._parse import read_images as read_images
 from ._parse import read_tum as read_tum
+
 # YAML read node by node, with ``file:line`` errors (experiments' manifests use it too)
 from ._parse import yaml_kind as yaml_kind
 from ._parse import yaml_line as yaml_line
@@ -61,10 +60,13 @@ from ._parse import yaml_mapping as yaml_mapping
 from ._parse import yaml_number as yaml_number
 from ._parse import yaml_root as yaml_root
 from ._parse import yaml_scalar as yaml_scalar
+
+# the built-in formats, registered in this order (canonical first)
+from ._readers import CanonicalFolder as CanonicalFolder
 from ._readers import read_camera as read_camera
+from ._readers import read_canonical as read_canonical
 from ._readers import read_detections as read_detections
 from ._readers import read_ellipsoids as read_ellipsoids
-from ._readers import read_canonical as read_canonical
 from ._readers import read_objects_gt as read_objects_gt
 from ._readers import read_priors as read_priors
 from ._rosbag import RosBag2 as RosBag2

@@ -114,7 +114,7 @@ _TABLE = {
 
 #: label → ClassPrior (semi-axes = half the dimensions of ``_TABLE``).
 BUILTIN_CLASSES = {
-    label: ClassPrior([w / 2, d / 2, h / 2], spread)
+    label: ClassPrior(np.array([w / 2, d / 2, h / 2]), spread)
     for label, (w, d, h, spread, _) in _TABLE.items()
 }
 #: label → where its numbers come from.

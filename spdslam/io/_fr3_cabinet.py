@@ -96,7 +96,7 @@ def import_fr3_cabinet(folder) -> Sequence:
                 frame = match_stamp(name, line, t, timestamps)
             detections.append(Detection(frame, t, box, _coco_label(cls), score, inst))
 
-    labels = {}
+    labels: dict[int | None, set[str]] = {}
     for d in detections:
         labels.setdefault(d.instance, set()).add(d.label)
     objects = []
@@ -114,7 +114,7 @@ def import_fr3_cabinet(folder) -> Sequence:
     if optional(folder, "rgb.txt"):
         images = read_images(folder / "rgb.txt", folder)
     priors = Priors(
-        [np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {}, FR3_TRAJECTORY_SIGMA
+        [np.array([0.0, 0.0, 1.0, 0.0])], np.array([0.0, 0.0, 1.0]), {}, np.array(FR3_TRAJECTORY_SIGMA)
     )
     return Sequence(
         folder.name, camera, timestamps, traj[:, 1:], detections, objects, traj.copy(), priors, images

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Any, Hashable
+from typing import Any
 
 import jaxlie
 import numpy as np
@@ -220,7 +220,8 @@ def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
             odo[e.i] = np.asarray(e.measured.wxyz_xyz, dtype=float)
     first, last = min(ids), max(ids)
     q, t = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
-    poses = {first: jaxlie.SE3(np.concatenate([q, t]))}
+    # jaxlie takes NumPy arrays too (its annotations say jax.Array)
+    poses = {first: jaxlie.SE3(np.concatenate([q, t]))}  # type: ignore[arg-type]
     for i in range(first, last):
         if i not in odo:
             raise ValueError(f"{name}: no vertices, and no odometry edge {i} -> {i + 1} "
@@ -228,7 +229,7 @@ def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
         m = odo[i]
         q, t = _qmul(q, m[:4]), t + _qrot(q, m[4:])
         q = q / np.linalg.norm(q)
-        poses[i + 1] = jaxlie.SE3(np.concatenate([q, t]))
+        poses[i + 1] = jaxlie.SE3(np.concatenate([q, t]))  # type: ignore[arg-type]
     return poses
 
 
@@ -242,7 +243,7 @@ def read_g2o(path: str | os.PathLike) -> PoseGraph:
 def pose_graph_factors(
     pg: PoseGraph,
     prior_sigma: Any = 1e-6,
-    prior_key: Hashable | None = None,
+    prior_key: int | None = None,
     key: Any = None,
     robust=None,
 ):

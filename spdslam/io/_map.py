@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import Ellipsoid
 from ._json import dumps_strict
 from ._parse import SequenceFormatError, read_text
-
-from ..geometry import Ellipsoid
 
 __all__ = ["MAP_KEYS", "MapObject", "MapFormatError", "map_document", "read_map", "write_map"]
 
@@ -107,7 +106,8 @@ def read_map(path) -> tuple[dict, list]:
     for k, types in (("method", str), ("parameterization", str), ("iterations", int),
                      ("final_cost", (int, float)), ("objects", list)):
         if k not in m or not isinstance(m[k], types) or isinstance(m[k], bool):
-            raise MapFormatError(f"{path}: expected the key {k!r} ({getattr(types, '__name__', 'number')}), got {str(m.get(k, 'nothing'))[:40]}")
+            raise MapFormatError(f"{path}: expected the key {k!r} ({getattr(types, '__name__', 'number')}), "
+                                 f"got {str(m.get(k, 'nothing'))[:40]}")
     objs = []
     for i, o in enumerate(m["objects"]):
         try:
@@ -119,7 +119,8 @@ def read_map(path) -> tuple[dict, list]:
         except (KeyError, TypeError, ValueError, IndexError):
             ok = False
         if not ok:
-            raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and 'center' (3), got {str(o)[:80]}")
+            raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and "
+                                 f"'center' (3), got {str(o)[:80]}")
         u = o.get("uncertainty")
         objs.append(MapObject(oid, label, Ellipsoid(P, c), u if isinstance(u, dict) else None))
     return m, objs

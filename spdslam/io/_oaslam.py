@@ -272,10 +272,10 @@ def import_oaslam(folder, trajectory: str = "odometry", min_score: float = DEFAU
             else np.stack([r[1] for r in raw])
         bad = ~np.all(np.isfinite(boxes), axis=1) | ~(boxes[:, 2] > boxes[:, 0]) | ~(boxes[:, 3] > boxes[:, 1])
         if bad.any():  # a corner far outside the image, where the lens model diverges
-            k = int(np.flatnonzero(bad)[0])
+            i = int(np.flatnonzero(bad)[0])
             raise SequenceFormatError(
                 json_path, None, "boxes whose undistorted outline is a finite box of positive area",
-                f"bbox {[float(v) for v in raw[k][1]]} of the image at {raw[k][0]!r}")
+                f"bbox {[float(v) for v in raw[i][1]]} of the image at {raw[i][0]!r}")
         for k in np.flatnonzero(ok):
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], raw[k][2], float(raw[k][3])))
     objects = read_quadrics_gt(folder / "objects_gt.txt") if optional(folder, "objects_gt.txt") else None

@@ -166,7 +166,7 @@ def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
     then)."""
     layout = "timestamp tx ty tz qx qy qz qw"
     fields = layout.split()
-    rows = []
+    rows: list[list[float]] = []
     for line, tok in token_rows(path, name):
         check_columns(name, line, tok, (8,), layout)
         v = [parse_number(name, line, t, f) for t, f in zip(tok, fields)]

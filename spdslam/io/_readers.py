@@ -22,6 +22,7 @@ import numpy as np
 
 from ..geometry import OBJECT_SHAPES, Camera, Cuboid
 from ..geometry.se3 import quat_to_matrix
+from ._classes import ClassPrior
 from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
@@ -48,7 +49,6 @@ from ._parse import (
     yaml_scalar,
     yaml_vector,
 )
-from ._classes import ClassPrior
 from ._sequence import (
     Detection,
     EllipsoidDetection,
@@ -105,7 +105,8 @@ def read_priors(path, name: str | None = None) -> Priors:
             for p in vnode.value:
                 v = yaml_vector(name, p, 4, "a support plane [a, b, c, d]")
                 if not np.linalg.norm(v[:3]) > 0:
-                    raise SequenceFormatError(name, yaml_line(p), "a plane with a non-zero normal (a, b, c)", str(v.tolist()))
+                    raise SequenceFormatError(name, yaml_line(p), "a plane with a non-zero normal (a, b, c)",
+                                              str(v.tolist()))
                 planes.append(v)
         elif key == "up":
             up = yaml_vector(name, vnode, 3, "up")
@@ -132,11 +133,13 @@ def read_priors(path, name: str | None = None) -> Priors:
                     if ck == "radii":
                         radii = yaml_vector(name, cv, 3, f"the radii of {label!r}")
                         if not np.all(radii > 0):
-                            raise SequenceFormatError(name, yaml_line(cv), f"positive radii for {label!r}", str(radii.tolist()))
+                            raise SequenceFormatError(name, yaml_line(cv), f"positive radii for {label!r}",
+                                                      str(radii.tolist()))
                     elif ck == "sigma":
                         sigma = yaml_number(name, cv, f"the sigma of {label!r}")
                         if not sigma > 0:
-                            raise SequenceFormatError(name, yaml_line(cv), f"a positive sigma for {label!r}", repr(sigma))
+                            raise SequenceFormatError(name, yaml_line(cv), f"a positive sigma for {label!r}",
+                                                      repr(sigma))
                     elif ck == "shape":
                         shape = yaml_scalar(cv)
                         if shape not in OBJECT_SHAPES:
@@ -196,7 +199,7 @@ def read_ellipsoids(path, timestamps, name: str | None = None) -> list:
             raise SequenceFormatError(name, line, "positive semi-axes a b c", " ".join(tok[9:12]))
         inst = parse_integer(name, line, tok[12], "instance") if len(tok) == 13 else None
         frame = match_stamp(name, line, t, timestamps)
-        out.append(EllipsoidDetection(frame, t, tok[1], quat_to_matrix(q), v[4:7], radii, inst))
+        out.append(EllipsoidDetection(frame, t, tok[1], quat_to_matrix(q), np.array(v[4:7]), radii, inst))
     return out
 
 

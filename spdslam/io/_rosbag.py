@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -151,7 +152,7 @@ def _show_topics(topics: dict) -> str:
 
 def _topic_types(reader) -> dict:
     """{topic: message type} (the types of a topic recorded with several joined by ' or ')."""
-    out = {}
+    out: dict[str, str] = {}
     for c in reader.connections:
         have = out.get(c.topic)
         if have is None:
@@ -184,7 +185,7 @@ def _messages(reader, store, bag: str, topic: str, required: bool = True):
     """[(time s, message)] of ``topic`` in record order; the time is the header stamp when
     the message has a non-zero one, else the record time."""
     conns = [c for c in reader.connections if c.topic == topic]
-    out = []
+    out: list = []
     where = f"{bag}: topic {topic}"
     try:
         for conn, t_ns, raw in reader.messages(connections=conns):
@@ -218,7 +219,7 @@ def _camera(bag: str, topic: str, msgs) -> tuple[Camera, np.ndarray, str]:
     """(pinhole intrinsics, distortion (k1, k2, p1, p2, k3), frame id) of CameraInfo messages,
     which must all give the same calibration."""
     where = f"{bag}: topic {topic}"
-    first = None
+    first: tuple | None = None
     for i, (t, m) in enumerate(msgs):
         calib = (tuple(float(v) for v in m.k), tuple(float(v) for v in m.d), str(m.distortion_model),
                  int(m.width), int(m.height))
@@ -227,7 +228,7 @@ def _camera(bag: str, topic: str, msgs) -> tuple[Camera, np.ndarray, str]:
         elif calib != first:
             raise SequenceFormatError(where, None, "one calibration (every CameraInfo alike)",
                                       f"message {i} at t={t!r} differs from message 0")
-    k, d, model, width, height = first
+    k, d, model, width, height = cast(tuple, first)  # msgs is not empty (_messages)
     m0 = msgs[0][1]
     if not all(math.isfinite(v) for v in k + d):
         raise SequenceFormatError(where, None, "finite K and D", f"K={list(k)} D={list(d)}")
@@ -302,7 +303,8 @@ def _pose_rows(bag: str, topic: str, msgs, world_frame, camera_frame) -> np.ndar
     """(N, 8) TUM rows of PoseStamped or Odometry messages, sorted by time, a repeated time
     left out; every message in one frame (``world_frame`` when given)."""
     where = f"{bag}: topic {topic}"
-    rows, frames = [], set()
+    rows: list[list[float]] = []
+    frames: set[str] = set()
     for i, (t, m) in enumerate(msgs):
         pose = m.pose.pose if hasattr(m, "child_frame_id") else m.pose
         frame = str(m.header.frame_id).lstrip("/")
@@ -323,9 +325,9 @@ def _pose_rows(bag: str, topic: str, msgs, world_frame, camera_frame) -> np.ndar
     if len(frames) > 1:
         raise SequenceFormatError(where, None, "poses in one frame (header.frame_id)",
                                   ", ".join(repr(f) for f in sorted(frames)))
-    rows = np.array(sorted(rows, key=lambda r: r[0]))
-    keep = np.concatenate([[True], np.diff(rows[:, 0]) > 0])
-    return rows[keep]
+    table = np.array(sorted(rows, key=lambda r: r[0]))
+    keep = np.concatenate([[True], np.diff(table[:, 0]) > 0])
+    return table[keep]
 
 
 class _Edge:
@@ -333,7 +335,9 @@ class _Edge:
 
     def __init__(self, parent: str):
         self.parent = parent
-        self.t, self.p, self.q = [], [], []
+        self.t: list = []
+        self.p: list = []
+        self.q: list = []
         self.static = False
 
     def add(self, t, p, q, static):
@@ -523,11 +527,11 @@ def import_rosbag(path, camera_info_topic: str | None = None, detections_topic: 
             boxes = undistort_boxes(boxes, camera, dist)
             bad = ~np.all(np.isfinite(boxes), axis=1) | ~(boxes[:, 2] > boxes[:, 0]) | ~(boxes[:, 3] > boxes[:, 1])
             if bad.any():  # a corner far outside the image, where the lens model diverges
-                k = int(np.flatnonzero(bad)[0])
+                i = int(np.flatnonzero(bad)[0])
                 raise SequenceFormatError(
                     f"{bag}: topic {det_topic}", None,
                     "boxes whose undistorted outline is a finite box of positive area",
-                    f"box {[float(v) for v in raw[k][1]]} at t={raw[k][0]!r}")
+                    f"box {[float(v) for v in raw[i][1]]} at t={raw[i][0]!r}")
         for k in np.flatnonzero(ok):
             _, _, label, score, inst = raw[k]
             detections.append(Detection(int(near[k]), float(t[k]), boxes[k], label, score, inst))

@@ -166,7 +166,8 @@ class Priors:
         if self.trajectory_absolute_sigma is not None:
             ta = frozen_array(self.trajectory_absolute_sigma, (2,))
             if not (np.all(~np.isnan(ta)) and np.all(ta > 0)):
-                raise ValueError(f"trajectory_absolute_sigma must be 2 positive numbers (inf allowed), got {ta.tolist()}")
+                raise ValueError("trajectory_absolute_sigma must be 2 positive numbers (inf allowed), "
+                                 f"got {ta.tolist()}")
             object.__setattr__(self, "trajectory_absolute_sigma", ta)
         object.__setattr__(
             self, "support_planes", [frozen_array(p, (4,)) for p in self.support_planes]
@@ -224,7 +225,8 @@ class Priors:
             return False
         a, b = self.trajectory_absolute_sigma, other.trajectory_absolute_sigma
         if (a is None) != (b is None) or (a is not None and not (
-                np.array_equal(np.isinf(a), np.isinf(b)) and arrays_close(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b)))):
+                np.array_equal(np.isinf(a), np.isinf(b))
+                and arrays_close(np.where(np.isinf(a), 0, a), np.where(np.isinf(b), 0, b)))):
             return False
         return self.classes == other.classes and self.builtin_classes == other.builtin_classes
 

@@ -111,12 +111,12 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
         lines = ["# timestamp path\n"]
         root = Path(os.path.abspath(final))
         for t, path in sorted(seq.images.items()):
-            p = Path(path)
+            image = Path(path)
             try:
-                rel = Path(os.path.abspath(p)).relative_to(root)
+                rel = Path(os.path.abspath(image)).relative_to(root)
                 text = rel.as_posix()
             except ValueError:
-                text = os.path.abspath(p)
+                text = os.path.abspath(image)
             if any(c.isspace() for c in text):
                 raise ValueError(f"image paths must not contain whitespace, got {text!r}")
             lines.append(f"{_f(t)} {text}\n")

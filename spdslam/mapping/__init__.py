@@ -10,10 +10,10 @@ from ._graph import OBJECT_FACTORS as OBJECT_FACTORS
 from ._graph import ObjectFactorRule as ObjectFactorRule
 from ._graph import ObjectInputs as ObjectInputs
 from ._graph import box_factors as box_factors
-from ._graph import object_factors as object_factors
 from ._graph import build_graph as build_graph
 from ._graph import mapping_sigmas as mapping_sigmas
 from ._graph import measured_objects as measured_objects
+from ._graph import object_factors as object_factors
 from ._graph import support_plane as support_plane
 from ._keyframes import KEYFRAME_MODES as KEYFRAME_MODES
 from ._keyframes import parse_keyframes as parse_keyframes
@@ -42,16 +42,16 @@ from ._run import ASSOCIATIONS as ASSOCIATIONS
 from ._run import MAX_CENTER_SIGMA as MAX_CENTER_SIGMA
 from ._run import MAX_LOG_RADIUS_SIGMA as MAX_LOG_RADIUS_SIGMA
 from ._run import MIN_DETECTION_RATE as MIN_DETECTION_RATE
-from ._run import MIN_RADIUS as MIN_RADIUS
-from ._run import MIN_RADIUS_RATIO as MIN_RADIUS_RATIO
 from ._run import MIN_PLAUSIBLE_RADIUS as MIN_PLAUSIBLE_RADIUS
 from ._run import MIN_PLAUSIBLE_RATIO as MIN_PLAUSIBLE_RATIO
+from ._run import MIN_RADIUS as MIN_RADIUS
+from ._run import MIN_RADIUS_RATIO as MIN_RADIUS_RATIO
+from ._run import OBJECT_ERRORS as OBJECT_ERRORS
 from ._run import SUPPORT_PLANES as SUPPORT_PLANES
 from ._run import Association as Association
 from ._run import Initialization as Initialization
-from ._run import OBJECT_ERRORS as OBJECT_ERRORS
-from ._run import MapResult as MapResult
 from ._run import MappingError as MappingError
+from ._run import MapResult as MapResult
 from ._run import Optimised as Optimised
 from ._run import associate_tracks as associate_tracks
 from ._run import cost_by_factor as cost_by_factor
@@ -61,8 +61,8 @@ from ._run import implausibly_flat as implausibly_flat
 from ._run import initialize as initialize
 from ._run import initialize_from_measurements as initialize_from_measurements
 from ._run import initialize_objects as initialize_objects
-from ._run import mapped_uncertainty as mapped_uncertainty
 from ._run import map_result as map_result
+from ._run import mapped_uncertainty as mapped_uncertainty
 from ._run import merged_track as merged_track
 from ._run import nesting_depths as nesting_depths
 from ._run import object_quality as object_quality
@@ -70,6 +70,7 @@ from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import run_sequence as run_sequence
+from ._run import step as step
 from ._settings import METHOD_FIELDS as METHOD_FIELDS
 from ._settings import RUN_OVERRIDES as RUN_OVERRIDES
 from ._settings import RUN_SETTING_NAMES as RUN_SETTING_NAMES
@@ -81,4 +82,3 @@ from ._settings import SettingsError as SettingsError
 from ._settings import as_settings as as_settings
 from ._settings import default_association as default_association
 from ._settings import setting_help as setting_help
-from ._run import step as step

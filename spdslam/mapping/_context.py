@@ -53,7 +53,7 @@ class SequenceContext:
 
     def trajectory(self, frames=None) -> jaxlie.SE3:
         """The poses of ``frames`` (default all) as one batched ``jaxlie.SE3``."""
-        return jaxlie.SE3(self.wxyz_xyz if frames is None else self.wxyz_xyz[frames])
+        return jaxlie.SE3(self.wxyz_xyz if frames is None else self.wxyz_xyz[frames])  # type: ignore[arg-type]
 
     def class_prior(self, label):
         """The ``ClassPrior`` of a label, or None."""

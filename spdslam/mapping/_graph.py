@@ -174,8 +174,9 @@ def absolute_sigma(s: dict):
 
 def _odometry(ctx: SequenceContext, s: dict) -> list:
     q = ctx.wxyz_xyz
-    steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # T_i⁻¹ T_{i+1}
-    out = [PriorFactor(X(0), ctx.poses[0], sigma=s["first_pose"])]
+    # T_i⁻¹ T_{i+1}; jaxlie takes NumPy arrays
+    steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # type: ignore[arg-type]
+    out: list = [PriorFactor(X(0), ctx.poses[0], sigma=s["first_pose"])]
     odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
     out += [BetweenFactor(X(i), X(i + 1), jaxlie.SE3(step), sigma=odo)
             for i, step in enumerate(steps)]
@@ -309,8 +310,8 @@ def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_mo
     shape = object_shape(method, ctx.priors, track.label)
     out = []
     if boxes:
-        memo = (id(track), id(ctx), box_model, robust, method.margin, shape,
-                tuple(sorted(s.items())))
+        memo: tuple | None = (id(track), id(ctx), box_model, robust, method.margin, shape,
+                              tuple(sorted(s.items())))
         try:
             hit = None if reuse is None else reuse.get(memo)
         except TypeError:  # a setting that cannot be a key: build afresh, keep nothing

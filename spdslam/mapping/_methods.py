@@ -113,9 +113,11 @@ DEFAULT_MAPPING_SIGMAS = {
 
 @dataclass(frozen=True)
 class Method:
-    """One back end: parameterisation, initialisation, box model and which constraints."""
+    """One back end: parameterisation, initialisation, box model and which constraints
+    (built with keywords: ``Method("x", parameterization="rts", …)``)."""
 
     name: str
+    _: dataclasses.KW_ONLY
     parameterization: str = "spd"
     initialization: str = "multi"
     box_model: str = "inverse"
@@ -199,13 +201,17 @@ class Method:
 
 METHODS = {
     "quadric-slam": Method(
-        "quadric-slam", "rts", "svd", "inverse", "none", False, False, False, radius_floor=False
-    ),
-    "multi-rts": Method("multi-rts", "rts", "multi", "inverse", "classic", True, True, True,
-                        shape_form="classic"),
-    "multi-rts-nearest": Method("multi-rts-nearest", "rts", "multi", "inverse", "classic-nearest",
-                                True, True, True),
-    "multi-spd": Method("multi-spd", "spd", "multi", "inverse", "improved", True, True, True),
+        "quadric-slam", parameterization="rts", initialization="svd", box_model="inverse",
+        orientation="none", support_plane=False, shape=False, size=False, radius_floor=False),
+    "multi-rts": Method(
+        "multi-rts", parameterization="rts", initialization="multi", box_model="inverse",
+        orientation="classic", support_plane=True, shape=True, size=True, shape_form="classic"),
+    "multi-rts-nearest": Method(
+        "multi-rts-nearest", parameterization="rts", initialization="multi", box_model="inverse",
+        orientation="classic-nearest", support_plane=True, shape=True, size=True),
+    "multi-spd": Method(
+        "multi-spd", parameterization="spd", initialization="multi", box_model="inverse",
+        orientation="improved", support_plane=True, shape=True, size=True),
 }
 
 

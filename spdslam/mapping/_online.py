@@ -44,40 +44,47 @@ import jaxlie
 import numpy as np
 import scipy.sparse
 
-from ..solver import ensure_compilation_cache
 from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
 from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence, without_class_table
-from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
-from ..solver import Problem, group_kernels
+from ..solver import (
+    L,
+    LevenbergMarquardt,
+    NonlinearFactorGraph,
+    Problem,
+    Values,
+    X,
+    ensure_compilation_cache,
+    group_kernels,
+)
 from ._context import SequenceContext, camera_axes_of
 from ._graph import (
+    absolute_sigma,
     box_factors,
+    build_graph,
+    mapping_sigmas,
     measurement_factors,
     object_factors,
     with_robust_by_type,
-    absolute_sigma,
-    build_graph,
-    mapping_sigmas,
 )
 from ._methods import Method, robust_kernel
+from ._run import (
+    Optimised,
+    as_landmark,
+    drop_rarely_detected,
+    initialize_objects,
+    map_result,
+    nesting_depths,
+    wholly_in_front,
+)
 from ._settings import (
     Associate,
     OnlineSettings,
     RunSettings,
     as_settings,
     default_association,
-)
-from ._run import (
-    drop_rarely_detected,
-    as_landmark,
-    wholly_in_front,
-    Optimised,
-    initialize_objects,
-    map_result,
-    nesting_depths,
 )
 
 __all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "run_online"]
@@ -187,32 +194,30 @@ class OnlineMapper:
     def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
                  association: AssociationSettings | None = None, name: str = "online",
                  compilation_cache: bool = True, **settings):
-        online = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
-        if online:
+        given = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
+        if given:
             if isinstance(method, RunSettings) or "online" in settings:
-                raise TypeError(f"online settings given twice: {', '.join(online)} and a RunSettings or online")
-            settings["online"] = online
+                raise TypeError(f"online settings given twice: {', '.join(given)} and a RunSettings or online")
+            settings["online"] = given
         run = as_settings(method, settings)
-        if run.online is None:
-            run = run.replace(online=OnlineSettings())
-        if run.associate is None:
-            run = run.replace(associate=Associate.AUTO)
-        self.settings = run
-        self._config = dict(method=run, association=association)
+        online = run.online or OnlineSettings()
+        run = run.replace(online=online, associate=run.associate or Associate.AUTO)
+        self.settings, self.online = run, online
+        self._association = association
         if compilation_cache:
             ensure_compilation_cache()
         associate = str(run.associate)
         method = run.method.resolved(associate == "auto")
         sigmas = dict(run.sigma)
         self.method, self.associate = method, associate
-        self.window, self.every, self.min_views = run.online.window, run.online.every, run.min_views
+        self.window, self.every, self.min_views = online.window, online.every, run.min_views
         self.name = name
         empty = Sequence(name, camera, np.zeros(0), np.zeros((0, 7)), [], priors=priors)
         self._ctx0 = SequenceContext.of(empty)
         self._sigmas = mapping_sigmas(self._ctx0, sigmas)
         self._user_sigmas = sigmas
         self._robust = robust_kernel(method.robust, method.robust_k)
-        self._optimizer = LevenbergMarquardt(max_iterations=run.online.iterations)
+        self._optimizer = LevenbergMarquardt(max_iterations=online.iterations)
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
         self._screen = run.screen
@@ -237,8 +242,8 @@ class OnlineMapper:
         self.records: list = []
         self._initial: dict = {}
         self._merged: dict = {}  # object id -> label, of the objects merged into another
-        self._last_graph = None
-        self._last_values = None
+        self._last_graph: NonlinearFactorGraph | None = None
+        self._last_values: Values | None = None
         self._since = 0
 
     # --- input ------------------------------------------------------------------------------
@@ -263,7 +268,8 @@ class OnlineMapper:
             sorted(BUILTIN_CLASSES) if priors.builtin_classes else [])
         rename = {lab: classes[i % len(classes)] for i, lab in
                   enumerate(sorted({d.label for d in sequence.detections}))} if classes else {}
-        twin = OnlineMapper(sequence.camera, priors, compilation_cache=False, **self._config)
+        twin = OnlineMapper(sequence.camera, priors, self.settings, association=self._association,
+                            compilation_cache=False)
         by_frame: dict = {}
         for d in sequence.detections:
             by_frame.setdefault(d.frame, []).append(dataclasses.replace(d, label=rename.get(d.label, d.label)))
@@ -405,7 +411,7 @@ class OnlineMapper:
 
     def _context(self) -> SequenceContext:
         """The context of the frames so far, with the current estimates as the poses."""
-        return dataclasses.replace(self._ctx0, wxyz_xyz=self._est.array, poses=self._est)
+        return dataclasses.replace(self._ctx0, wxyz_xyz=self._est.array, poses=self._est)  # type: ignore[arg-type]
 
     # --- the update ---------------------------------------------------------------------------
     def _create_objects(self) -> None:
@@ -439,7 +445,8 @@ class OnlineMapper:
 
     def _join(self, keep, drop) -> None:
         """Track ``drop``'s views join object ``keep`` (``drop`` is no object)."""
-        self._tracker.merge(keep, drop)
+        if self._tracker is not None:
+            self._tracker.merge(keep, drop)
         views = self._views.pop(drop)
         self._views[keep] = sorted(self._views[keep] + views, key=lambda v: v[0])
         self._labels[keep] += self._labels.pop(drop)
@@ -449,8 +456,8 @@ class OnlineMapper:
 
     def _merge_duplicates(self, active) -> None:
         """Objects of ``active`` that are one object with another (automatic association):
-        the same label and each centre inside the other's ellipsoid (``nesting_depths`` < 1, ``overlapping_duplicates``'s
-        rule, checked for the objects of the window against all); the one with more views is
+        the same label and each centre inside the other's ellipsoid (``nesting_depths`` < 1,
+        ``overlapping_duplicates``' rule, checked for the objects of the window against all); the one with more views is
         kept and the other's views join it."""
         if self._tracker is None or len(self.landmarks) < 2:
             return
@@ -477,7 +484,8 @@ class OnlineMapper:
 
     def _merge(self, keep, drop) -> None:
         """Object ``drop`` is object ``keep``: its views join it, its landmark and prior go."""
-        self._tracker.merge(keep, drop)
+        if self._tracker is not None:
+            self._tracker.merge(keep, drop)
         self._merged[drop] = self._label(drop)
         self._views[keep] = sorted(self._views[keep] + self._views.pop(drop), key=lambda v: v[0])
         self._labels[keep] += self._labels.pop(drop)
@@ -525,7 +533,7 @@ class OnlineMapper:
         self._merge_duplicates([k for k in self.landmarks if self._pending.get(k)])
         n = len(self)
         start = max(0, n - self.window)
-        factors = []
+        factors: list = []
         if start == 0:
             factors.append(PriorFactor(X(0), self._input[0], sigma=self._sigmas["first_pose"]))
         odo = np.r_[np.full(3, self._sigmas["odometry_translation"]),
@@ -586,14 +594,14 @@ class OnlineMapper:
                 old[k] = items
         if not old:
             return
-        factors = []
+        factors: list = []
         for k, items in old.items():
             factors += self._object_graph(k, items, with_prior=True, with_object=False)
         factors = with_robust_by_type(factors, self.method)
         values = Values()
         for key in {key for f in factors for key in f.keys}:
             values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
-        poses = [key for key in values if key.chr == "x"]
+        poses = [key for key in values if key.chr == "x"]  # type: ignore[attr-defined]  # Symbol keys
         problem = Problem(NonlinearFactorGraph(factors), values, poses,
                           rows=self._padding(factors, values))
         h, g, _, _, finite = problem.linearize(problem.vars)
@@ -635,11 +643,11 @@ class OnlineMapper:
         rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._est.array]) if len(self) else np.zeros((0, 7))
         poses = np.c_[np.asarray(self._timestamps), rows]
         objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
-        cov = {}
-        if covariances and self._last_graph is not None:
+        cov: dict = {}
+        if covariances and self._last_graph is not None and self._last_values is not None:
             from ..solver import marginal_covariances
 
-            keys = [key for key in self._last_values if key.chr == "l"]
+            keys = [key for key in self._last_values if key.chr == "l"]  # type: ignore[attr-defined]
             cov = {key.index: c for key, c in marginal_covariances(
                 self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
         return OnlineMap(objects, poses, cov)
@@ -659,7 +667,7 @@ class OnlineMapper:
         (the uncertainty then still comes from the whole graph). None: the settings'
         (``online.final_batch``, ``max_iterations``, ``tolerance``)."""
         run = self.settings
-        final_batch = run.online.final_batch if final_batch is None else final_batch
+        final_batch = self.online.final_batch if final_batch is None else final_batch
         max_iterations = run.max_iterations if max_iterations is None else max_iterations
         tolerance = run.tolerance if tolerance is None else tolerance
         say = progress or (lambda message: None)
@@ -691,7 +699,7 @@ class OnlineMapper:
             res = optimizer.optimize(graph, values)
             values = res.values
         else:
-            res = _Unchanged(graph, values)
+            res = _Unchanged(graph, values)  # type: ignore[assignment]  # the figures only
         failed = {**self.failed, **rare}
         need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
         short = 0

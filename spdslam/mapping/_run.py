@@ -792,7 +792,8 @@ def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, t
         else:
             kept.append(o)
     return MapResult(
-        method, kept, first, poses_out, solved.iterations, solved.initial_cost, res.final_cost,
+        method, kept, first, poses_out, solved.iterations,
+        res.final_cost if solved.initial_cost is None else solved.initial_cost, res.final_cost,
         res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values, res),
     )
 

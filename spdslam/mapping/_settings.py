@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Mapping
 
-from ._keyframes import parse_keyframes
 from ..factors import DEFAULT_TRUNCATION_MARGIN
+from ._keyframes import parse_keyframes
 from ._methods import (
     BOX_MODELS,
     METHODS,
@@ -255,7 +255,8 @@ class RunSettings:
         elif isinstance(online, Mapping):
             unknown = set(online) - {f.name for f in dataclasses.fields(OnlineSettings)}
             if unknown:
-                raise SettingsError("online", f"expected keys among {', '.join(f.name for f in dataclasses.fields(OnlineSettings))}, got {', '.join(sorted(unknown))}")
+                keys = ", ".join(f.name for f in dataclasses.fields(OnlineSettings))
+                raise SettingsError("online", f"expected keys among {keys}, got {', '.join(sorted(unknown))}")
             online = OnlineSettings(**online)
         mine = {k: v for k, v in settings.items() if k in own and k != "online"}
         return cls(method=method, online=online, **mine)

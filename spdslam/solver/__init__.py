@@ -13,9 +13,9 @@ problems of one structure in one jitted loop (``_batched``). ``enable_compilatio
 only ``spdslam.geometry`` and ``spdslam.factors``.
 """
 
+from ._batched import DEFAULT_LANES as DEFAULT_LANES
 from ._batched import BatchedProblem as BatchedProblem
 from ._batched import BatchedResult as BatchedResult
-from ._batched import DEFAULT_LANES as DEFAULT_LANES
 from ._cache import CACHE_ENV as CACHE_ENV
 from ._cache import CACHE_MIN_COMPILE_SECS as CACHE_MIN_COMPILE_SECS
 from ._cache import CACHE_OFF as CACHE_OFF

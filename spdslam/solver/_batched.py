@@ -145,6 +145,13 @@ class _Batch:
     values and sub-group data (batched (B, ...) or shared) and their batching axes."""
 
     __slots__ = ("B", "x0", "xfix", "gdata", "axes", "given_args", "given_values")
+    B: int
+    x0: tuple
+    xfix: tuple
+    gdata: tuple
+    axes: tuple
+    given_args: dict
+    given_values: dict
 
 
 class BatchedProblem:
@@ -360,7 +367,7 @@ class BatchedProblem:
                 xfix.append(None)
                 fix_ax.append(None)
         gdata, data_ax = [], []
-        for s, fids, W in zip(lay.subs, lay.sub_fids, self._tW):
+        for _sub, fids, W in zip(lay.subs, lay.sub_fids, self._tW):
             nleaf = len(self._targs[int(fids[0])][1])
             leaves, lax_ = [], []
             for j in range(nleaf):
@@ -634,13 +641,15 @@ def solve_graphs(
     b = _Batch()
     b.B = B
     b.given_args, b.given_values = {}, {}
-    x0, xfix, fix_ax = [], [], []
+    x0: list = []
+    xfix: list = []
+    fix_ax: list[int | None] = []
     for t in range(len(lay.tspecs)):
         rows_f, rows_x = lay.free_rows[t], lay.fixed_rows[t]
-        x0.append(stack([jax.tree.map(lambda a: np.asarray(a)[rows_f], p.vars[t])
+        x0.append(stack([jax.tree.map(lambda a, rows_f=rows_f: np.asarray(a)[rows_f], p.vars[t])
                          for p in problems]) if len(rows_f) else None)
         if len(rows_x):
-            v = stack([jax.tree.map(lambda a: np.asarray(a)[rows_x], p.vars[t])
+            v = stack([jax.tree.map(lambda a, rows_x=rows_x: np.asarray(a)[rows_x], p.vars[t])
                        for p in problems])
             xfix.append(v)
             fix_ax.append(0)
@@ -664,7 +673,7 @@ def solve_graphs(
             for t, keys in enumerate(p.type_keys):
                 for r, key in enumerate(keys):
                     k0 = lay.type_keys[t][r]
-                    v._data[key] = jax.tree.map(lambda a: jnp.asarray(a[i]), xs[k0])
+                    v._data[key] = jax.tree.map(lambda a, i=i: jnp.asarray(a[i]), xs[k0])
             vals.append(v)
         return vals
 

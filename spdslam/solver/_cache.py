@@ -67,7 +67,7 @@ def ensure_compilation_cache() -> Path | None:
     try:
         import jax
 
-        current = jax.config.jax_compilation_cache_dir
+        current = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # a dynamic option
     except Exception:  # noqa: BLE001
         return None
     return Path(current) if current else enable_compilation_cache()

@@ -15,7 +15,7 @@ class Symbol(NamedTuple):
     """A key: ``chr`` (one letter) and ``index``; printed as ``x3``."""
 
     chr: str
-    index: int
+    index: int  # type: ignore[assignment]  # shadows tuple.index (public field name)
 
     def __repr__(self) -> str:
         return f"{self.chr}{self.index}"

@@ -45,7 +45,8 @@ except Exception:  # noqa: BLE001
     _cvxopt = _cvx_cholmod = None
 
 __all__ = ["HAVE_CHOLMOD", "HAVE_CVXOPT", "SPARSE_SOLVERS", "make_linear_solver", "DENSE_THRESHOLD", "CHOLMOD_MODES",
-           "CHOLMOD_ORDERINGS", "CVXOPT_ORDERINGS", "cholmod_threads", "default_sparse_solver", "HAVE_OPENMP_CONTROL", "HAVE_BLAS_CONTROL"]
+           "CHOLMOD_ORDERINGS", "CVXOPT_ORDERINGS", "cholmod_threads", "default_sparse_solver", "HAVE_OPENMP_CONTROL",
+           "HAVE_BLAS_CONTROL"]
 
 CHOLMOD_MODES = ("supernodal", "simplicial", "auto")
 CHOLMOD_ORDERINGS = ("default", "amd", "metis", "nesdis", "colamd", "natural", "best")

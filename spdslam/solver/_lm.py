@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 import numpy as np
 
@@ -236,7 +236,8 @@ class StepRule:
             return cls(gn=True)
         if isinstance(params, DoglegParams):
             return cls(dogleg=True)
-        return cls(False, params.lambda_schedule, params.damping)
+        lm = cast(LevenbergMarquardtParams, params)  # the remaining kind
+        return cls(False, lm.lambda_schedule, lm.damping)
 
 
 #: The numbers of the rule, in the order of ``hyper`` (the batched solver passes them as
@@ -257,8 +258,9 @@ def hyper(params: OptimizerParams) -> dict[str, float]:
         out.update(lambda_initial=params.trust_radius_initial, lambda_min=0.0,
                    lambda_max=params.trust_radius_max, lambda_factor=1.0, ridge=params.ridge)
     else:
-        out.update(lambda_initial=params.lambda_initial, lambda_min=params.lambda_min,
-                   lambda_max=params.lambda_max, lambda_factor=params.lambda_factor, ridge=0.0)
+        lm = cast(LevenbergMarquardtParams, params)
+        out.update(lambda_initial=lm.lambda_initial, lambda_min=lm.lambda_min,
+                   lambda_max=lm.lambda_max, lambda_factor=lm.lambda_factor, ridge=0.0)
     return {k: float(v) for k, v in out.items()}
 
 
@@ -278,16 +280,17 @@ def resolve_params(cls_params: type, params: OptimizerParams | None, overrides: 
             raise ValueError("need 0 < trust_radius_initial ≤ trust_radius_max, got "
                              f"{params.trust_radius_initial!r}, {params.trust_radius_max!r}")
     elif not isinstance(params, GaussNewtonParams):
-        if params.lambda_schedule not in ("nielsen", "fixed"):
+        lm = cast(LevenbergMarquardtParams, params)
+        if lm.lambda_schedule not in ("nielsen", "fixed"):
             raise ValueError(
-                f"lambda_schedule must be 'nielsen' or 'fixed', got {params.lambda_schedule!r}"
+                f"lambda_schedule must be 'nielsen' or 'fixed', got {lm.lambda_schedule!r}"
             )
-        if params.damping not in DAMPINGS:
+        if lm.damping not in DAMPINGS:
             raise ValueError(
-                f"damping must be one of {', '.join(map(repr, DAMPINGS))}, got {params.damping!r}"
+                f"damping must be one of {', '.join(map(repr, DAMPINGS))}, got {lm.damping!r}"
             )
-        if not params.lambda_factor > 1:
-            raise ValueError(f"lambda_factor must be > 1, got {params.lambda_factor!r}")
+        if not lm.lambda_factor > 1:
+            raise ValueError(f"lambda_factor must be > 1, got {lm.lambda_factor!r}")
     check_cholmod_options(params.cholmod_mode, params.cholmod_ordering)
     return params
 

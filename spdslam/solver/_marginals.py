@@ -57,7 +57,7 @@ def covariance_blocks(problem: Problem, H, finite: bool, solver, keys) -> dict:
     (``marginal_covariances``; the optimisers' results reuse their last linearisation)."""
     keys = list(keys)
     cols = _columns(problem, keys)
-    out = {}
+    out: dict = {}
     if not keys:
         return out
     idx = np.concatenate(cols)

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Hashable, Iterable, Sequence
+from typing import Any, Hashable, Iterable, Sequence, cast
 
 import numpy as np
 
 from ..geometry import manifold
 from ._batched import BatchedProblem, solve_graphs
 from ._linear import make_linear_solver, resolve_linear_solver
-from ._marginals import covariance_blocks
 from ._lm import (
     CONVERGED_REASONS,
     MAX_ITERATIONS,
@@ -40,6 +39,7 @@ from ._lm import (
     predicted_decrease,
     resolve_params,
 )
+from ._marginals import covariance_blocks
 from ._problem import Problem
 from ._values import Values
 
@@ -75,13 +75,13 @@ class OptimizationResult:
         """{key: Σ} at the final values, as ``solver.marginal_covariances(graph, values,
         keys, fixed=…)`` gives them for this run's graph and fixed keys, from the last
         linearisation and the run's factorisation pattern (no new layout or Jacobians)."""
-        problem, _, H, solver = self._final
+        problem, _, H, solver = cast(tuple, self._final)  # set by the optimisers
         return covariance_blocks(problem, H, True, solver, keys)
 
     def cost_by_kind(self) -> dict:
         """{factor kind: its part of the final cost}, in the graph's order of kinds
         (``Problem.cost_by_kind`` at the final values)."""
-        problem, x, _, _ = self._final
+        problem, x, _, _ = cast(tuple, self._final)
         return problem.cost_by_kind(x)
 
     def __repr__(self) -> str:
@@ -224,7 +224,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
         solved = delta is not None
         trial_cost, step_norm, pred, lin = np.inf, np.nan, np.nan, None
         usable = False
-        if solved:
+        if delta is not None:  # solved
             step_norm = float(np.linalg.norm(delta))
             pred = float(model_decrease(delta, g, _sym_matvec(sp, H, delta), np) if rule.dogleg
                          else predicted_decrease(delta, D, g, lam, np))
@@ -245,7 +245,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
                               float(gain), accepted, 0.0)
         if accepted:
             x, cost = x_new, trial_cost
-            H, g, _, valid, _ = lin
+            H, g, _, valid, _ = cast(tuple, lin)  # accepted: the trial was linearised
             d_gn = None
         lam, nu, reason = float(lam_new), float(nu_new), int(code)
         rec.time = tick() - t_it
@@ -256,7 +256,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
             reason = REASONS.index("callback")
     timings.update(solver.timings)
     return OptimizationResult(
-        values=x,
+        values=x,  # type: ignore[arg-type]  # the variables: optimize() makes them Values
         initial_cost=initial_cost,
         final_cost=cost,
         iterations=it,

@@ -91,7 +91,7 @@ class _GroupSpec:
 class _GroupBuild:
     __slots__ = ("sig", "fids", "idx", "args", "W", "first")
 
-    def __init__(self, sig, first):
+    def __init__(self, sig, first) -> None:
         self.sig, self.first = sig, first
         self.fids: list[int] = []
         self.idx: list[list[int]] = []
@@ -224,7 +224,7 @@ class _GroupKernels:
         #: padded sizes called so far, and the first rows of the first call's inputs
         #: (``compile_sizes``)
         self.sizes: set[int] = set()
-        self.example = None
+        self.example: tuple | None = None
 
     def note(self, xs, mask, data) -> None:
         self.sizes.add(int(mask.shape[0]))
@@ -485,8 +485,8 @@ class Problem:
         self.tan_idx, free_j = [], []
         for ts, off, npad in zip(self.tspecs, offsets, nv_pad):
             off = np.concatenate([off, np.full(npad - len(off), -1)])
-            ti = off[:, None] + np.arange(ts.dim)
-            self.tan_idx.append(np.where(off[:, None] >= 0, ti, n))
+            tan = off[:, None] + np.arange(ts.dim)
+            self.tan_idx.append(np.where(off[:, None] >= 0, tan, n))
             free_j.append(jnp.asarray(off >= 0))
         self.free_j = tuple(free_j)
 
@@ -541,7 +541,7 @@ class Problem:
         self.gdata = tuple(gdata)
         self.gidx = tuple(gidx)
         self.kernels = kernels(self.tspecs, self.gspecs)
-        self._sparse = None
+        self._sparse: dict | None = None
 
     # --- index maps --------------------------------------------------------------------
     def _pad_index(self, a: np.ndarray, k: int, trash: int) -> np.ndarray:
@@ -620,9 +620,9 @@ class Problem:
             if len(set(kinds)) == 1:
                 out[kinds[0]] = out[kinds[0]] + np.sum(hr)
                 continue
-            kinds = np.array(kinds + [None] * (len(hr) - len(kinds)), dtype=object)
-            for kind in dict.fromkeys(kinds[: self.group_nf[k]]):
-                out[kind] = out[kind] + np.sum(np.where(kinds == kind, hr, 0.0))
+            padded = np.array(kinds + [None] * (len(hr) - len(kinds)), dtype=object)
+            for kind in dict.fromkeys(padded[: self.group_nf[k]]):
+                out[kind] = out[kind] + np.sum(np.where(padded == kind, hr, 0.0))
         return {kind: float(c) for kind, c in out.items()}
 
     def linearize(self, vars_, timings: dict | None = None):

@@ -311,14 +311,14 @@ def _frustum_planes(camera: Camera) -> np.ndarray:
 def _boxes(centres, R_wc, t, P, R_obj, radii, camera: Camera, shape: str, truncation: bool):
     """(frame, object, box) of every valid noise-free detection, frame-major order; boxes
     are unclipped (with ``truncation`` they may extend beyond the image)."""
-    F, O = centres.shape[0], t.shape[0]
+    F, n_obj = centres.shape[0], t.shape[0]
     W, H = float(camera.width), float(camera.height)
     cuboid = shape == "cuboid"
     half_axes = R_obj * radii[:, None, :]  # the cuboid's half-edge vectors (columns)
     # bounding-sphere radius of each object (truncation cull)
     bound = np.linalg.norm(radii, axis=1) if cuboid else radii.max(axis=1)
     planes = _frustum_planes(camera)
-    step = max(1, _CHUNK_PAIRS // O)
+    step = max(1, _CHUNK_PAIRS // n_obj)
     out_f, out_o, out_b = [], [], []
     for f0 in range(0, F, step):
         c, R = centres[f0:f0 + step], R_wc[f0:f0 + step]
