@@ -112,7 +112,7 @@ def step(name: str):
         raise MappingError(name, str(e) or type(e).__name__) from e
 
 
-@dataclass
+@dataclass(kw_only=True)
 class MapResult:
     """The output of :func:`run_sequence`: front-end (initial) and optimised objects, the
     optimised poses (TUM rows with timestamps), solver figures, and objects left out."""
@@ -792,9 +792,11 @@ def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, t
         else:
             kept.append(o)
     return MapResult(
-        method, kept, first, poses_out, solved.iterations,
-        res.final_cost if solved.initial_cost is None else solved.initial_cost, res.final_cost,
-        res.converged, res.reason, failed, list(notes), association, cost_by_factor(graph, values, res),
+        method=method, objects=kept, initial_objects=first, poses_tum=poses_out,
+        iterations=solved.iterations,
+        initial_cost=res.final_cost if solved.initial_cost is None else solved.initial_cost,
+        final_cost=res.final_cost, converged=res.converged, reason=res.reason, failed=failed,
+        notes=list(notes), association=association, costs=cost_by_factor(graph, values, res),
     )
 
 
