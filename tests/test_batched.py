@@ -86,7 +86,7 @@ def assert_matches_single(res, b, single, rtol=1e-7):
                                rtol=rtol)
     np.testing.assert_array_equal(res.accepted_history[b, :its],
                                   [r.accepted for r in single.history])
-    np.testing.assert_allclose(res.lambda_history[b, :its], [r.lambda_ for r in single.history],
+    np.testing.assert_allclose(res.lambda_history[b, :its], [r.damping for r in single.history],
                                rtol=1e-6)
     assert np.all(np.isnan(res.cost_history[b, its:]))
 
@@ -331,8 +331,8 @@ def test_every_lm_option_runs_batched_in_lock_step(options):
     if options.get("lambda_schedule") == "fixed":
         f = options.get("lambda_factor", 10.0)
         for rec, nxt in zip(res.history(0), res.history(0)[1:]):
-            want = max(1e-10, rec.lambda_ / f) if rec.accepted else rec.lambda_ * f
-            assert nxt.lambda_ == pytest.approx(want, rel=1e-12)
+            want = max(1e-10, rec.damping / f) if rec.accepted else rec.damping * f
+            assert nxt.damping == pytest.approx(want, rel=1e-12)
 
 
 def test_callback_and_verbose_in_the_batched_loop(capsys):
@@ -388,5 +388,6 @@ def test_dogleg_runs_batched_in_lock_step(param):
                         trust_radius_initial=0.5).optimize(graphs[b], values[b], fixed=fixed)
         assert_matches_single(res, b, single)
         steps = [r.step_norm for r in single.history]
-        radii = [r.lambda_ for r in single.history]
+        radii = [r.damping for r in single.history]
+        assert all(r.radius for r in single.history) and all(r.radius for r in res.history(b))
         assert all(s <= d * (1 + 1e-9) for s, d in zip(steps, radii))  # inside the region

@@ -21,6 +21,8 @@ from scipy.spatial.transform import Rotation
 
 from spdslam.evaluation import box_iou, check_sequence, interpolate_poses
 from spdslam.geometry import Camera, distort_points, undistort_points
+from spdslam.geometry import box_iou as geometry_box_iou
+from spdslam.geometry.se3 import interpolate_tum
 from spdslam.io import write_sequence
 from spdslam.synthetic import make_room_sequence
 
@@ -44,12 +46,22 @@ def test_interpolated_poses_are_exact_at_samples_and_refused_across_gaps():
     np.testing.assert_allclose(rows[1, :3], [0.5, 0, 0], atol=1e-12)
     np.testing.assert_allclose(Rotation.from_quat(rows[1, 3:]).as_rotvec(), [0, 0, 0.1], atol=1e-12)
     np.testing.assert_allclose(rows[2, :3], [2.0, 0, 0], atol=1e-12)
+    # the interpolation itself (geometry.se3.interpolate_tum): rows in any order, each sample
+    # time gives its sample exactly, times outside give the end samples (no extrapolation)
+    ends = interpolate_tum(P[::-1], [-1.0, 0.0, 1.0, 5.0, 6.0])
+    np.testing.assert_array_equal(ends[:, :3], P[[0, 0, 1, 3, 3], 1:4])
+    np.testing.assert_array_equal(ends[:, 3:], Rotation.from_quat(P[[0, 0, 1, 3, 3], 4:]).as_quat())
 
 
 def test_box_iou_and_the_distortion_round_trip():
     a = np.array([[0, 0, 10, 10], [0, 0, 10, 10]], float)
     b = np.array([[0, 0, 10, 10], [5, 0, 15, 10]], float)
     np.testing.assert_allclose(box_iou(a, b), [1.0, 1 / 3])
+    assert box_iou is geometry_box_iou  # one IoU for the check, the screen and the association
+    # pairwise by broadcasting; a zero-width or inverted box overlaps nothing, itself included
+    odd = np.array([[0, 0, 10, 10], [5, 0, 15, 10], [3, 3, 3, 9], [8, 8, 2, 2]], float)
+    np.testing.assert_allclose(box_iou(odd[:, None], odd[None]),
+                               [[1, 1 / 3, 0, 0], [1 / 3, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]])
     cam = Camera(500, 500, 320, 240, 640, 480)
     k = (0.23, -0.78, -0.003, -0.0001, 0.92)
     uv = np.array([[10.0, 20.0], [320.0, 240.0], [600.0, 450.0]])

@@ -171,7 +171,7 @@ def test_batched_matches_looped_unbatched_solves():
         np.testing.assert_allclose(batched.cost_history[b, :its],
                                    [r.cost for r in single.history], rtol=1e-7)
         np.testing.assert_allclose(batched.lambda_history[b, :its],
-                                   [r.lambda_ for r in single.history], rtol=1e-6)
+                                   [r.damping for r in single.history], rtol=1e-6)
         np.testing.assert_array_equal(batched.accepted_history[b, :its],
                                       [r.accepted for r in single.history])
         np.testing.assert_allclose(batched.step_norm_history[b, :its],
@@ -270,7 +270,7 @@ def test_history_records():
     assert all(b <= a for a, b in zip([res.initial_cost] + costs, costs))
     assert costs[-1] == res.final_cost
     for k, r in enumerate(res.history, start=1):
-        assert r.iteration == k and r.time > 0.0 and r.lambda_ > 0.0
+        assert r.iteration == k and r.time > 0.0 and r.damping > 0.0
         assert np.isfinite(r.step_norm) and r.step_norm > 0.0 and np.isfinite(r.trial_cost)
         if r.accepted:
             assert r.trial_cost == r.cost and r.gain_ratio > 0
@@ -325,7 +325,7 @@ def test_steps_that_invalidate_a_factor_are_rejected():
     assert r.reason == "lambda_max" and not r.converged
     assert not any(rec.accepted for rec in r.history)
     assert r.final_cost == r.initial_cost
-    lams = [rec.lambda_ for rec in r.history]
+    lams = [rec.damping for rec in r.history]
     assert all(b > a for a, b in zip(lams, lams[1:]))
     g = GaussNewton().optimize(graph, values)
     assert (g.reason, g.iterations, g.converged) == ("cost_increase", 1, False)

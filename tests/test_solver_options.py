@@ -171,12 +171,12 @@ def test_fixed_schedule_follows_its_rule_and_reaches_the_optimum(damping):
     np.testing.assert_allclose(res.final_cost, ref.final_cost, rtol=1e-9)
     np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(ref.values), atol=1e-7)
     h = res.history
-    assert h[0].lambda_ == pytest.approx(1e-5)
+    assert h[0].damping == pytest.approx(1e-5)
     for a, b in zip(h, h[1:]):
-        expected = max(1e-10, a.lambda_ / 10) if a.accepted else a.lambda_ * 10
-        assert b.lambda_ == pytest.approx(expected, rel=1e-12)
+        expected = max(1e-10, a.damping / 10) if a.accepted else a.damping * 10
+        assert b.damping == pytest.approx(expected, rel=1e-12)
     # the Nielsen rule changes λ by other factors, so the two histories differ
-    assert [r.lambda_ for r in ref.history][:3] != [r.lambda_ for r in h][:3]
+    assert [r.damping for r in ref.history][:3] != [r.damping for r in h][:3]
 
 
 def test_isotropic_damping_is_the_largest_curvature_of_each_block():
@@ -220,9 +220,12 @@ def test_dogleg_reaches_the_optimum_and_checks_its_radius():
     assert res.converged, res.reason
     np.testing.assert_allclose(res.final_cost, ref.final_cost, rtol=1e-9)
     np.testing.assert_allclose(pose_matrices(res.values), pose_matrices(ref.values), atol=1e-7)
-    assert res.history[0].lambda_ == 1.0
+    assert res.history[0].damping == 1.0
+    # the records' damping is Δ, marked and printed as the radius (LM's is λ)
+    assert all(r.radius for r in res.history) and not any(r.radius for r in ref.history)
+    assert " radius 1.00e+00 " in res.history[0].line() and " lambda " in ref.history[0].line()
     for a, b in zip(res.history, res.history[1:]):  # Δ only shrinks after a poor step
-        if b.lambda_ < a.lambda_:
+        if b.damping < a.damping:
             assert a.gain_ratio < 0.25
     with pytest.raises(ValueError, match="trust_radius_initial"):
         Dogleg(trust_radius_initial=0.0)

@@ -15,6 +15,14 @@ def test_wilson_known_values():
     assert wilson(0, 24).low == 0.0
     with pytest.raises(ValueError):
         wilson(5, 4)
+    z = 1.959963984540054  # the closed form (module docstring), no continuity correction
+    for k, n in [(0, 7), (1, 7), (3, 7), (7, 7), (81, 263)]:
+        p = k / n
+        mid, half = p + z * z / (2 * n), z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+        iv = wilson(k, n)
+        np.testing.assert_allclose([iv.low, iv.high], [0.0 if k == 0 else (mid - half) / (1 + z * z / n),
+                                                       1.0 if k == n else (mid + half) / (1 + z * z / n)],
+                                   rtol=1e-12)
 
 
 def test_wilson_coverage():
@@ -36,6 +44,8 @@ def test_bootstrap_mean_coverage_and_nan():
     iv = bootstrap([1.0, np.nan, 3.0])
     assert iv.n == 2 and iv.estimate == 2.0
     assert np.isnan(bootstrap([np.nan]).estimate)
+    one = bootstrap([np.nan, 4.0])  # one value: every resample is the sample
+    assert (one.estimate, one.low, one.high, one.n) == (4.0, 4.0, 4.0, 1)
 
 
 def test_paired_comparison_detects_a_shift():

@@ -1,5 +1,6 @@
 """The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``check``, ``evaluate``, ``import``,
-``compare``, ``demo``, ``view``. The top layer: it may import every other package."""
+``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top layer: it may import every other
+package."""
 
 from . import _check, _sequences, _simulate  # noqa: F401  (register the commands)
 from ._app import CACHE_ENV as CACHE_ENV

@@ -1,8 +1,9 @@
 """The ``spdslam`` typer application, its conventions and the ``info`` command.
 
 A single typer application, :data:`app`. Commands are plain functions registered with
-``@app.command()`` in the modules of this package (``_simulate``: ``simulate``;
-``_sequences``: ``run``, ``evaluate``, ``import``, ``compare``, ``demo``, ``view``, ``warmup``).
+``@app.command()`` in the modules of this package (``_app``: ``info``; ``_simulate``:
+``simulate``; ``_check``: ``check``; ``_sequences``: ``run``, ``evaluate``, ``import``,
+``compare``, ``batch``, ``demo``, ``view``, ``warmup``).
 Conventions:
 
 * bad user input -> :func:`fail` (one line on stderr, exit status 2);

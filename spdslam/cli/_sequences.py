@@ -1,4 +1,4 @@
-"""The sequence commands: ``run``, ``evaluate``, ``import``, ``compare``, ``demo`` and ``view``.
+"""The sequence commands: ``run``, ``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view`` and ``warmup``.
 
 Their choices and help come from the factor registry (robust-kernel groups) and the mapping
 (methods, models, the sigma table), so a new factor type or method appears here unchanged.

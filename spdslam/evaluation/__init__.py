@@ -4,10 +4,10 @@ Imports ``geometry`` and ``io``; it evaluates any map, however it was made, and 
 run folder (``experiments.write_run`` does).
 """
 
+from ..geometry import box_iou as box_iou  # the IoU of image boxes, used by the check
 from ..io import dumps_strict as dumps_strict  # strict JSON, for the layers above io
 from ._check import BOX_CONVENTIONS as BOX_CONVENTIONS
 from ._check import CheckReference as CheckReference
-from ._check import box_iou as box_iou
 from ._check import camera_frame_offset as camera_frame_offset
 from ._check import check_findings as check_findings
 from ._check import check_sequence as check_sequence

@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import (
     Ellipsoid,
+    box_iou,
     distort_points,
     dual_quadric,
     in_front,
@@ -44,7 +45,7 @@ from ..geometry import (
     project_cuboid_box,
     project_dual_quadric,
 )
-from ..geometry.se3 import from_tum
+from ..geometry.se3 import from_tum, interpolate_tum
 from ._metrics import associate_timestamps
 from ._plots import conic_ellipses, ellipses_points
 from ._report import ground_truth_in_map_frame, to_groundtruth
@@ -52,7 +53,6 @@ from ._report import ground_truth_in_map_frame, to_groundtruth
 __all__ = [
     "BOX_CONVENTIONS",
     "CheckReference",
-    "box_iou",
     "check_findings",
     "camera_frame_offset",
     "check_sequence",
@@ -91,41 +91,21 @@ class CheckReference:
     poses_tum: np.ndarray
 
 
-def box_iou(a, b) -> np.ndarray:
-    """IoU of boxes (…, 4) [u_min, v_min, u_max, v_max], broadcast; 0 for empty unions."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    w = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
-    h = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
-    inter = w * h
-    area = lambda c: np.clip(c[..., 2] - c[..., 0], 0, None) * np.clip(c[..., 3] - c[..., 1], 0, None)  # noqa: E731
-    union = area(a) + area(b) - inter
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-
-
 def interpolate_poses(poses_tum, times, max_gap: float) -> tuple[np.ndarray, np.ndarray]:
     """(poses (n, 7) ``tx ty tz qx qy qz qw``, ok (n,)) of the trajectory ``poses_tum`` (N, 8,
     sorted by time) at ``times``: linear in the centre, spherical-linear in the rotation
-    between the two poses around each time; ``ok`` is False where those are more than
-    ``max_gap`` s apart or the time is outside the trajectory (the row is then the nearest
-    pose)."""
+    between the two poses around each time (``geometry.se3.interpolate_tum``); ``ok`` is False
+    where those are more than ``max_gap`` s apart or the time is outside the trajectory (the
+    row is then the nearest pose)."""
     P = np.asarray(poses_tum, float)
     t = np.asarray(times, float)
-    order = np.argsort(P[:, 0], kind="stable")
-    P = P[order]
-    ts = P[:, 0]
+    ts = np.sort(P[:, 0])
     k = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 1)
-    k1 = np.minimum(k + 1, len(ts) - 1)
-    span = ts[k1] - ts[k]
+    span = ts[np.minimum(k + 1, len(ts) - 1)] - ts[k]
     inside = (t >= ts[0]) & (t <= ts[-1])
     exact = np.isclose(t, ts[k], rtol=0, atol=1e-9)
     ok = inside & (exact | ((span > 0) & (span <= max_gap)))
-    a = np.where(span > 0, (t - ts[k]) / np.where(span > 0, span, 1.0), 0.0)
-    a = np.clip(a, 0.0, 1.0)
-    c = P[k, 1:4] + a[:, None] * (P[k1, 1:4] - P[k, 1:4])
-    r0, r1 = Rotation.from_quat(P[k, 4:8]), Rotation.from_quat(P[k1, 4:8])
-    r = r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * a[:, None])
-    return np.c_[c, r.as_quat()], ok
+    return interpolate_tum(P, t), ok
 
 
 @jax.jit

@@ -1,15 +1,26 @@
 """Confidence intervals and paired comparisons for Monte Carlo studies.
 
-- Wilson score interval for a binomial proportion k/n:
-  (p̂ + z²/2n ± z √(p̂(1−p̂)/n + z²/4n²)) / (1 + z²/n).
+- Wilson score interval for a binomial proportion k/n, without continuity correction
+  (``scipy.stats.binomtest(k, n).proportion_ci(method="wilson")``):
+  (p̂ + z²/2n ± z √(p̂(1−p̂)/n + z²/4n²)) / (1 + z²/n), with the bound 0 at k = 0 and 1 at k = n.
 - Percentile bootstrap for a statistic of one sample (resampling with replacement,
-  vectorised: all resamples drawn as one index array).
+  ``scipy.stats.bootstrap``: vectorised, the resamples drawn a block of index rows at a time
+  from ``default_rng(seed)``).
 - Paired comparison of two methods on the same trials: bootstrap interval of the mean
   difference, of the ratio of means, and the Wilcoxon signed-rank test.
+
+The percentiles of SciPy's bootstrap distribution are taken here with ``np.quantile``
+(linear), not read from its ``confidence_interval``, whose percentile step rounds differently
+from one SciPy release to the next (``np.percentile`` at 100 q in 1.11, ``scipy.stats.quantile``
+in 1.17) by ~1e-15, enough to print a bound of exactly 0 as −1.4e-17: so the intervals, and
+the committed tables (docs/simulation), do not depend on the SciPy version. The ratio of
+means also leaves out the resamples whose mean of b is 0, which SciPy's interval would not.
 """
 
 from __future__ import annotations
 
+import inspect
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,40 +43,42 @@ class Interval:
         return {"estimate": self.estimate, "low": self.low, "high": self.high, "n": self.n}
 
 
-def _z(confidence: float) -> float:
-    if not 0 < confidence < 1:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    return float(_st.norm.ppf(0.5 + confidence / 2))
-
-
 def wilson(successes: int, n: int, confidence: float = 0.95) -> Interval:
     """Wilson score interval for the success probability."""
     if n <= 0:
         return Interval(float("nan"), 0.0, 1.0, 0)
     if not 0 <= successes <= n:
         raise ValueError(f"successes must be in [0, {n}], got {successes}")
-    z = _z(confidence)
-    p = successes / n
-    den = 1 + z * z / n
-    mid = (p + z * z / (2 * n)) / den
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    low = 0.0 if successes == 0 else max(0.0, mid - half)
-    high = 1.0 if successes == n else min(1.0, mid + half)
-    return Interval(p, low, high, n)
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    ci = _st.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
+    return Interval(successes / n, max(0.0, float(ci.low)), min(1.0, float(ci.high)), n)
 
 
-#: Resampled indices drawn at a time (``_resamples``): about 32 MB.
+#: Resampled indices drawn at a time (``scipy.stats.bootstrap``'s ``batch``): about 32 MB.
 _RESAMPLE_BLOCK = 4_000_000
+#: ``scipy.stats.bootstrap``'s keyword for the generator (``random_state`` before SciPy 1.15).
+_RNG = "rng" if "rng" in inspect.signature(_st.bootstrap).parameters else "random_state"
 
 
-def _resamples(n: int, resamples: int, seed: int):
-    """The bootstrap's index arrays (k, n), ``resamples`` rows in all, in blocks of at most
-    ``_RESAMPLE_BLOCK`` entries: the same indices as one (resamples, n) draw from
-    ``default_rng(seed)``, in bounded memory."""
-    rng = np.random.default_rng(seed)
-    rows = max(1, _RESAMPLE_BLOCK // max(n, 1))
-    for lo in range(0, resamples, rows):
-        yield rng.integers(0, n, size=(min(rows, resamples - lo), n))
+def _distribution(samples, statistic, resamples: int, seed: int, paired: bool = False) -> np.ndarray:
+    """The bootstrap distribution (…, resamples) of ``statistic(*samples, axis=-1)``: the
+    rows of indices drawn from ``default_rng(seed)`` as one (resamples, n) draw, in blocks of
+    at most ``_RESAMPLE_BLOCK`` entries (``paired``: the same rows for every sample). SciPy
+    needs two observations; every resample of one is the sample itself."""
+    n = samples[0].size
+    if n == 1:
+        return statistic(*(x[np.zeros((resamples, 1), int)] for x in samples), axis=-1)
+    with warnings.catch_warnings():
+        # SciPy's interval and standard error, computed beside the distribution, are not used
+        # here: not their warnings either (a NaN statistic; the spread of a single resample)
+        warnings.filterwarnings("ignore", category=_st.DegenerateDataWarning)
+        if resamples < 2:
+            warnings.filterwarnings("ignore", category=RuntimeWarning)
+        res = _st.bootstrap(samples, statistic, n_resamples=resamples, batch=max(1, _RESAMPLE_BLOCK // n),
+                            vectorized=True, paired=paired, method="percentile",
+                            **{_RNG: np.random.default_rng(seed)})
+    return np.asarray(res.bootstrap_distribution)
 
 
 def bootstrap(
@@ -75,7 +88,8 @@ def bootstrap(
     resamples: int = 2000,
     seed: int = 0,
 ) -> Interval:
-    """Percentile bootstrap interval of ``statistic`` (applied along axis 1 of the resamples).
+    """Percentile bootstrap interval of ``statistic`` (called with ``axis=-1``, along each
+    resample).
 
     NaN entries are dropped first; an empty sample gives a NaN interval.
     """
@@ -83,7 +97,7 @@ def bootstrap(
     x = x[np.isfinite(x)]
     if x.size == 0:
         return Interval(float("nan"), float("nan"), float("nan"), 0)
-    boot = np.concatenate([statistic(x[idx], axis=1) for idx in _resamples(x.size, resamples, seed)])
+    boot = _distribution((x,), statistic, resamples, seed)
     a = (1 - confidence) / 2
     lo, hi = np.quantile(boot, [a, 1 - a])
     return Interval(float(statistic(x)), float(lo), float(hi), int(x.size))
@@ -115,6 +129,11 @@ class PairedComparison:
         }
 
 
+def _means(a, b, axis=-1):
+    """(mean of a, mean of b) along ``axis``: the paired bootstrap's statistic."""
+    return np.stack([a.mean(axis=axis), b.mean(axis=axis)])
+
+
 def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, seed: int = 0) -> PairedComparison:
     """Paired bootstrap (same resampled trials for both methods) and Wilcoxon test."""
     a = np.asarray(a, dtype=float)
@@ -127,8 +146,7 @@ def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, see
     nan = Interval(float("nan"), float("nan"), float("nan"), n)
     if n == 0:
         return PairedComparison(0, np.nan, np.nan, nan, nan, np.nan, np.nan, np.nan)
-    means = [(a[idx].mean(axis=1), b[idx].mean(axis=1)) for idx in _resamples(n, resamples, seed)]
-    ma, mb = (np.concatenate(m) for m in zip(*means))
+    ma, mb = _distribution((a, b), _means, resamples, seed, paired=True)
     q = [(1 - confidence) / 2, (1 + confidence) / 2]
     d = a - b
     lo, hi = map(float, np.quantile(ma - mb, q))

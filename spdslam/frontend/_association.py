@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..geometry import Ellipsoid, in_front, project_box, spd, truncation_mask
+from ..geometry import Ellipsoid, box_iou, in_front, project_box, spd, truncation_mask
 from ..geometry.se3 import quat_to_matrix
 from ..io import Sequence, class_prior
 
@@ -158,17 +158,6 @@ def _median(a: np.ndarray) -> float:
         return float(np.partition(a, h)[h])
     p = np.partition(a, (h - 1, h))
     return float((p[h - 1] + p[h]) / 2.0)
-
-
-def _iou(a, b) -> np.ndarray:
-    """IoU of boxes [u₁, v₁, u₂, v₂] (broadcast over leading axes); 0 for empty boxes."""
-    iw = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
-    ih = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
-    inter = iw * ih
-    area_a = np.clip(a[..., 2] - a[..., 0], 0, None) * np.clip(a[..., 3] - a[..., 1], 0, None)
-    area_b = np.clip(b[..., 2] - b[..., 0], 0, None) * np.clip(b[..., 3] - b[..., 1], 0, None)
-    union = area_a + area_b - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -434,7 +423,7 @@ def _track_frame(sc: _Scene, s: AssociationSettings, st: _Tracking, f: int, dets
             np.array([st.fits[t].X for t in act]), np.array([st.fits[t].P for t in act]),
             np.full(len(act), f),
         )
-        iou = _iou(boxes[:, None], sc.box[dets][None])
+        iou = box_iou(boxes[:, None], sc.box[dets][None])
         allowed = (
             vis[:, None]
             & (np.array([st.label[t] for t in act])[:, None] == sc.label[dets][None])
@@ -557,7 +546,7 @@ def _reassign(sc: _Scene, groups: list, s: AssociationSettings) -> list:
         frames, inv = np.unique(sc.frame[di], return_inverse=True)
         X = sc.local_centres(groups[i], fits[i], frames, s.window)[inv]
         boxes, vis = sc.project(X, np.broadcast_to(fits[i].P, (di.size, 3, 3)), sc.frame[di])
-        iou[di, j] = np.where(vis, _iou(boxes, sc.box[di]), 0.0)
+        iou[di, j] = np.where(vis, box_iou(boxes, sc.box[di]), 0.0)
     allowed = (sc.label[:, None] == labs[None, :]) & (iou >= s.iou_gate)
     for dets in sc.by_frame:
         if dets.size == 0 or not allowed[dets].any():

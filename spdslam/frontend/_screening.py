@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry import box_iou
 from ..io import Sequence, class_prior
 
 __all__ = ["ASPECT_MARGIN", "DUPLICATE_IOU", "SCREEN_REASONS", "Screening", "screen_detections",
@@ -63,17 +64,6 @@ def screen_summary(dropped: dict, total: int) -> str:
     return f"{sum(c.values())} of {total} detections left out: " + "; ".join(parts)
 
 
-def _iou_matrix(b):
-    x1 = np.maximum(b[:, None, 0], b[None, :, 0])
-    y1 = np.maximum(b[:, None, 1], b[None, :, 1])
-    x2 = np.minimum(b[:, None, 2], b[None, :, 2])
-    y2 = np.minimum(b[:, None, 3], b[None, :, 3])
-    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
-    area = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area[:, None] + area[None, :] - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-
-
 def screen_frame(dets: list, camera, priors, truncation_margin: float | None = 5.0) -> list:
     """(reason, text) or None for each of one frame's detections (the module docstring's
     rules; duplicates greedily by decreasing score)."""
@@ -82,7 +72,8 @@ def screen_frame(dets: list, camera, priors, truncation_margin: float | None = 5
         return out
     boxes = np.stack([d.box for d in dets])
     order = np.argsort(-np.array([d.score for d in dets]), kind="stable")
-    iou = _iou_matrix(boxes[order]) if len(dets) > 1 else np.zeros((1, 1))
+    ranked = boxes[order]
+    iou = box_iou(ranked[:, None], ranked[None]) if len(dets) > 1 else np.zeros((1, 1))  # pairwise
     kept: list = []
     for j, i in enumerate(order):
         hit = [m for m in kept if iou[j, m] > DUPLICATE_IOU]

@@ -1,4 +1,4 @@
-"""Geometry: ellipsoid landmarks, SPD(3), SE(3), the pinhole camera and cuboids.
+"""Geometry: ellipsoid landmarks, SPD(3), SE(3), the pinhole camera, image boxes and cuboids.
 
 The lowest layer: it imports nothing else of spdslam. Every function here is written once
 and serves NumPy and JAX alike (``array_namespace``): NumPy in, NumPy out, no JAX dispatch;
@@ -16,6 +16,7 @@ from . import se3 as se3
 from . import spd as spd
 from ._align import align_rigid as align_rigid
 from ._arrays import array_namespace as array_namespace
+from ._boxes import box_iou as box_iou
 from ._camera import Camera as Camera
 from ._camera import box_lines as box_lines
 from ._camera import box_planes as box_planes

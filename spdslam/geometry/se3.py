@@ -5,6 +5,7 @@ translation is the camera centre in the world, its rotation's columns are the ca
 (x right, y down, z forward along the optical axis) in the world. TUM trajectory lines
 ``timestamp tx ty tz qx qy qz qw`` store exactly this pose. Tangent vectors are jaxlie's
 (v, ω), translation first, with the right perturbation T ⊞ δ = T · Exp(δ).
+``interpolate_tum`` reads a TUM trajectory between its samples.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ __all__ = [
     "world_to_camera",
     "quat_to_matrix",
     "matrix_to_quat",
+    "interpolate_tum",
 ]
 
 
@@ -102,3 +104,27 @@ def matrix_to_quat(R) -> np.ndarray:
     """Unit quaternion ``qx qy qz qw`` with qw ≥ 0 of a rotation matrix, NumPy."""
     q = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
     return np.where(q[..., 3:] < 0, -q, q)
+
+
+def interpolate_tum(rows, times) -> np.ndarray:
+    """Poses (n, 7) ``tx ty tz qx qy qz qw`` of the trajectory ``rows`` (N, 8) TUM rows
+    ``t tx ty tz qx qy qz qw`` (sorted here by time, stably) at ``times`` (n,), NumPy.
+
+    Between the samples k and k + 1 around t (t_k ≤ t < t_k+1, k the last of equal times),
+    with a = (t − t_k) / (t_k+1 − t_k): the centre c_k + a (c_k+1 − c_k) and the rotation
+    R_k Exp(a Log(R_k⁻¹ R_k+1)) (slerp). A sample's time gives the sample itself; a time
+    outside [t_0, t_N−1] gives the end pose (no extrapolation: the caller decides whether
+    such a time is usable)."""
+    P = np.asarray(rows, dtype=float)
+    t = np.asarray(times, dtype=float)
+    P = P[np.argsort(P[:, 0], kind="stable")]
+    ts = P[:, 0]
+    k = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 1)
+    k1 = np.minimum(k + 1, len(ts) - 1)
+    span = ts[k1] - ts[k]
+    a = np.where(span > 0, (t - ts[k]) / np.where(span > 0, span, 1.0), 0.0)
+    a = np.clip(a, 0.0, 1.0)
+    c = P[k, 1:4] + a[:, None] * (P[k1, 1:4] - P[k, 1:4])
+    r0, r1 = Rotation.from_quat(P[k, 4:8]), Rotation.from_quat(P[k1, 4:8])
+    r = r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * a[:, None])
+    return np.c_[c, r.as_quat()]

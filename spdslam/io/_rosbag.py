@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import Camera, undistort_boxes
+from ..geometry.se3 import interpolate_tum
 from ._formats import SequenceFormat
 from ._oaslam import DEFAULT_MIN_SCORE, estimate_up
 from ._parse import MATCH_TOLERANCE, SequenceFormatError, check_box, nearest_stamps, unit_quaternion
@@ -363,14 +364,9 @@ class _Edge:
         if t.size == 1:
             ok = np.abs(tq - t[0]) <= MATCH_TOLERANCE + 1e-9
             return np.tile(p[0], (n, 1)), Rotation.from_quat(np.tile(q[0], (n, 1))), ok
-        tc = np.clip(tq, t[0], t[-1])
-        ok = np.abs(tc - tq) <= MATCH_TOLERANCE + 1e-9
-        i1 = np.clip(np.searchsorted(t, tc, side="right"), 1, t.size - 1)
-        i0 = i1 - 1
-        a = ((tc - t[i0]) / (t[i1] - t[i0]))[:, None]
-        r0 = Rotation.from_quat(q[i0])
-        rel = (r0.inv() * Rotation.from_quat(q[i1])).as_rotvec()
-        return (1 - a) * p[i0] + a * p[i1], r0 * Rotation.from_rotvec(a * rel), ok
+        ok = np.abs(np.clip(tq, t[0], t[-1]) - tq) <= MATCH_TOLERANCE + 1e-9
+        pose = interpolate_tum(np.c_[t, p, q], tq)  # the end sample outside [t[0], t[-1]]
+        return pose[:, :3], Rotation.from_quat(pose[:, 3:]), ok
 
 
 def _tf_edges(bag: str, topic: str, msgs, static: bool, edges: dict) -> None:

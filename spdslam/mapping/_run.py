@@ -699,7 +699,7 @@ def run_sequence(
 
     def each_iteration(rec):
         say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
-            f"({'accepted' if rec.accepted else 'rejected'}, λ {rec.lambda_:.2g})")
+            f"({'accepted' if rec.accepted else 'rejected'}, {'Δ' if rec.radius else 'λ'} {rec.damping:.2g})")
 
     optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
                                    relative_tolerance=tolerance,

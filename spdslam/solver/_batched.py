@@ -85,8 +85,9 @@ class BatchedResult:
 
     History arrays have one column per iteration (``max_iterations`` columns), padded with
     NaN (False for ``accepted``) after a problem stopped: ``cost`` after the iteration,
-    ``trial_cost`` at its trial point, ``step_norm`` ‖δ‖₂, ``lambda_`` the damping used,
-    ``gain`` the gain ratio; ``history(b)`` gives problem b's as ``IterationRecord``s.
+    ``trial_cost`` at its trial point, ``step_norm`` ‖δ‖₂, ``lambda`` the damping used (λ, or
+    the dogleg's trust-region radius Δ: then ``radius`` is True), ``gain`` the gain ratio;
+    ``history(b)`` gives problem b's as ``IterationRecord``s.
     ``timings`` (s): setup (input layout), trace (tracing and lowering to XLA) and compile
     (XLA compilation; both zero when the program was already built), solve (running the
     loop), output; ``steps`` is the number of loop steps the lanes ran.
@@ -106,6 +107,7 @@ class BatchedResult:
     gain_history: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
     steps: int = 0
+    radius: bool = False
     _make_values: Callable[[], list] | None = field(default=None, repr=False)
     _values: list | None = field(default=None, repr=False)
 
@@ -126,7 +128,7 @@ class BatchedResult:
                             float(self.trial_cost_history[b, k]),
                             float(self.step_norm_history[b, k]),
                             float(self.lambda_history[b, k]), float(self.gain_history[b, k]),
-                            bool(self.accepted_history[b, k]), float("nan"), b)
+                            bool(self.accepted_history[b, k]), float("nan"), b, self.radius)
             for k in range(int(self.iterations[b]))
         ]
 
@@ -471,7 +473,7 @@ class BatchedProblem:
         key, fn, args, optimize, report = self._plan(b, batch_size)
         t1 = time.perf_counter()
         timings = {"setup": t1 - t0}
-        Reporter.current = Reporter(p) if report else None
+        Reporter.current = Reporter(p, self.rule) if report else None
         try:
             xout, res, hist, steps = call_compiled(key, fn, args, timings, optimize)
             xout, res, hist = jax.tree.map(np.asarray, (xout, res, hist))
@@ -506,6 +508,7 @@ class BatchedProblem:
             gain_history=hist[:, :, HISTORY.GAIN].copy(),
             timings=dict(timings, output=time.perf_counter() - t2),
             steps=int(steps),
+            radius=self.rule.dogleg,
             _make_values=make_values,
         )
 

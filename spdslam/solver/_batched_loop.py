@@ -32,6 +32,7 @@ from ._lm import (
     MAX_ITERATIONS,
     REASONS,
     IterationRecord,
+    StepRule,
     damping,
     decide,
     dogleg_step,
@@ -171,8 +172,9 @@ class Reporter:
 
     current: "Reporter | None" = None
 
-    def __init__(self, params):
+    def __init__(self, params, rule: StepRule):
         self.callback, self.verbose = params.callback, params.verbose
+        self.radius = rule.dogleg  # the records' damping is the dogleg's Δ
         self.last = time.perf_counter()
 
     def __call__(self, rows, active):
@@ -182,7 +184,7 @@ class Reporter:
         for lane in np.flatnonzero(active):
             p, it, cost, trial, step, lam, gain, acc = rows[lane]
             rec = IterationRecord(int(it), float(cost), float(trial), float(step), float(lam),
-                                  float(gain), bool(acc), dt, int(p))
+                                  float(gain), bool(acc), dt, int(p), self.radius)
             if self.verbose:
                 print(rec.line())
             if self.callback is not None and self.callback(rec):

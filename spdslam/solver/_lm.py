@@ -36,7 +36,7 @@ is the dogleg path's point in the trust region ‖δ‖₂ ≤ Δ (``dogleg_step
 itself whenever it fits, so no damping slows a run down a long valley, and never longer
 than Δ in the metric. ρ against L = −gᵀδ − ½δᵀHδ; acceptance as for LM; Δ ← ‖δ‖/4 when
 ρ < 1/4 (and on rejection), Δ ← min(2Δ, Δ_max) when ρ > 3/4 and the step reached the
-boundary. The records' ``lambda_`` holds Δ.
+boundary. The records' ``damping`` holds Δ (with ``radius`` True).
 
 GN: λ is a fixed tiny ridge (``ridge``, relative to D) so that Cholesky survives singular
 directions. Every step that lowers the cost is taken; the first that does not (cost increase,
@@ -190,33 +190,36 @@ class GaussNewtonParams(OptimizerParams):
 
 @dataclass
 class IterationRecord:
-    """One iteration: the trial at damping ``lambda_`` with step norm ‖δ‖₂.
+    """One iteration: the trial at ``damping`` with step norm ‖δ‖₂.
 
     cost:       F after the iteration (the trial's cost if accepted, else unchanged);
     trial_cost: F at the trial point (inf if the system could not be solved);
+    damping:    λ of LM, or the dogleg's trust-region radius Δ (``radius`` True);
     gain_ratio: ρ = actual / predicted decrease (−inf for an unusable trial);
     time:       wall-clock seconds of this iteration (incl. relinearisation if accepted;
                 batched: of the loop step, shared by the problems in flight);
-    problem:    the problem's index in a batched solve (None for a single solve).
+    problem:    the problem's index in a batched solve (None for a single solve);
+    radius:     True when ``damping`` is the dogleg's Δ.
     """
 
     iteration: int
     cost: float
     trial_cost: float
     step_norm: float
-    lambda_: float
+    damping: float
     gain_ratio: float
     accepted: bool
     time: float
     problem: int | None = None
+    radius: bool = False
 
     def line(self) -> str:
         """The line ``verbose`` prints."""
         who = "" if self.problem is None else f"problem {self.problem:5d}  "
         return (
             f"{who}iter {self.iteration:4d}  cost {self.cost:.10e}  trial {self.trial_cost:.4e}  "
-            f"|step| {self.step_norm:.3e}  lambda {self.lambda_:.2e}  rho {self.gain_ratio:.3g}  "
-            f"{'accept' if self.accepted else 'reject'}  {1e3 * self.time:.1f} ms"
+            f"|step| {self.step_norm:.3e}  {'radius' if self.radius else 'lambda'} {self.damping:.2e}  "
+            f"rho {self.gain_ratio:.3g}  {'accept' if self.accepted else 'reject'}  {1e3 * self.time:.1f} ms"
         )
 
 

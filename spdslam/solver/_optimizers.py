@@ -242,7 +242,7 @@ def _run(problem: Problem, solver, p, rule: StepRule, timings: dict) -> Optimiza
             gmax, lam, nu, np)
         accepted = bool(accepted)
         rec = IterationRecord(it, trial_cost if accepted else cost, trial_cost, step_norm, lam,
-                              float(gain), accepted, 0.0)
+                              float(gain), accepted, 0.0, radius=rule.dogleg)
         if accepted:
             x, cost = x_new, trial_cost
             H, g, _, valid, _ = cast(tuple, lin)  # accepted: the trial was linearised
