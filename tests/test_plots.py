@@ -1,4 +1,4 @@
-"""Figures (spdslam.evaluation's plots): PNG files are written, and the geometry behind them
+"""Figures (spdslam.experiments' plots, on spdslam.evaluation's ellipses): PNG files are written, and the geometry behind them
 is right.
 
 The geometry is checked against independent constructions: brute-force projected surface
@@ -19,11 +19,9 @@ from spdslam.evaluation import (
     conic_ellipse,
     conic_outline,
     plane_basis,
-    plot_map_top,
-    plot_overlay,
     top_view_ellipse,
-    write_overlays,
 )
+from spdslam.experiments import plot_map_top, plot_overlay, write_overlays
 from spdslam.geometry import Cuboid, conic_box, in_front, project_box, project_dual_quadric
 from spdslam.geometry.se3 import from_tum, matrix_to_quat, to_matrix
 from spdslam.io import Detection, GroundTruthObject, Sequence

@@ -106,9 +106,9 @@ jobs:
     method: multi-spd
   - sequence: room
     name: raises
-    parameterization: full
-    online: true
-""")
+    hold_trajectory: true
+    min_views: 1000
+""")  # no object and every pose held: "optimisation (inverse boxes): the graph has no factors"
     local, on_ray = tmp_path / "local", tmp_path / "ray"
     r = cli_invoke("batch", m, "--out", local, "--retries", "0")
     assert r.exit_code == 1, r.output
@@ -118,6 +118,7 @@ jobs:
     assert [x["status"] for x in rows] == ["done", "failed"]
     assert rows[1]["stage"] == "map" and rows[1]["attempts"] == "2"  # tried again, reported
     assert rows[1]["error"] == list(csv.DictReader(open(local / "batch.csv")))[1]["error"]
+    assert "optimisation (inverse boxes): the graph has no factors" in rows[1]["error"]
     assert "raises failed (map, 2 attempts)" in r.stderr
     for job in ("room-multi-spd",):
         for f in ("map.json", "trajectory.txt", "metrics.json", "report.md"):

@@ -1,4 +1,4 @@
-"""The rerun recording of a run: ``evaluation.write_recording``, ``spdslam run --rerun`` and
+"""The rerun recording of a run: ``experiments.write_recording``, ``spdslam run --rerun`` and
 ``spdslam view``.
 
 Every recording is read back from its ``.rrd`` file (``rerun.chunk.RrdReader``) and checked
@@ -23,7 +23,7 @@ from conftest import cli_runner
 
 rr = pytest.importorskip("rerun")
 
-from spdslam.evaluation import write_recording
+from spdslam.experiments import write_recording
 from spdslam.geometry import Ellipsoid
 from spdslam.geometry.se3 import quat_to_matrix
 from spdslam.io import MapObject, read_map, read_sequence, read_tum, write_sequence
@@ -197,7 +197,7 @@ def test_ellipsoids_of_any_orientation(tmp_path, gen, clean_seq):
 
 
 def test_outlines_projected_in_blocks_are_the_same(tmp_path, monkeypatch, clean_seq):
-    import spdslam.evaluation._rerun as module
+    import spdslam.experiments._recording as module
 
     objs, traj = gt_objects(clean_seq), clean_seq.groundtruth_tum
     whole = Recording(write_recording(tmp_path / "a.rrd", objs, traj, clean_seq))

@@ -243,7 +243,7 @@ def _print_result(result) -> None:
 def _check_recording(path: Path, option: str) -> None:
     """Refuse, before anything is computed, a recording path that is a folder, and a
     missing rerun-sdk (the viewer extra)."""
-    from ..evaluation import RERUN_MISSING
+    from ..experiments import RERUN_MISSING
 
     if path.is_dir():
         fail(f"{option}: {path} is a folder: expected the path of a .rrd file")
@@ -255,8 +255,8 @@ def _check_recording(path: Path, option: str) -> None:
 
 def _write_recording(path: Path, option: str, objects, trajectory, seq, to_groundtruth=None,
                      images: bool = True) -> None:
-    """``evaluation.write_recording`` (atomic), its errors as one line."""
-    from ..evaluation import write_recording
+    """``experiments.write_recording`` (atomic), its errors as one line."""
+    from ..experiments import write_recording
 
     try:
         write_recording(path, objects, trajectory, seq, to_groundtruth=to_groundtruth,

@@ -1,7 +1,8 @@
 """Evaluation against ground truth: 3D IoU of oriented cuboids, orientation error up to
 axis order and sign, trajectory error, confidence intervals, the run's report and figures.
-Imports ``geometry`` and ``io``; it evaluates any map, however it was made, and writes no
-run folder (``experiments.write_run`` does).
+Imports ``geometry`` and ``io``; it evaluates any map, however it was made, and computes
+only: the figures, the recording and the run's folder are ``experiments``'
+(``experiments.write_run``).
 """
 
 from ..geometry import box_iou as box_iou  # the IoU of image boxes, used by the check
@@ -15,6 +16,14 @@ from ._check import interpolate_poses as interpolate_poses
 from ._check import match_detections as match_detections
 from ._check import pair_detections as pair_detections
 from ._check import reference_of_ground_truth as reference_of_ground_truth
+from ._ellipses import camera_centers as camera_centers
+from ._ellipses import conic_ellipse as conic_ellipse
+from ._ellipses import conic_ellipses as conic_ellipses
+from ._ellipses import conic_outline as conic_outline
+from ._ellipses import ellipse_points as ellipse_points
+from ._ellipses import ellipses_points as ellipses_points
+from ._ellipses import plane_basis as plane_basis
+from ._ellipses import top_view_ellipse as top_view_ellipse
 from ._metrics import MAX_ORIENTATION_ERROR_DEG as MAX_ORIENTATION_ERROR_DEG
 from ._metrics import absolute_trajectory_error as absolute_trajectory_error
 from ._metrics import align_rigid as align_rigid
@@ -27,20 +36,6 @@ from ._metrics import orientation_errors_deg as orientation_errors_deg
 from ._metrics import signed_permutations as signed_permutations
 from ._metrics import trajectory_alignment as trajectory_alignment
 from ._metrics import translation_error as translation_error
-from ._plots import LATENCY_COLUMNS as LATENCY_COLUMNS
-from ._plots import camera_centers as camera_centers
-from ._plots import conic_ellipse as conic_ellipse
-from ._plots import conic_ellipses as conic_ellipses
-from ._plots import conic_outline as conic_outline
-from ._plots import ellipse_points as ellipse_points
-from ._plots import ellipses_points as ellipses_points
-from ._plots import latency_csv as latency_csv
-from ._plots import plane_basis as plane_basis
-from ._plots import plot_latency as plot_latency
-from ._plots import plot_map_top as plot_map_top
-from ._plots import plot_overlay as plot_overlay
-from ._plots import top_view_ellipse as top_view_ellipse
-from ._plots import write_overlays as write_overlays
 from ._report import FRONT_END_NAMES as FRONT_END_NAMES
 from ._report import ObjectMetrics as ObjectMetrics
 from ._report import ate_line as ate_line
@@ -54,8 +49,6 @@ from ._report import report_markdown as report_markdown
 from ._report import shown as shown
 from ._report import table_iii as table_iii
 from ._report import to_groundtruth as to_groundtruth
-from ._rerun import RERUN_MISSING as RERUN_MISSING
-from ._rerun import write_recording as write_recording  # needs rerun-sdk (the viewer extra) when called
 from ._stats import Interval as Interval
 from ._stats import PairedComparison as PairedComparison
 from ._stats import bootstrap as bootstrap

@@ -46,8 +46,8 @@ from ..geometry import (
     project_dual_quadric,
 )
 from ..geometry.se3 import from_tum, interpolate_tum
+from ._ellipses import conic_ellipses, ellipses_points
 from ._metrics import associate_timestamps
-from ._plots import conic_ellipses, ellipses_points
 from ._report import ground_truth_in_map_frame, to_groundtruth
 
 __all__ = [

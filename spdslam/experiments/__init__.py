@@ -19,6 +19,13 @@ from ._engines import LocalEngine as LocalEngine
 from ._engines import RayEngine as RayEngine
 from ._engines import TaskOutcome as TaskOutcome
 from ._engines import make_engine as make_engine
+from ._figures import LATENCY_COLUMNS as LATENCY_COLUMNS
+from ._figures import image_for as image_for
+from ._figures import latency_csv as latency_csv
+from ._figures import plot_latency as plot_latency
+from ._figures import plot_map_top as plot_map_top
+from ._figures import plot_overlay as plot_overlay
+from ._figures import write_overlays as write_overlays
 from ._outputs import plot_convergence as plot_convergence
 from ._outputs import write_outputs as write_outputs
 from ._paper import MODEL_NAMES as MODEL_NAMES
@@ -26,6 +33,9 @@ from ._paper import PAPER_IOU_H as PAPER_IOU_H
 from ._paper import PAPER_SUCCESS as PAPER_SUCCESS
 from ._paper import PAPER_SUCCESS_IOU as PAPER_SUCCESS_IOU
 from ._paper import PARAM_NAMES as PARAM_NAMES
+from ._recording import RERUN_MISSING as RERUN_MISSING
+from ._recording import projected_ellipses as projected_ellipses
+from ._recording import write_recording as write_recording  # needs rerun-sdk (the viewer extra) when called
 from ._reference import compare_with_reference as compare_with_reference
 from ._reference import reference_solve as reference_solve
 from ._reference import reference_table as reference_table

@@ -11,7 +11,7 @@ write a run's folder through :func:`write_run`.
 
 The folder appears whole or not at all (``io.write_folder_atomically``). A rerun recording
 (a .rrd file anywhere, ``spdslam run --rerun`` and ``spdslam view``) is
-``evaluation.write_recording``'s, from the folder's map and trajectory.
+``experiments.write_recording``'s, from the folder's map and trajectory.
 """
 
 from __future__ import annotations
@@ -20,16 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..evaluation import (
-    evaluate_run,
-    ground_truth_in_map_frame,
-    latency_csv,
-    plot_latency,
-    plot_map_top,
-    report_markdown,
-    write_overlays,
-)
+from ..evaluation import evaluate_run, ground_truth_in_map_frame, report_markdown
 from ..io import dumps_strict, tum_text, write_folder_atomically, write_map
+from ._figures import latency_csv, plot_latency, plot_map_top, write_overlays
 
 __all__ = ["frame_rate", "write_run"]
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation import camera_centers, conic_ellipses, ellipses_points, ground_truth_in_map_frame
 from ..geometry import (
     Ellipsoid,
     dual_quadric_of,
@@ -38,8 +39,7 @@ from ..geometry import (
 )
 from ..geometry.se3 import matrix_to_quat, quat_to_matrix
 from ..io import MATCH_TOLERANCE, nearest_stamps
-from ._plots import camera_centers, conic_ellipses, ellipses_points, image_for
-from ._report import ground_truth_in_map_frame
+from ._figures import image_for
 
 __all__ = ["RERUN_MISSING", "projected_ellipses", "write_recording"]
 
