@@ -61,6 +61,7 @@ jobs:
          "parameterization: online mapping takes SPD or RTS landmarks: expected spd or rts, got 'full'"),
         ("defaults:\n  max_iterations: 0\njobs:\n  - sequence: a\n", 2, "max_iterations: expected an integer ≥ 1, got 0"),
         ("jobs:\n  - sequence: a\n    tolerance: -1\n", 3, "tolerance: expected a finite number ≥ 0"),
+        ("jobs:\n  - sequence: a\n    orientation: sideways\n", 3, "orientation: must be one of improved"),
         ("jobs:\n  - sequence: a\n    name: x/y\n", 3, "a plain folder name"),
         ("jobs:\n  - sequence: a\n    methods: [multi-spd, multi-rts]\n    name: n\n", 4, "no name for a job of several methods"),
         ("jobs:\n  - sequence: a\n    max_iterations: 0\n", 3, "an integer ≥ 1"),
@@ -185,3 +186,9 @@ def test_the_manifest_of_docs_scaling_md_reads(tmp_path):
     assert [j.name for j in jobs] == ["room0-quadric-slam", "room0-multi-rts", "room0-multi-spd",
                                       "room1-online"]
     assert jobs[3].settings.online.window == 30 and jobs[3].settings.sigma == {"inverse_box": 3.0}
+
+
+def test_a_job_overrides_any_field_of_its_method(tmp_path):
+    p = _manifest(tmp_path, "jobs:\n  - sequence: a\n    orientation: none\n    robust_builtin_priors: false\n")
+    (job,) = read_manifest(p)
+    assert job.settings.method.orientation == "none" and job.settings.method.robust_builtin_priors is False

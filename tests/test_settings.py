@@ -11,6 +11,7 @@ from conftest import cli_invoke
 
 from spdslam.experiments import JOB_SETTINGS
 from spdslam.mapping import (
+    METHOD_FIELDS,
     METHODS,
     RUN_OVERRIDES,
     RUN_SETTING_NAMES,
@@ -115,7 +116,8 @@ def test_the_online_mapper_takes_the_same_settings():
 
 def test_the_cli_and_the_manifest_take_their_names_and_help_from_the_settings():
     names = set(RUN_SETTING_NAMES) - {"method"}
-    assert names | set(RUN_OVERRIDES) | {"overlay"} == set(JOB_SETTINGS)
+    assert names | set(METHOD_FIELDS) | {"overlay"} == set(JOB_SETTINGS)
+    assert set(RUN_OVERRIDES) <= set(METHOD_FIELDS)
     for name in names:
         assert JOB_SETTINGS[name] == setting_help(name)
     import typer

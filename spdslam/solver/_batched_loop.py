@@ -24,7 +24,7 @@ from jax.experimental import io_callback
 
 from ..geometry import manifold
 from ._batched_layout import BatchedKernel
-from ._compile import JITTED_PROGRAMS, jit_program
+from ._compile import JITTED_PROGRAMS
 from ._linearize import violates
 from ._lm import (
     CALLBACK,
@@ -94,7 +94,7 @@ def solver_fn(kern: BatchedKernel, sig, axes, lanes: int, max_iter: int, rule, r
     key = ("solve", sig, axes, lanes, max_iter, rule, report)
     fn = JITTED_PROGRAMS.get(key)
     if fn is None:
-        fn = JITTED_PROGRAMS[key] = jit_program(_make_solver(kern, axes, lanes, max_iter, rule, report))
+        fn = JITTED_PROGRAMS[key] = jax.jit(_make_solver(kern, axes, lanes, max_iter, rule, report))
     return key, fn
 
 
@@ -110,7 +110,7 @@ def cost_fn(kern: BatchedKernel, sig, axes):
             return jax.vmap(lambda a, b, c: kern.cost(a, b, c)[0],
                             in_axes=(0, fix_ax, data_ax))(xf, xfix, gdata)
 
-        fn = JITTED_PROGRAMS[key] = jit_program(batched_cost)
+        fn = JITTED_PROGRAMS[key] = jax.jit(batched_cost)
     return key, fn
 
 

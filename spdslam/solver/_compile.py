@@ -20,7 +20,7 @@ import numpy as np
 from . import _problem
 
 __all__ = ["clear_caches", "COMPILER_OPTIONS", "FAST_COMPILE_OPTIONS", "AUTO_OPTIMIZE_WORK",
-           "JITTED_PROGRAMS", "BUILT_SOLVERS", "shape_signature", "jit_program",
+           "JITTED_PROGRAMS", "BUILT_SOLVERS", "shape_signature",
            "compiled_executable", "call_compiled"]
 
 #: XLA options of the batched programs on CPU: without the newer fusion emitters, which
@@ -66,11 +66,6 @@ def shape_signature(tree):
     leaves, td = jax.tree.flatten(tree)
     return td, tuple((np.shape(a), a.dtype if hasattr(a, "dtype") else np.result_type(a))
                      for a in leaves)
-
-
-def jit_program(f):
-    """``jax.jit(f)``: how every batched program is jitted (one place to change it)."""
-    return jax.jit(f)
 
 
 def compiled_executable(key, fn, args, timings: dict | None = None, optimize: bool = True):
