@@ -1,16 +1,21 @@
-"""Object SLAM on a sequence, the paper's Table III pipeline, as one pass of typed stages:
+"""Object SLAM on a sequence, the paper's Table III pipeline: ``run_sequence`` composes
+the steps, each inside ``step(name)`` (docs/core.md draws them):
 
-    SequenceContext.of(seq)        the trajectory as SE(3), up, planes, class priors (once)
+    RunSettings                    every setting, checked before any work (``_settings``)
+    → keyframes, screening         ``select_keyframes``, ``frontend.screen_detections``
     → associate_tracks(ctx, …)     Association: tracks and how they were made
-    → initialize(ctx, tracks, …)   Initialization: initial ellipsoids, the views that see
+    → initialize(ctx, …)           Initialization: initial ellipsoids, the views that see
                                    them, failures and notes
     → build_graph(ctx, …)          the factor graph (``_graph``), with Values
-    → solve                        LM, per box-model stage
-    → MapResult                    objects, trajectory, solver figures
+    → optimisation                 LM per box-model stage, accumulated in ``Optimised``
+    → duplicates                   ``overlapping_duplicates`` (automatic association)
+    → map_result                   uncertainty, each object's quality, ``MapResult``
 
-Evaluation against ground truth and writing the outputs are the caller's
-(``spdslam.evaluation.write_run``): the map never depends on ground truth (with automatic
-association, the instance ids, when a sequence has them, only score it).
+A failure confined to one object moves it to ``failed`` (``OBJECT_ERRORS``); one of the
+whole problem is a ``MappingError`` naming the step. Evaluation against ground truth and
+writing the outputs are the caller's (``spdslam.experiments.write_run``): the map never
+depends on ground truth (with automatic association, the instance ids, when a sequence has
+them, only score it).
 """
 
 from __future__ import annotations
