@@ -67,7 +67,7 @@ def _help(name: str, prefix: str = "") -> str:
     """An option's help from the run's settings (``mapping.setting_help``, or the method
     overrides' ``RUN_OVERRIDES``), as a sentence."""
     text = RUN_OVERRIDES[name] if name in RUN_OVERRIDES else setting_help(name)
-    return f"{prefix + ': ' if prefix else ''}{text[0].upper()}{text[1:]}."
+    return f"{prefix}: {text}." if prefix else f"{text[0].upper()}{text[1:]}."
 
 
 def _formats_help() -> str:
