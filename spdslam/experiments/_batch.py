@@ -116,10 +116,7 @@ def _settings(name, pairs, where: str) -> dict:
         if key not in JOB_SETTINGS:
             raise SequenceFormatError(
                 name, yaml_line(knode), f"a key of {where} among {', '.join(JOB_SETTINGS)}", repr(key))
-        value = _plain(name, v)
-        if key == "robust" and not isinstance(value, list):
-            value = [value]
-        out[key] = (value, knode, v)
+        out[key] = (_plain(name, v), knode, v)
     return out
 
 

@@ -77,7 +77,8 @@ def _help(text: str, **more) -> dict:
 def _integer(name: str, value, least: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < least:
         try:  # NumPy integers and integral floats from a caller's arithmetic
-            ok = not isinstance(value, bool) and float(value) == int(value) and int(value) >= least
+            ok = (not isinstance(value, (bool, str)) and float(value) == int(value)
+                  and int(value) >= least)
         except (TypeError, ValueError, OverflowError):
             ok = False
         if not ok:
@@ -121,6 +122,26 @@ class OnlineSettings:
             object.__setattr__(self, f.name, v)
 
 
+#: What a ``Method`` override must be, by its field's declared type (``_check_type``).
+_KINDS = {"bool": ((bool,), "true or false"), "float": ((int, float), "a number"),
+          "str": ((str,), "a string")}
+
+
+def _check_type(name: str, value) -> None:
+    """A ``Method`` override of the wrong type is a ``SettingsError`` (``robust``: a kernel
+    or a list of them, in the command line's syntax)."""
+    if name == "robust":
+        items = [value] if isinstance(value, str) else value
+        if not isinstance(items, (list, tuple)) or not all(isinstance(i, str) for i in items):
+            raise SettingsError(name, f"expected KERNEL or a list of KERNEL or TYPE=KERNEL[:K], got {value!r}")
+        return
+    kind = _METHOD_TYPES.get(name)
+    if kind in _KINDS:
+        types, what = _KINDS[kind]
+        if not isinstance(value, types) or (kind == "float" and isinstance(value, bool)):
+            raise SettingsError(name, f"expected {what}, got {value!r}")
+
+
 def default_association(seq) -> Associate:
     """Instance ids when every detection of ``seq`` has one (or there is none), else
     automatic association."""
@@ -130,6 +151,7 @@ def default_association(seq) -> Associate:
 
 #: ``Method`` fields that a run may override by name (``RunSettings.of``).
 METHOD_FIELDS = tuple(f.name for f in dataclasses.fields(Method) if f.name != "name")
+_METHOD_TYPES = {f.name: f.type for f in dataclasses.fields(Method)}
 #: The ``Method`` overrides of ``spdslam run``'s options and a manifest's keys, with their help.
 RUN_OVERRIDES = {
     "parameterization": f"override the landmark's parameterisation: {', '.join(PARAMETERIZATIONS)}",
@@ -181,8 +203,10 @@ class RunSettings:
             object.__setattr__(self, "associate", _choice("associate", Associate, self.associate))
         object.__setattr__(self, "support_planes",
                            _choice("support_planes", PlaneSource, self.support_planes))
+        if not isinstance(self.sigma, Mapping):
+            raise SettingsError("sigma", f"expected a mapping NAME: VALUE, got {self.sigma!r}")
         sig = {}
-        for name, value in dict(self.sigma or {}).items():
+        for name, value in self.sigma.items():
             try:
                 sig[name] = check_sigma(name, value)
             except (TypeError, ValueError) as e:
@@ -233,6 +257,8 @@ class RunSettings:
             raise TypeError(f"unknown settings {', '.join(sorted(unknown))}; expected fields of "
                             "RunSettings or Method")
         overrides = {k: v for k, v in settings.items() if k in METHOD_FIELDS and v is not None}
+        for k, v in overrides.items():
+            _check_type(k, v)
         robust = overrides.get("robust")
         if robust is not None:
             robust = [robust] if isinstance(robust, str) else robust
@@ -244,7 +270,7 @@ class RunSettings:
             overrides.update(parsed)
         try:
             method = method.replace(**overrides)
-        except ValueError as e:
+        except (TypeError, ValueError) as e:
             bad = next((k for k in overrides if str(e).startswith(k)), "method")
             raise SettingsError(bad, str(e).removeprefix(f"{bad} ")) from None
         online = settings.get("online")
