@@ -748,8 +748,6 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
     if online:
         settings["online"] = online
     run = as_settings(method, settings)
-    if run.online is None:
-        run = run.replace(online=OnlineSettings())
     if not run.class_table:
         seq = without_class_table(seq)
     if run.associate is None:
