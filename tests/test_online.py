@@ -5,6 +5,8 @@ and the input it refuses (frames out of order, duplicate timestamps, …)."""
 from __future__ import annotations
 
 import csv
+import threading
+import time
 
 import jaxlie
 import numpy as np
@@ -173,6 +175,61 @@ def test_automatic_association_online_finds_the_objects(room):
     assert _mean_iou(result, room, by_id=False) > 0.5  # automatic ids are not instance ids
 
 
+@pytest.mark.parametrize("associate", ["instances", "auto"])
+def test_a_mapper_in_the_background_maps_the_same_without_holding_up_a_frame(room, associate):
+    def feed(m):
+        return [m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+                for i in range(len(room))]
+
+    sync = OnlineMapper(room.camera, room.priors, "multi-spd", associate=associate)
+    feed(sync)
+    bg = OnlineMapper(room.camera, room.priors, "multi-spd", associate=associate, background=True)
+    gate, update = threading.Event(), bg._update
+
+    def held():  # the worker's first optimisation waits until every frame has been added
+        gate.wait(60)
+        return update()
+
+    bg._update = held
+    returned = feed(bg)  # would never return if add_frame waited for an optimisation
+    assert len(returned) == len(room) and bg._busy
+    assert bg.current_map().frames == 0 and not bg.current_map().objects  # nothing published yet
+    opened = time.perf_counter()
+    gate.set()
+    bg.wait()
+    assert not bg._busy and not bg._queue
+    # the same frames taken in and optimised in the same order: the same map, to the bit
+    a, b = sync.current_map(), bg.current_map()
+    last = max(r.frame for r in sync.records if r.factors)
+    assert b.frames == last + 1 == a.frames
+    assert sorted(a.objects) == sorted(b.objects)
+    for k in a.objects:
+        np.testing.assert_array_equal(a.objects[k][1].P, b.objects[k][1].P)
+        np.testing.assert_array_equal(a.objects[k][1].center, b.objects[k][1].center)
+    np.testing.assert_array_equal(a.poses_tum[: b.frames], b.poses_tum)  # the frames it used
+    assert [(r.factors, r.variables, r.iterations) for r in sync.records] == \
+        [(r.factors, r.variables, r.iterations) for r in bg.records]
+    # every frame an optimisation used has its lag; the first frame's map was held back
+    lags = np.array([r.lag for r in bg.records])
+    assert np.all(np.isfinite(lags[: last + 1])) and np.all(np.isnan(lags[last + 1:]))
+    assert lags[0] >= opened - bg._arrival[0]
+    fa, fb = sync.finish(final_batch=False), bg.finish(final_batch=False)
+    assert fa.final_cost == fb.final_cost
+
+
+def test_an_error_in_the_background_is_raised_by_the_next_call(room):
+    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances", background=True, every=2)
+
+    def broken():
+        raise RuntimeError("the worker failed")
+
+    m._update = broken
+    with pytest.raises(RuntimeError, match="the worker failed"):
+        for i in range(len(room)):
+            m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+            m.wait()
+
+
 def test_marginal_prior_is_the_quadratic_it_replaces(rng):
     """½‖W((x ⊟ x₀) − o)‖² − ½‖W o‖² = ½δᵀHδ + gᵀδ for the prior of (H, g), H only
     positive semi-definite (a direction the views leave free)."""
@@ -216,8 +273,13 @@ def test_run_online_cli_writes_the_batch_outputs_and_the_latency(tmp_path, room)
         assert (out / name).is_file(), name
     rows = list(csv.DictReader((out / "latency.csv").open()))
     assert [int(x["frame"]) for x in rows] == list(range(len(room)))
-    assert set(rows[0]) == {"frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations"}
+    assert set(rows[0]) == {"frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations",
+                            "lag"}
     assert all(float(x["seconds"]) >= 0 for x in rows)
+    # every frame up to the last optimisation has its lag, at least its own time; later ones none
+    last = max(i for i, x in enumerate(rows) if int(x["factors"]) > 0)
+    assert all(float(x["lag"]) >= float(x["seconds"]) for x in rows[: last + 1])
+    assert all(np.isnan(float(x["lag"])) for x in rows[last + 1:])
     assert int(rows[-1]["objects"]) == len(room.objects_gt)
 
 

@@ -358,17 +358,19 @@ def write_overlays(folder, sequence, ellipsoids, poses_tum, frames=None, max_fra
 # --- online latency -------------------------------------------------------------------------
 
 
-LATENCY_COLUMNS = ("frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations")
+LATENCY_COLUMNS = ("frame", "timestamp", "seconds", "objects", "factors", "variables", "iterations", "lag")
 
 
 def latency_csv(records) -> str:
     """latency.csv of an online run: a header and one row per frame (``FrameRecord``s:
-    frame, timestamp (s), seconds spent on the frame, objects mapped after it, factors and
-    free variables of the problem solved at it (0: none solved), LM iterations)."""
+    frame, timestamp (s), seconds ``add_frame`` spent on the frame, objects mapped after it,
+    factors and free variables of the problem solved at it (0: none solved), LM iterations,
+    and the map's lag: seconds from the frame's arrival to the end of the first optimisation
+    that used it (nan: none did))."""
     lines = [",".join(LATENCY_COLUMNS)]
     for r in records:
         lines.append(f"{r.frame},{r.timestamp:.6f},{r.seconds:.6f},{r.objects},{r.factors},"
-                     f"{r.variables},{r.iterations}")
+                     f"{r.variables},{r.iterations},{r.lag:.6f}")
     return "\n".join(lines) + "\n"
 
 

@@ -35,8 +35,9 @@ mapped (the batch run's rule, ``MIN_DETECTION_RATE``).
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -96,7 +97,11 @@ ONLINE_FIELDS = tuple(f.name for f in dataclasses.fields(OnlineSettings))
 @dataclass(frozen=True)
 class FrameRecord:
     """What ``add_frame`` did: frame index, timestamp, seconds spent, objects mapped after
-    it, factors and free variables of the problem solved (0 if none), LM iterations."""
+    it, factors and free variables of the problem solved (0 if none), LM iterations, and
+    ``lag``: seconds from the frame's arrival (the call of ``add_frame``) to the end of the
+    first optimisation that used it (nan: none has yet). In the background
+    (``OnlineSettings.background``) ``seconds`` is add_frame's own time and the figures of an
+    optimisation go to the record of the last frame it used."""
 
     frame: int
     timestamp: float
@@ -105,6 +110,7 @@ class FrameRecord:
     factors: int
     variables: int
     iterations: int
+    lag: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -116,6 +122,19 @@ class OnlineMap:
     objects: dict
     poses_tum: np.ndarray
     covariances: dict = field(default_factory=dict)
+    #: the frames (0 … frames − 1) whose detections the map's last optimisation used
+    frames: int = 0
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """A frame accepted by ``add_frame``, not yet taken into the mapper's state."""
+
+    index: int
+    timestamp: float
+    pose: np.ndarray  # input T_wc, jaxlie wxyz_xyz
+    detections: list
+    ellipsoids: list
 
 
 class _Poses:
@@ -189,6 +208,16 @@ class OnlineMapper:
     ``finish``'s batch optimisation. ``compilation_cache``: turn on JAX's persistent
     compilation cache (``SPDSLAM_CACHE_DIR``, as the CLI does) unless the process already
     has one; ``warmup`` compiles before the first frame.
+
+    ``background`` (``OnlineSettings``): the optimisations run in a worker thread. Then
+    ``add_frame`` only checks and screens the frame and, when the worker is idle, takes it in
+    (pose prediction, association; the worker takes in the frames that arrived while it was
+    busy, in order, before its next optimisation), and returns; ``current_map`` is the map the
+    last optimisation published (``OnlineMap.frames`` says which frames it used). The frames
+    are taken in and optimised in the same order either way, so the maps are the same as
+    without it; only when they are available differs (``FrameRecord.lag``). ``wait`` blocks
+    until the worker is idle; ``finish`` waits first. An error in the worker is raised by the
+    next ``add_frame``, ``wait`` or ``finish``.
     """
 
     def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
@@ -245,6 +274,17 @@ class OnlineMapper:
         self._last_graph: NonlinearFactorGraph | None = None
         self._last_values: Values | None = None
         self._since = 0
+        # frames accepted by add_frame (the caller's thread); taken in by _ingest
+        self._accepted, self._last_time, self._last_input = 0, None, None
+        self._arrival: list = []  # perf_counter at each frame's add_frame
+        self._used = 0  # frames the last optimisation used (records before it have their lag)
+        self.background = online.background
+        self._lock = threading.Lock()
+        self._queue: deque = deque()  # frames accepted while the worker was busy
+        self._busy = False
+        self._worker: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._published = OnlineMap({}, np.zeros((0, 8)))
 
     # --- input ------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -268,8 +308,9 @@ class OnlineMapper:
             sorted(BUILTIN_CLASSES) if priors.builtin_classes else [])
         rename = {lab: classes[i % len(classes)] for i, lab in
                   enumerate(sorted({d.label for d in sequence.detections}))} if classes else {}
-        twin = OnlineMapper(sequence.camera, priors, self.settings, association=self._association,
-                            compilation_cache=False)
+        twin = OnlineMapper(sequence.camera, priors,
+                            self.settings.replace(online=dataclasses.replace(self.online, background=False)),
+                            association=self._association, compilation_cache=False)
         by_frame: dict = {}
         for d in sequence.detections:
             by_frame.setdefault(d.frame, []).append(dataclasses.replace(d, label=rename.get(d.label, d.label)))
@@ -292,25 +333,55 @@ class OnlineMapper:
         [x1, y1, x2, y2][, score[, instance]]); ``ellipsoids``: ``EllipsoidDetection``s
         (camera frame, with instance ids)."""
         t0 = time.perf_counter()
+        self._raise_worker_error()
+        frame = self._accept(timestamp, pose, odometry, detections, ellipsoids)
+        self._arrival.append(t0)
+        if not self.background:
+            due = self._ingest(frame)
+            figures = self._update() if due else (0, 0, 0)
+            rec = FrameRecord(frame.index, frame.timestamp, time.perf_counter() - t0, len(self.landmarks),
+                              *figures)
+            self.records.append(rec)
+            if due:
+                self._publish(len(self), figures)
+            return self.records[-1]
+        with self._lock:
+            due = False
+            if self._busy:
+                self._queue.append(frame)
+            else:
+                due = self._ingest(frame)
+            rec = FrameRecord(frame.index, frame.timestamp, time.perf_counter() - t0, len(self.landmarks),
+                              0, 0, 0)
+            self.records.append(rec)
+            if due:
+                self._busy = True
+                self._worker = threading.Thread(target=self._work, name="spdslam-online", daemon=True)
+                self._worker.start()
+        return rec
+
+    def _accept(self, timestamp, pose, odometry, detections, ellipsoids) -> _Frame:
+        """A checked and screened frame (``add_frame``); changes only what the caller's
+        thread owns (the frames accepted, the screen's counts)."""
+        f = self._accepted
         t = float(timestamp)
         if not np.isfinite(t):
-            raise ValueError(f"frame {len(self)}: the timestamp must be finite, got {timestamp!r}")
-        if self._timestamps and t <= self._timestamps[-1]:
-            what = "duplicates" if t == self._timestamps[-1] else "is before"
-            raise ValueError(f"frame {len(self)}: timestamp {t:.6f} {what} the last frame's "
-                             f"({self._timestamps[-1]:.6f}); frames must come in increasing time")
+            raise ValueError(f"frame {f}: the timestamp must be finite, got {timestamp!r}")
+        if self._last_time is not None and t <= self._last_time:
+            what = "duplicates" if t == self._last_time else "is before"
+            raise ValueError(f"frame {f}: timestamp {t:.6f} {what} the last frame's "
+                             f"({self._last_time:.6f}); frames must come in increasing time")
         if (pose is None) == (odometry is None):
-            raise ValueError(f"frame {len(self)}: give a pose or an odometry step, not "
+            raise ValueError(f"frame {f}: give a pose or an odometry step, not "
                              f"{'both' if pose is not None else 'neither'}")
-        if pose is None and not self._timestamps:
+        if pose is None and self._last_input is None:
             raise ValueError("the first frame needs a pose (odometry is relative to the previous frame)")
         T_in = self._pose(odometry if pose is None else pose)
         if pose is None:
-            T_in = jaxlie.SE3(self._input.array[-1]) @ T_in
+            T_in = jaxlie.SE3(self._last_input) @ T_in
         wxyz = np.asarray(T_in.wxyz_xyz, float)
         if not np.all(np.isfinite(wxyz)):
-            raise ValueError(f"frame {len(self)}: the pose is not finite")
-        f = len(self)
+            raise ValueError(f"frame {f}: the pose is not finite")
         dets = [_detection(d, f, t) for d in detections]
         for i, d in enumerate(dets):
             b = d.box
@@ -334,10 +405,18 @@ class OnlineMapper:
                     self._screened.setdefault(why[0], []).append((self._n_detections + j, why[1]))
             self._n_detections += len(dets)
             dets = [d for d, why in zip(dets, whys) if why is None]
+        self._accepted, self._last_time, self._last_input = f + 1, t, wxyz
+        return _Frame(f, t, wxyz, dets, meas)
+
+    def _ingest(self, frame: _Frame) -> bool:
+        """Take an accepted frame into the state (pose prediction, association, views);
+        returns whether an optimisation is due."""
+        f, t, wxyz, dets, meas = (frame.index, frame.timestamp, frame.pose, frame.detections,
+                                  frame.ellipsoids)
         if f == 0:
             est = wxyz
         else:
-            step = jaxlie.SE3(self._input.array[-1]).inverse() @ T_in
+            step = jaxlie.SE3(self._input.array[-1]).inverse() @ jaxlie.SE3(wxyz)
             est = np.asarray((jaxlie.SE3(self._est.array[-1]) @ step).wxyz_xyz)
         self._timestamps.append(t)
         self._input.append(wxyz)
@@ -352,13 +431,61 @@ class OnlineMapper:
                     self._pending_meas.setdefault(m.instance, []).extend(self._measurement(m.instance, [m]))
         self._since += 1
         ready = any(self._could_start(k) for k in self._candidates)
-        factors = variables = iterations = 0
         if self._since >= self.every or (ready and not self.landmarks):
             self._since = 0
-            factors, variables, iterations = self._update()
-        rec = FrameRecord(f, t, time.perf_counter() - t0, len(self.landmarks), factors, variables, iterations)
-        self.records.append(rec)
-        return rec
+            return True
+        return False
+
+    def _work(self) -> None:
+        """The worker (``background``): optimise, publish, take in the frames that arrived
+        meanwhile until the next optimisation is due; stop when none is waiting."""
+        try:
+            while True:
+                n = len(self)
+                self._publish(n, self._update())
+                while True:
+                    with self._lock:
+                        if not self._queue:
+                            self._busy = False
+                            return
+                        frame = self._queue.popleft()
+                    if self._ingest(frame):
+                        break
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+            with self._lock:
+                self._error = e
+                self._queue.clear()
+                self._busy = False
+
+    def _publish(self, n: int, figures) -> None:
+        """An optimisation that used frames 0 … n − 1 ended: their records get their lag (and,
+        in the background, the last one the optimisation's figures); in the background the
+        map is published for ``current_map``."""
+        now = time.perf_counter()
+        if self.background:
+            k = n - 1
+            self.records[k] = dataclasses.replace(self.records[k], factors=figures[0],
+                                                  variables=figures[1], iterations=figures[2])
+            self._published = self._snapshot(n)
+        for i in range(self._used, n):
+            self.records[i] = dataclasses.replace(self.records[i], lag=now - self._arrival[i])
+        self._used = n
+
+    def _raise_worker_error(self) -> None:
+        if self._error is not None:
+            e, self._error = self._error, None
+            raise e
+
+    def wait(self) -> None:
+        """Block until the worker (``background``) has taken in every frame added and run
+        the optimisations they were due; raise an error it met. Without a worker: nothing."""
+        while True:
+            with self._lock:
+                worker = self._worker if self._busy else None
+            if worker is None:
+                break
+            worker.join()
+        self._raise_worker_error()
 
     @staticmethod
     def _pose(p) -> jaxlie.SE3:
@@ -637,12 +764,25 @@ class OnlineMapper:
         return -(V * inv) @ (V.T @ g), np.sqrt(w)[:, None] * V.T
 
     # --- output ----------------------------------------------------------------------------
-    def current_map(self, covariances: bool = False) -> OnlineMap:
-        """The map now (``OnlineMap``); ``covariances``: the objects' marginal covariances in
-        the last problem solved (``solver.marginal_covariances``, one factorisation)."""
-        rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._est.array]) if len(self) else np.zeros((0, 7))
-        poses = np.c_[np.asarray(self._timestamps), rows]
+    def _snapshot(self, n: int) -> OnlineMap:
+        """The map of the current state, frames 0 … n − 1 (covariances: none)."""
+        est = self._est.array[:n]
+        rows = to_tum(jaxlie.SE3(est)) if len(est) else np.zeros((0, 7))
+        poses = np.c_[np.asarray(self._timestamps[:n]), rows]
         objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
+        return OnlineMap(objects, poses, frames=n)
+
+    def current_map(self, covariances: bool = False) -> OnlineMap:
+        """The map now (``OnlineMap``; in the background: the last one published, which
+        does not wait for the worker); ``covariances``: the objects' marginal covariances in
+        the last problem solved (``solver.marginal_covariances``, one factorisation; in the
+        background after ``wait``)."""
+        if self.background:
+            if not covariances:
+                return self._published
+            self.wait()
+        snap = self._snapshot(len(self))
+        objects, poses = snap.objects, snap.poses_tum
         cov: dict = {}
         if covariances and self._last_graph is not None and self._last_values is not None:
             from ..solver import marginal_covariances
@@ -650,7 +790,7 @@ class OnlineMapper:
             keys = [key for key in self._last_values if key.chr == "l"]  # type: ignore[attr-defined]
             cov = {key.index: c for key, c in marginal_covariances(
                 self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
-        return OnlineMap(objects, poses, cov)
+        return OnlineMap(objects, poses, cov, frames=self._used)
 
     def sequence(self) -> Sequence:
         """The frames so far as a ``Sequence`` (input poses, detections, measured ellipsoids)."""
@@ -666,6 +806,7 @@ class OnlineMapper:
         ``max_iterations`` and relative ``tolerance``), or of the online estimates as they are
         (the uncertainty then still comes from the whole graph). None: the settings'
         (``online.final_batch``, ``max_iterations``, ``tolerance``)."""
+        self.wait()
         run = self.settings
         final_batch = self.online.final_batch if final_batch is None else final_batch
         max_iterations = run.max_iterations if max_iterations is None else max_iterations
@@ -734,14 +875,16 @@ class _Unchanged:
 
 
 def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", *,
-               progress=None, warmup: Sequence | None = None, **settings):
+               progress=None, warmup: Sequence | None = None, realtime: bool = False, **settings):
     """Replay a sequence through an ``OnlineMapper``, frame by frame in timestamp order:
     (``MapResult``, the ``FrameRecord`` of every frame). ``method`` and ``settings`` as
     ``OnlineMapper``'s; ``associate`` None: by instance id when every detection has one,
     else auto (``default_association``); the settings' ``online.final_batch``,
     ``max_iterations`` and ``tolerance`` are ``OnlineMapper.finish``'s. ``warmup``: a
     sequence for ``OnlineMapper.warmup`` before the first frame (as a live mapper would, so
-    that the frames' times do not include compilation). ``progress(message)`` every 100
+    that the frames' times do not include compilation). ``realtime``: each frame is added
+    when its time since the first frame has passed, as a camera delivers them (with
+    ``online.background``, how a live mapper runs). ``progress(message)`` every 100
     frames."""
     say = progress or (lambda message: None)
     online = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
@@ -763,7 +906,10 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
     for m in seq.ellipsoids or ():
         meas.setdefault(m.frame, []).append(m)
     order = np.argsort(np.asarray(seq.timestamps), kind="stable")
+    t_first, start = (float(seq.timestamps[order[0]]) if len(order) else 0.0), time.perf_counter()
     for n, i in enumerate(order):
+        if realtime:
+            time.sleep(max(0.0, start + float(seq.timestamps[i]) - t_first - time.perf_counter()))
         mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
                          ellipsoids=meas.get(int(i), ()))
         if (n + 1) % 100 == 0 or n + 1 == len(order):

@@ -113,6 +113,10 @@ class OnlineSettings:
     warmup: bool = field(default=False, metadata=_help(
         "compile before the first frame (a synthetic room replayed with the camera; "
         "OnlineMapper.warmup), as a live mapper would"))
+    background: bool = field(default=False, metadata=_help(
+        "optimise in a worker thread: a frame's own work returns at once and each "
+        "optimisation publishes its map when it ends (the same maps; latency.csv's lag says "
+        "when)"))
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
