@@ -17,53 +17,102 @@ Layers, each a subpackage that imports only the ones above it in this list:
     cli          the ``spdslam`` command
 
 This package re-exports the core (geometry, factors, solver); import the pipelines as
-``spdslam.mapping``, ``spdslam.io`` and so on.
+``spdslam.mapping``, ``spdslam.io`` and so on. The re-exports are lazy (PEP 562): ``import
+spdslam`` costs nothing; a subpackage, and JAX with it, is imported on the first use of one
+of its names, so that ``spdslam --help`` or reading a file need not import JAX.
 """
 
-import jax as _jax
+from __future__ import annotations
 
-_jax.config.update("jax_enable_x64", True)
+import importlib as _importlib
+import os as _os
+import sys as _sys
+from typing import TYPE_CHECKING
 
-from . import factors as factors  # noqa: E402
-from . import geometry as geometry  # noqa: E402
-from . import solver as solver  # noqa: E402
-from ._version import __version__ as __version__  # noqa: E402
-from .factors import BetweenFactor as BetweenFactor  # noqa: E402
-from .factors import Cauchy as Cauchy  # noqa: E402
-from .factors import ClassicOrientationFactor as ClassicOrientationFactor  # noqa: E402
-from .factors import CustomFactor as CustomFactor  # noqa: E402
-from .factors import EllipsoidMeasurementFactor as EllipsoidMeasurementFactor  # noqa: E402
-from .factors import Factor as Factor  # noqa: E402
-from .factors import GaussianNoise as GaussianNoise  # noqa: E402
-from .factors import Huber as Huber  # noqa: E402
-from .factors import InverseBoxFactor as InverseBoxFactor  # noqa: E402
-from .factors import OrientationFactor as OrientationFactor  # noqa: E402
-from .factors import PriorFactor as PriorFactor  # noqa: E402
-from .factors import SemiInverseBoxFactor as SemiInverseBoxFactor  # noqa: E402
-from .factors import ShapeFactor as ShapeFactor  # noqa: E402
-from .factors import SizeFactor as SizeFactor  # noqa: E402
-from .factors import SupportPlaneFactor as SupportPlaneFactor  # noqa: E402
-from .geometry import Camera as Camera  # noqa: E402
-from .geometry import Ellipsoid as Ellipsoid  # noqa: E402
-from .geometry import EllipsoidFull as EllipsoidFull  # noqa: E402
-from .geometry import EllipsoidRTS as EllipsoidRTS  # noqa: E402
-from .geometry import as_ellipsoid as as_ellipsoid  # noqa: E402
-from .geometry import box_planes as box_planes  # noqa: E402
-from .geometry import camera_inside as camera_inside  # noqa: E402
-from .geometry import in_front as in_front  # noqa: E402
-from .geometry import look_at as look_at  # noqa: E402
-from .geometry import manifold as manifold  # noqa: E402
-from .geometry import matfun as matfun  # noqa: E402
-from .geometry import project_box as project_box  # noqa: E402
-from .geometry import project_dual_quadric as project_dual_quadric  # noqa: E402
-from .geometry import se3 as se3  # noqa: E402
-from .geometry import spd as spd  # noqa: E402
-from .solver import BatchedProblem as BatchedProblem  # noqa: E402
-from .solver import Dogleg as Dogleg  # noqa: E402
-from .solver import GaussNewton as GaussNewton  # noqa: E402
-from .solver import L as L  # noqa: E402
-from .solver import LevenbergMarquardt as LevenbergMarquardt  # noqa: E402
-from .solver import NonlinearFactorGraph as NonlinearFactorGraph  # noqa: E402
-from .solver import OptimizationResult as OptimizationResult  # noqa: E402
-from .solver import Values as Values  # noqa: E402
-from .solver import X as X  # noqa: E402
+from ._version import __version__ as __version__
+
+# float64 in JAX everywhere, set before any spdslam code uses JAX and without importing it here:
+# JAX reads JAX_ENABLE_X64 when it is first imported (by geometry, the lowest layer, or by the
+# caller); a JAX imported already is told directly.
+if "jax" in _sys.modules:
+    _sys.modules["jax"].config.update("jax_enable_x64", True)
+else:
+    _os.environ["JAX_ENABLE_X64"] = "1"
+
+#: The subpackages re-exported, and the names each one lends the package.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "factors": (
+        "BetweenFactor", "Cauchy", "ClassicOrientationFactor", "CustomFactor", "EllipsoidMeasurementFactor",
+        "Factor", "GaussianNoise", "Huber", "InverseBoxFactor", "OrientationFactor", "PriorFactor",
+        "SemiInverseBoxFactor", "ShapeFactor", "SizeFactor", "SupportPlaneFactor",
+    ),
+    "geometry": (
+        "Camera", "Ellipsoid", "EllipsoidFull", "EllipsoidRTS", "as_ellipsoid", "box_planes", "camera_inside",
+        "in_front", "look_at", "manifold", "matfun", "project_box", "project_dual_quadric", "se3", "spd",
+    ),
+    "solver": (
+        "BatchedProblem", "Dogleg", "GaussNewton", "L", "LevenbergMarquardt", "NonlinearFactorGraph",
+        "OptimizationResult", "Values", "X",
+    ),
+}
+_ORIGIN = {name: package for package, names in _EXPORTS.items() for name in names}
+
+if TYPE_CHECKING:
+    from . import factors as factors
+    from . import geometry as geometry
+    from . import solver as solver
+    from .factors import BetweenFactor as BetweenFactor
+    from .factors import Cauchy as Cauchy
+    from .factors import ClassicOrientationFactor as ClassicOrientationFactor
+    from .factors import CustomFactor as CustomFactor
+    from .factors import EllipsoidMeasurementFactor as EllipsoidMeasurementFactor
+    from .factors import Factor as Factor
+    from .factors import GaussianNoise as GaussianNoise
+    from .factors import Huber as Huber
+    from .factors import InverseBoxFactor as InverseBoxFactor
+    from .factors import OrientationFactor as OrientationFactor
+    from .factors import PriorFactor as PriorFactor
+    from .factors import SemiInverseBoxFactor as SemiInverseBoxFactor
+    from .factors import ShapeFactor as ShapeFactor
+    from .factors import SizeFactor as SizeFactor
+    from .factors import SupportPlaneFactor as SupportPlaneFactor
+    from .geometry import Camera as Camera
+    from .geometry import Ellipsoid as Ellipsoid
+    from .geometry import EllipsoidFull as EllipsoidFull
+    from .geometry import EllipsoidRTS as EllipsoidRTS
+    from .geometry import as_ellipsoid as as_ellipsoid
+    from .geometry import box_planes as box_planes
+    from .geometry import camera_inside as camera_inside
+    from .geometry import in_front as in_front
+    from .geometry import look_at as look_at
+    from .geometry import manifold as manifold
+    from .geometry import matfun as matfun
+    from .geometry import project_box as project_box
+    from .geometry import project_dual_quadric as project_dual_quadric
+    from .geometry import se3 as se3
+    from .geometry import spd as spd
+    from .solver import BatchedProblem as BatchedProblem
+    from .solver import Dogleg as Dogleg
+    from .solver import GaussNewton as GaussNewton
+    from .solver import L as L
+    from .solver import LevenbergMarquardt as LevenbergMarquardt
+    from .solver import NonlinearFactorGraph as NonlinearFactorGraph
+    from .solver import OptimizationResult as OptimizationResult
+    from .solver import Values as Values
+    from .solver import X as X
+
+
+def __getattr__(name: str):
+    """A re-exported subpackage or name, imported on first use (then kept in the package)."""
+    if name in _EXPORTS:
+        value = _importlib.import_module(f"{__name__}.{name}")
+    elif name in _ORIGIN:
+        value = getattr(_importlib.import_module(f"{__name__}.{_ORIGIN[name]}"), name)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS) | set(_ORIGIN))

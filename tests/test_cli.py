@@ -99,3 +99,92 @@ def test_console_script_on_path():
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == spdslam.__version__
+
+
+# --- imports that cost only what a command uses ----------------------------------------------
+
+#: Packages that the help of the commands must not import (JAX alone takes ~1 s).
+HEAVY = ("jax", "jaxlib", "scipy", "matplotlib", "rerun", "ray")
+
+_HELP_PROBE = """
+import sys
+{prelude}
+import typer
+from typer.testing import CliRunner
+
+from spdslam.cli import app
+
+runner = CliRunner()
+names = sorted(typer.main.get_command(app).commands)
+for args in [["--help"]] + [[name, "--help"] for name in names]:
+    result = runner.invoke(app, args, terminal_width=100)
+    assert result.exit_code == 0 and "Usage" in result.output, (args, result.output)
+print(" ".join(names))
+print(" ".join(m for m in {heavy!r} if m in sys.modules))
+"""
+
+
+def _probe(code: str) -> list[str]:
+    """The lines ``code`` prints, run in a fresh Python process."""
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout.splitlines()
+
+
+def test_the_help_imports_neither_jax_nor_the_plotting_and_ray_packages():
+    """``spdslam --help`` and every ``spdslam COMMAND --help`` are built from ``_help.FACTS``
+    and the commands import what they use when they run: no JAX, SciPy, matplotlib, rerun or
+    Ray in the process afterwards (the probe sees them when they are there)."""
+    names, heavy = _probe(_HELP_PROBE.format(prelude="", heavy=HEAVY))
+    assert {"run", "import", "demo", "simulate", "check", "info"} <= set(names.split())
+    assert heavy == "", f"the help imported {heavy}"
+    assert _probe(_HELP_PROBE.format(prelude="import jax", heavy=HEAVY))[1].split()[:2] == ["jax", "jaxlib"]
+
+
+def test_the_help_facts_are_the_packages_facts():
+    """``_help.FACTS`` (what the help shows of the methods, sigmas, robust kernels and groups,
+    formats and settings) is what the packages say."""
+    from spdslam.cli._help import FACTS, facts_source, live_facts
+
+    live = live_facts()
+    assert FACTS == live, ("spdslam/cli/_help.py's FACTS is stale; replace it by:\n" + facts_source(live))
+    scope: dict = {"Any": object}
+    exec(facts_source(live), scope)  # the source it prints is the same again
+    assert scope["FACTS"] == live
+
+
+def test_a_setting_the_help_does_not_know_is_named():
+    from spdslam.cli._help import setting
+
+    assert setting("online.window") == (30, "frames whose poses the fixed-lag problem keeps free")
+    with pytest.raises(KeyError, match="online.nonsense: not among spdslam/cli/_help.py's FACTS"):
+        setting("online.nonsense")
+
+
+def test_the_compilation_cache_starts_with_a_command_not_with_its_help(tmp_path, monkeypatch):
+    target = tmp_path / "cache-here"
+    monkeypatch.setenv(cli.CACHE_ENV, str(target))
+    result = runner.invoke(cli.app, ["run", "--help"])
+    assert result.exit_code == 0, result.output
+    assert not target.exists()
+
+
+def test_importing_spdslam_is_lazy_and_float64_stays_on():
+    """``import spdslam`` imports no subpackage (nor JAX); the core's names come on first use,
+    and JAX computes in float64 whether it is imported before or after spdslam."""
+    code = ("import sys\nimport spdslam\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('spdslam.', 'jax'))))\n"
+            "from spdslam import InverseBoxFactor, X, se3\n"
+            "import jax.numpy as jnp\n"
+            "print(jnp.ones(1).dtype, InverseBoxFactor.__module__, spdslam.solver.X is X, se3.__name__)\n"
+            "print(all(hasattr(spdslam, n) for n in dir(spdslam)), 'InverseBoxFactor' in dir(spdslam))\n")
+    loaded, used, listed = _probe(code)
+    assert loaded == "['spdslam._version']"
+    assert used == "float64 spdslam.factors._box True spdslam.geometry.se3"
+    assert listed == "True True"
+    assert _probe("import jax\nimport spdslam\nimport jax.numpy as jnp\nprint(jnp.ones(1).dtype)") == ["float64"]
+    with pytest.raises(AttributeError, match="has no attribute 'nonsense'"):
+        spdslam.nonsense  # noqa: B018

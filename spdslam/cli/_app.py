@@ -7,32 +7,68 @@ A single typer application, :data:`app`. Commands are plain functions registered
 Conventions:
 
 * bad user input -> :func:`fail` (one line on stderr, exit status 2);
-* heavy imports (solver, factors, matplotlib, ...) go *inside* the command function, so
-  that ``spdslam --help`` and ``spdslam --version`` stay fast;
+* heavy imports (solver, factors, mapping, io, matplotlib, ...) go *inside* the command
+  function, and what the help shows of them comes from ``_help.FACTS``, so that ``spdslam
+  --help``, ``spdslam COMMAND --help`` and ``spdslam --version`` import neither JAX nor
+  SciPy (tests/test_cli.py checks it);
 * rich output goes through :data:`console` (stdout) / :data:`err_console` (stderr).
 
-Before any command runs, :func:`main` (the app callback) enables JAX's persistent
-compilation cache in ``$SPDSLAM_CACHE_DIR`` (default ``~/.cache/spdslam/jax``) so that
-repeated runs skip most of the XLA compilation time.
+When a command runs (not when its help is shown), :func:`start` first enables JAX's
+persistent compilation cache in ``$SPDSLAM_CACHE_DIR`` (default ``~/.cache/spdslam/jax``) so
+that repeated runs skip most of the XLA compilation time: :data:`app` wraps every command it
+registers so.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from .._version import __version__
-from ..solver import CACHE_ENV, CACHE_OFF, DEFAULT_CACHE_DIR, cache_dir, enable_compilation_cache  # noqa: F401
 
-app = typer.Typer(
+#: Set by :func:`start`: the cache directory in use, or ``None`` if the cache is off.
+_cache_dir_in_use: Path | None = None
+
+
+def start() -> None:
+    """What every command does before its body (its help, given before, does not): turn on
+    JAX's persistent compilation cache (``solver.enable_compilation_cache``)."""
+    global _cache_dir_in_use
+    from ..solver import enable_compilation_cache
+
+    _cache_dir_in_use = enable_compilation_cache()
+
+
+class _Typer(typer.Typer):
+    """A typer application whose commands call :func:`start` when they run: in the app
+    callback it would run (and import JAX) for ``spdslam COMMAND --help`` too, since click
+    calls a group's callback before it parses the command's options."""
+
+    def command(self, *args: Any, **kwargs: Any):
+        register = super().command(*args, **kwargs)
+
+        def decorator(f):
+            @functools.wraps(f)  # typer reads the signature and type hints through __wrapped__
+            def started(*a, **k):
+                start()
+                return f(*a, **k)
+
+            register(started)
+            return f
+
+        return decorator
+
+
+app = _Typer(
     name="spdslam",
     help="Object-level SLAM back end: ellipsoid landmarks on SPD(3) x R^3.",
     no_args_is_help=True,
@@ -42,9 +78,6 @@ app = typer.Typer(
 
 console = Console()
 err_console = Console(stderr=True)
-
-#: Set by :func:`main`: the cache directory in use, or ``None`` if the cache is off.
-_cache_dir_in_use: Path | None = None
 
 
 # --------------------------------------------------------------------------- helpers
@@ -173,8 +206,6 @@ def main(
     ),
 ) -> None:
     """Object-level SLAM back end: ellipsoid landmarks on SPD(3) x R^3."""
-    global _cache_dir_in_use
-    _cache_dir_in_use = enable_compilation_cache()
 
 
 # --------------------------------------------------------------------------- commands

@@ -1,30 +1,19 @@
 """The sequence commands: ``run``, ``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view`` and ``warmup``.
 
-Their choices and help come from the factor registry (robust-kernel groups) and the mapping
-(methods, models, the sigma table), so a new factor type or method appears here unchanged.
+Their choices and help come from the factor registry (robust-kernel groups), the mapping
+(methods, models, the sigma table, the settings' defaults and help) and the format registry,
+through their copy in ``_help.FACTS``, so that the help imports none of them (nor JAX); a new
+factor type, method or format fails tests/test_cli.py until the copy is renewed.
 """
 
 from __future__ import annotations
 
-import enum
 import math
 import os
 from pathlib import Path
 
 import typer
 
-from ..factors import robust_groups
-from ..mapping import (
-    AUTO_BOX_KERNEL,
-    DEFAULT_MAPPING_SIGMAS,
-    METHODS,
-    ROBUST_CHOICES,
-    ROBUST_KERNELS,
-    RUN_OVERRIDES,
-    OnlineSettings,
-    RunSettings,
-    setting_help,
-)
 from ._app import (
     RAY_ADDRESS_HELP,
     RAY_HELP,
@@ -37,54 +26,42 @@ from ._app import (
     fail,
     open_engine,
 )
+from ._help import FACTS, formats_help, setting
 from ._simulate import split_option
 
 __all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup", "DEMO_MARKER"]
 
 _SIGMA_HELP = (
     "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); NAME one of "
-    f"{', '.join(sorted(DEFAULT_MAPPING_SIGMAS))} (units in docs/sequences.md)."
+    f"{', '.join(FACTS['sigmas'])} (units in docs/sequences.md)."
 )
 _ROBUST_HELP = (
-    f"Robust kernel, repeatable: KERNEL ({', '.join(ROBUST_CHOICES)}) on box and "
-    f"measured-ellipsoid factors (default auto: {AUTO_BOX_KERNEL[0]} with threshold "
-    f"{AUTO_BOX_KERNEL[1]:g} when the detections are associated automatically, none with "
+    f"Robust kernel, repeatable: KERNEL ({', '.join(FACTS['robust_choices'])}) on box and "
+    f"measured-ellipsoid factors (default auto: {FACTS['auto_box_kernel'][0]} with threshold "
+    f"{FACTS['auto_box_kernel'][1]:g} when the detections are associated automatically, none with "
     "instance ids), or TYPE=KERNEL[:K] for one factor type "
-    f"({', '.join(robust_groups())}; KERNEL one of {', '.join(ROBUST_KERNELS)})."
+    f"({', '.join(FACTS['robust_groups'])}; KERNEL one of {', '.join(FACTS['robust_kernels'])})."
 )
-_METHOD_HELP = f"The back end: {', '.join(METHODS)}."
+_METHOD_HELP = f"The back end: {', '.join(FACTS['methods'])}."
 
 
 def _default(name: str):
     """The default of a settings field (``RunSettings``, or ``online.NAME``: ``OnlineSettings``),
-    as a command-line default."""
-    cls = OnlineSettings if name.startswith("online.") else RunSettings
-    value = cls.__dataclass_fields__[name.removeprefix("online.")].default
-    return value.value if isinstance(value, enum.Enum) else value
+    as a command-line default (``_help.FACTS``: read without importing ``mapping``)."""
+    return setting(name)[0]
 
 
 def _help(name: str, prefix: str = "") -> str:
     """An option's help from the run's settings (``mapping.setting_help``, or the method
-    overrides' ``RUN_OVERRIDES``), as a sentence."""
-    text = RUN_OVERRIDES[name] if name in RUN_OVERRIDES else setting_help(name)
+    overrides' ``RUN_OVERRIDES``, as ``_help.FACTS`` copies them), as a sentence."""
+    text = setting(name)[1]
     return f"{prefix}: {text}." if prefix else f"{text[0].upper()}{text[1:]}."
-
-
-def _formats_help() -> str:
-    """The registered sequence formats, as the help of a SEQUENCE argument lists them."""
-    from ..io import FORMATS, formats
-
-    try:
-        known = formats()
-    except ImportError:  # a broken entry point: reported when a command looks a path up
-        known = list(FORMATS.values())
-    return "; ".join(f.describe() for f in known)
 
 
 #: The help of a SEQUENCE argument and of ``import``'s SOURCE: the registered formats, listed
 #: once when the CLI is imported.
-_SEQUENCE_HELP = f"The sequence, in a registered format (docs/formats.md): {_formats_help()}."
-_INPUT_HELP = f"The input, in a registered format (docs/formats.md): {_formats_help()}."
+_SEQUENCE_HELP = f"The sequence, in a registered format (docs/formats.md): {formats_help()}."
+_INPUT_HELP = f"The input, in a registered format (docs/formats.md): {formats_help()}."
 
 
 def _format_options(items) -> dict:
@@ -136,6 +113,8 @@ def _load_sequence(path: Path, options: dict | None = None):
 def _parse_sigmas(items) -> dict:
     """``--sigma NAME=VALUE`` items as {NAME: number} (the values are checked by
     ``RunSettings``)."""
+    from ..mapping import DEFAULT_MAPPING_SIGMAS
+
     out = {}
     for item in items or []:
         name, sep, value = item.partition("=")
@@ -529,6 +508,7 @@ def compare(
     OUT/batch.csv, a line per method run)."""
     from ..evaluation import FRONT_END_NAMES, table_iii
     from ..experiments import Job
+    from ..mapping import METHODS
 
     names = split_option("methods", methods, tuple(METHODS))
     _sequence_path(sequence)

@@ -275,7 +275,9 @@ class OnlineMapper:
         self._last_values: Values | None = None
         self._since = 0
         # frames accepted by add_frame (the caller's thread); taken in by _ingest
-        self._accepted, self._last_time, self._last_input = 0, None, None
+        self._accepted = 0
+        self._last_time: float | None = None
+        self._last_input: Any = None  # jaxlie wxyz_xyz of the last frame accepted
         self._arrival: list = []  # perf_counter at each frame's add_frame
         self._used = 0  # frames the last optimisation used (records before it have their lag)
         self.background = online.background
@@ -416,7 +418,7 @@ class OnlineMapper:
         if f == 0:
             est = wxyz
         else:
-            step = jaxlie.SE3(self._input.array[-1]).inverse() @ jaxlie.SE3(wxyz)
+            step = jaxlie.SE3(self._input.array[-1]).inverse() @ jaxlie.SE3(wxyz)  # type: ignore[arg-type]
             est = np.asarray((jaxlie.SE3(self._est.array[-1]) @ step).wxyz_xyz)
         self._timestamps.append(t)
         self._input.append(wxyz)
@@ -767,7 +769,7 @@ class OnlineMapper:
     def _snapshot(self, n: int) -> OnlineMap:
         """The map of the current state, frames 0 … n − 1 (covariances: none)."""
         est = self._est.array[:n]
-        rows = to_tum(jaxlie.SE3(est)) if len(est) else np.zeros((0, 7))
+        rows = to_tum(jaxlie.SE3(est)) if len(est) else np.zeros((0, 7))  # type: ignore[arg-type]
         poses = np.c_[np.asarray(self._timestamps[:n]), rows]
         objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
         return OnlineMap(objects, poses, frames=n)
