@@ -156,12 +156,19 @@ def test_the_help_facts_are_the_packages_facts():
     assert scope["FACTS"] == live
 
 
-def test_a_setting_the_help_does_not_know_is_named():
-    from spdslam.cli._help import setting
+def test_a_setting_the_help_copy_lacks_is_read_from_the_packages(monkeypatch):
+    from spdslam.cli import _help
 
-    assert setting("online.window") == (30, "frames whose poses the fixed-lag problem keeps free")
-    with pytest.raises(KeyError, match="online.nonsense: not among spdslam/cli/_help.py's FACTS"):
-        setting("online.nonsense")
+    assert _help.setting("online.window") == (30, "frames whose poses the fixed-lag problem keeps free")
+    known = dict(_help.FACTS["settings"])
+    known.pop("online.window")
+    monkeypatch.setitem(_help.FACTS, "settings", known)
+    monkeypatch.setattr(_help, "_MISSING", [])
+    assert _help.setting("online.window") == (30, "frames whose poses the fixed-lag problem keeps free")
+    assert _help.live_facts() != _help.FACTS  # and the copy's test asks for it to be renewed
+    assert "online.window" in _help.live_facts()["settings"]
+    with pytest.raises(KeyError, match="nonsense"):
+        _help.setting("online.nonsense")
 
 
 def test_the_compilation_cache_starts_with_a_command_not_with_its_help(tmp_path, monkeypatch):

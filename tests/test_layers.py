@@ -21,7 +21,7 @@ ALLOWED = {
     "solver": {"geometry", "factors"},
     "io": {"geometry", "factors", "solver"},
     "synthetic": {"geometry", "io"},
-    "frontend": {"geometry", "io"},
+    "frontend": {"geometry", "solver", "io"},  # solver: its stored programs (stored_jit)
     "mapping": {"geometry", "factors", "solver", "io", "frontend"},
     "evaluation": {"geometry", "io"},
     "experiments": {"geometry", "factors", "solver", "io", "synthetic", "mapping", "evaluation"},

@@ -12,9 +12,10 @@ from the packages, and tests/test_cli.py checks that the two are equal; after a 
 
     python3 -c "from spdslam.cli._help import facts_source, live_facts; print(facts_source(live_facts()))"
 
-A setting the help names must be a key of ``FACTS["settings"]`` (else :func:`setting` says
-so). The sequence formats that installed packages add (entry points) are read from the
-registry, as before: only then does the help import ``spdslam.io``.
+A setting the help names and ``FACTS["settings"]`` lacks is read from the packages (the
+help then imports them) until ``FACTS`` is renewed. The sequence formats that installed
+packages add (entry points) are read from the registry, as before: only then does the help
+import ``spdslam.io``.
 """
 
 from __future__ import annotations
@@ -81,6 +82,16 @@ FACTS: dict[str, Any] = {
             "after the last frame, one batch optimisation of every frame and view from the online state "
             "(max_iterations); without it the map is the online estimates",
         ),
+        "online.background": (
+            False,
+            "optimise in a worker thread: a frame's own work returns at once and each optimisation publishes its map "
+            "when it ends (the same maps; latency.csv's lag says when)",
+        ),
+        "online.realtime": (
+            False,
+            "replay a recording at its own rate: each frame is added when its time since the first frame has passed, "
+            "as a camera delivers it",
+        ),
     },
     "format_entry_points": "spdslam.formats",
     "formats": (
@@ -97,11 +108,21 @@ def setting(name: str) -> tuple[Any, str]:
     ``OnlineSettings``, or the help of a ``RUN_OVERRIDES`` entry (default ``None``)."""
     if name in FACTS["overrides"]:
         return None, FACTS["overrides"][name]
-    try:
-        return FACTS["settings"][name]
-    except KeyError:
-        raise KeyError(f"{name}: not among spdslam/cli/_help.py's FACTS['settings']; add it (see the "
-                       "module's docstring)") from None
+    if name not in FACTS["settings"]:  # a new setting: read from the packages (slow) until
+        _MISSING.append(name)  # FACTS is renewed (tests/test_cli.py says so)
+        return _live_setting(name)
+    return FACTS["settings"][name]
+
+
+#: Settings the help named that ``FACTS`` lacks (``setting``).
+_MISSING: list[str] = []
+
+
+def _live_setting(name: str) -> tuple[Any, str]:
+    from ..mapping import OnlineSettings, RunSettings, setting_help
+
+    cls = OnlineSettings if name.startswith("online.") else RunSettings
+    return _cli_default(cls.__dataclass_fields__[name.removeprefix("online.")].default), setting_help(name)
 
 
 def formats_help() -> str:
@@ -137,14 +158,7 @@ def live_facts() -> dict[str, Any]:
         ROBUST_CHOICES,
         ROBUST_KERNELS,
         RUN_OVERRIDES,
-        OnlineSettings,
-        RunSettings,
-        setting_help,
     )
-
-    def default(name: str):
-        cls = OnlineSettings if name.startswith("online.") else RunSettings
-        return _cli_default(cls.__dataclass_fields__[name.removeprefix("online.")].default)
 
     return {
         "methods": tuple(METHODS),
@@ -154,7 +168,7 @@ def live_facts() -> dict[str, Any]:
         "auto_box_kernel": tuple(AUTO_BOX_KERNEL),
         "robust_groups": tuple(robust_groups()),
         "overrides": dict(RUN_OVERRIDES),
-        "settings": {name: (default(name), setting_help(name)) for name in FACTS["settings"]},
+        "settings": {name: _live_setting(name) for name in [*FACTS["settings"], *_MISSING]},
         "format_entry_points": ENTRY_POINT_GROUP,
         "formats": tuple(f.describe() for f in FORMATS.values() if f.__module__.startswith("spdslam.")),
     }

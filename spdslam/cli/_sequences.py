@@ -286,6 +286,9 @@ def run(
     warmup_first: bool = typer.Option(_default("online.warmup"), "--warmup", help=_help("online.warmup", "--online")),
     final_batch: bool = typer.Option(_default("online.final_batch"), "--final-batch/--no-final-batch",
                                      help=_help("online.final_batch", "--online")),
+    background: bool = typer.Option(_default("online.background"), "--background",
+                                    help=_help("online.background", "--online")),
+    realtime: bool = typer.Option(_default("online.realtime"), "--realtime", help=_help("online.realtime", "--online")),
 ) -> None:
     """Map a sequence: initialise every object, optimise poses and objects jointly.
 
@@ -296,7 +299,8 @@ def run(
     long each took.
     """
     on = {"window": window, "every": every, "iterations": online_iterations,
-          "final_batch": final_batch, "warmup": warmup_first} if online else None
+          "final_batch": final_batch, "warmup": warmup_first, "background": background,
+          "realtime": realtime} if online else None
     settings = _settings(
         method, sigma=_parse_sigmas(sigma), robust=robust, robust_k=robust_k,
         parameterization=parameterization, box_model=box_model, associate=associate,

@@ -376,8 +376,9 @@ def latency_csv(records) -> str:
 
 def plot_latency(path, records, rate: float | None = None, title: str = "", dpi: int = 110) -> Path:
     """Time per frame of an online run (log scale; frames where the problem was solved
-    marked), its median and 99th percentile, the frame period 1/``rate`` when given, and
-    the objects mapped (right axis)."""
+    marked), its median and 99th percentile, the map's lag per frame (``FrameRecord.lag``,
+    where known), the frame period 1/``rate`` when given, and the objects mapped (right
+    axis)."""
     frame = np.array([r.frame for r in records], dtype=float)
     ms = 1e3 * np.array([r.seconds for r in records], dtype=float)
     solved = np.array([r.factors > 0 for r in records], dtype=bool)
@@ -392,11 +393,15 @@ def plot_latency(path, records, rate: float | None = None, title: str = "", dpi:
         med, p99 = np.median(ms), np.percentile(ms, 99)
         ax.axhline(med, color="tab:green", lw=1, label=f"median {med:.3g} ms")
         ax.axhline(p99, color="tab:red", lw=1, label=f"99th percentile {p99:.3g} ms")
+        lag = 1e3 * np.array([getattr(r, "lag", np.nan) for r in records], dtype=float)
+        if np.isfinite(lag).any():
+            ax.plot(frame, lag, lw=0.8, color="tab:purple", alpha=0.7,
+                    label=f"map lag (median {np.nanmedian(lag):.3g} ms)")
     if rate:
         ax.axhline(1e3 / rate, color="k", ls="--", lw=1, label=f"frame period at {rate:.3g} Hz")
     ax.set_yscale("log")
     ax.set_xlabel("frame")
-    ax.set_ylabel("time to process (ms)")
+    ax.set_ylabel("time to process, lag (ms)")
     ax.legend(loc="upper left", fontsize=7)
     ax2 = ax.twinx()
     ax2.plot(frame, objects, color="0.4", lw=1)

@@ -18,8 +18,6 @@ out of both fits.
 
 from __future__ import annotations
 
-from functools import partial
-
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -36,6 +34,7 @@ from ..geometry import (
     truncation_mask,
 )
 from ..geometry.se3 import as_pose, stack
+from ..solver import stored_jit
 
 __all__ = [
     "TILT_SIGMA",
@@ -188,7 +187,6 @@ def _multi_model(theta, frame, has_plane):
     return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
 
 
-@partial(jax.jit, static_argnames=("shape",))
 def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape,
                tilt_w):
     """LM on the box residuals of the constrained model, batched over the starts ``theta0``
@@ -238,6 +236,18 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
         return c, e.P, e.center
 
     return jax.vmap(fit)(theta0)
+
+
+def _fit_of(shape: str):
+    def fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, tilt_w):
+        return _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w,
+                          shape, tilt_w)
+
+    return fit
+
+
+#: ``_multi_fit`` per object shape, compiled once and kept on disk (``solver.stored_jit``)
+_MULTI_FIT = {s: stored_jit(_fit_of(s), f"frontend.multi_fit {s}") for s in OBJECT_SHAPES}
 
 
 def multi_initialize(
@@ -320,7 +330,7 @@ def multi_initialize(
     if tilt_sigma is not None and not (np.isfinite(tilt_sigma) and tilt_sigma > 0):
         raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {tilt_sigma!r}")
     tilt_w = 0.0 if tilt_sigma is None else 1.0 / float(tilt_sigma)
-    costs, Ps, centers = _multi_fit(jnp.asarray(starts), *args, shape=shape, tilt_w=tilt_w)
+    costs, Ps, centers = _MULTI_FIT[shape](jnp.asarray(starts), *args, tilt_w)
     costs = np.asarray(costs)
     if not np.any(np.isfinite(costs)):
         raise InitializationError("the constrained fit diverged from every start")

@@ -877,15 +877,15 @@ class _Unchanged:
 
 
 def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", *,
-               progress=None, warmup: Sequence | None = None, realtime: bool = False, **settings):
+               progress=None, warmup: Sequence | None = None, **settings):
     """Replay a sequence through an ``OnlineMapper``, frame by frame in timestamp order:
     (``MapResult``, the ``FrameRecord`` of every frame). ``method`` and ``settings`` as
     ``OnlineMapper``'s; ``associate`` None: by instance id when every detection has one,
     else auto (``default_association``); the settings' ``online.final_batch``,
     ``max_iterations`` and ``tolerance`` are ``OnlineMapper.finish``'s. ``warmup``: a
     sequence for ``OnlineMapper.warmup`` before the first frame (as a live mapper would, so
-    that the frames' times do not include compilation). ``realtime``: each frame is added
-    when its time since the first frame has passed, as a camera delivers them (with
+    that the frames' times do not include compilation). ``online.realtime``: each frame is
+    added when its time since the first frame has passed, as a camera delivers them (with
     ``online.background``, how a live mapper runs). ``progress(message)`` every 100
     frames."""
     say = progress or (lambda message: None)
@@ -910,7 +910,7 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
     order = np.argsort(np.asarray(seq.timestamps), kind="stable")
     t_first, start = (float(seq.timestamps[order[0]]) if len(order) else 0.0), time.perf_counter()
     for n, i in enumerate(order):
-        if realtime:
+        if mapper.online.realtime:
             time.sleep(max(0.0, start + float(seq.timestamps[i]) - t_first - time.perf_counter()))
         mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
                          ellipsoids=meas.get(int(i), ()))

@@ -117,6 +117,9 @@ class OnlineSettings:
         "optimise in a worker thread: a frame's own work returns at once and each "
         "optimisation publishes its map when it ends (the same maps; latency.csv's lag says "
         "when)"))
+    realtime: bool = field(default=False, metadata=_help(
+        "replay a recording at its own rate: each frame is added when its time since the first "
+        "frame has passed, as a camera delivers it"))
 
     def __post_init__(self):
         for f in dataclasses.fields(self):

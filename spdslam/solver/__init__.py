@@ -9,7 +9,8 @@ linearisation (``_linearize``: whitening, robust weighting, validity), driven tw
 loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
 ``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
 problems of one structure in one jitted loop (``_batched``). ``enable_compilation_cache`` /
-``ensure_compilation_cache`` (``_cache``) turn on JAX's persistent compilation cache. Imports
+``ensure_compilation_cache`` (``_cache``) turn on JAX's persistent compilation cache;
+``stored_jit`` (``_stored``) keeps spdslam's own compiled programs on disk between processes. Imports
 only ``spdslam.geometry`` and ``spdslam.factors``.
 """
 
@@ -46,4 +47,6 @@ from ._optimizers import OptimizationResult as OptimizationResult
 from ._optimizers import Optimizer as Optimizer
 from ._problem import Problem as Problem
 from ._problem import group_kernels as group_kernels
+from ._stored import StoredProgram as StoredProgram
+from ._stored import stored_jit as stored_jit
 from ._values import Values as Values

@@ -46,6 +46,7 @@ import numpy as np
 from ..factors import CustomFactor, RobustKernel
 from ..geometry import manifold
 from ._linearize import finish, retract_rows, whitened
+from ._stored import own_code, stored_jit
 
 __all__ = ["Problem", "bucket", "CHUNK"]
 
@@ -212,13 +213,15 @@ class _GroupKernels:
     problem (``_Kernels``)."""
 
     def __init__(self, spec: _GroupSpec, tspecs: tuple[_TypeSpec, ...]):
+        stored = _stored_key(spec, tspecs)
+
         def program(mode, n_out):
             def f(xs, m, d):
                 return _group_map(spec, tspecs, xs, m, d, mode)[:n_out]
 
             # named after the residual, as JAX's compile log and profiles show it
             f.__name__ = f.__qualname__ = f"{getattr(spec.residual, '__name__', 'residual')}_{mode}"
-            return jax.jit(f)
+            return stored_jit(f, None if stored is None else f"group {mode} {n_out} {CHUNK} {stored}")
 
         self.cost, self.sparse, self.terms = program("cost", 2), program("sparse", 5), program("terms", 5)
         #: padded sizes called so far, and the first rows of the first call's inputs
@@ -250,6 +253,23 @@ class _GroupKernels:
         return done
 
 
+def _name(fn) -> str:
+    return f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', repr(fn))}"
+
+
+def _stored_key(spec: _GroupSpec, tspecs) -> str | None:
+    """The description of a group's programs for the store (``_stored``), or None when
+    they are not all spdslam's own code (a user's residual, kernel or variable type)."""
+    kernel = type(spec.robust) if spec.robust is not None else None
+    if not own_code(spec.residual, spec.valid) or (kernel is not None and not _name(kernel).startswith("spdslam.")):
+        return None
+    types = [(_name(ts.cls), str(ts.treedef), ts.dim) for ts in tspecs]
+    if not all(name.startswith(("spdslam.", "jaxlie.")) for name, _, _ in types):
+        return None
+    return repr((_name(spec.residual), spec.var_types, spec.dims, str(spec.args_treedef), spec.has_sqrt_info,
+                 repr(spec.robust), None if spec.valid is None else _name(spec.valid), types))
+
+
 def group_kernels() -> list:
     """Every factor group's kernels built in this process (``_GroupKernels``)."""
     return list(_GROUP_KERNELS.values())
@@ -271,7 +291,9 @@ def _retract_kernel(ts: _TypeSpec):
             y = retract_rows(ts.cls, x, d)
             return jax.tree.map(lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x)
 
-        k = _RETRACT[ts] = jax.jit(retract)
+        name = _name(ts.cls)
+        key = f"retract {name} {ts.treedef} {ts.dim}" if name.startswith(("spdslam.", "jaxlie.")) else None
+        k = _RETRACT[ts] = stored_jit(retract, key)
     return k
 
 

@@ -1,0 +1,190 @@
+"""Compiled programs kept on disk between processes (docs/performance.md, "Compilation").
+
+JAX's persistent compilation cache (``_cache``) saves XLA's compilation, but every new
+process still traces and lowers each program, and for the solver's linearisations (forward-
+mode Jacobians, vmapped and chunked) that is most of a warm run's first optimisation. A
+*stored* program skips both: its executable is compiled once, serialised under a key of
+everything that decides it, and loaded by later processes:
+
+    key = H(spdslam's source, jax and jaxlib versions, backend, device, CPU flags,
+            the program's name and static description, its arguments' shapes and dtypes)
+
+Only programs made of spdslam's own code are stored (a residual defined elsewhere is traced
+as usual, since its code is not in the key). The executable is compiled without the
+persistent cache (one loaded from it cannot be serialised). Before an executable is loaded
+the LAPACK kernels it may call are registered (JAX does so only when it lowers a program
+that uses them; a loaded executable calling them unregistered crashes the process). A
+stored executable that fails to load or to run is deleted and the program traced as usual;
+one whose first run did not end (a marker file left beside it) is deleted too. The store lives in
+``cache_dir()/programs``; ``SPDSLAM_CACHE_DIR=off`` turns it off with the cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import platform
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+from ._cache import CACHE_ENV, CACHE_OFF, cache_dir
+
+__all__ = ["StoredProgram", "stored_jit", "own_code", "store_dir"]
+
+_LOCK = threading.Lock()
+_ENV: list = []  # the environment's part of every key, computed once
+
+
+def store_dir() -> Path | None:
+    """The directory of stored programs, or None when the cache is off."""
+    if os.environ.get(CACHE_ENV, "").strip().lower() in CACHE_OFF:
+        return None
+    return cache_dir() / "programs"
+
+
+def _environment() -> str:
+    """spdslam's source, the JAX versions, backend, device and CPU flags, hashed."""
+    if not _ENV:
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+        dev = jax.devices()[0]
+        h.update(repr((jax.__version__, getattr(jax.lib, "__version__", ""), jax.default_backend(),
+                       dev.device_kind, getattr(dev.client, "platform_version", ""), platform.machine(),
+                       bool(jax.config.jax_enable_x64))).encode())  # type: ignore[attr-defined]
+        try:  # the CPU's instruction sets (an executable may use any of them)
+            with open("/proc/cpuinfo", encoding="utf-8") as f:
+                h.update(next((ln for ln in f if ln.startswith("flags")), "").encode())
+        except OSError:
+            pass
+        _ENV.append(h.hexdigest())
+    return _ENV[0]
+
+
+def own_code(*fns) -> bool:
+    """Whether every function in ``fns`` (None allowed) is a module-level function of
+    spdslam without captured variables: code that the key's source hash covers."""
+    for fn in fns:
+        if fn is None:
+            continue
+        mod = getattr(fn, "__module__", "") or ""
+        qual = getattr(fn, "__qualname__", "") or ""
+        if (not mod.startswith("spdslam.") or "<locals>" in qual or "<lambda>" in qual
+                or getattr(fn, "__closure__", None)):
+            return False
+    return True
+
+
+def _signature(args) -> tuple:
+    leaves, td = jax.tree.flatten(args)
+    return td, tuple((np.shape(a), str(a.dtype if hasattr(a, "dtype") else np.result_type(a))) for a in leaves)
+
+
+class _NoPersistentCache:
+    """Compile without the persistent cache (an executable it loaded cannot be serialised)."""
+
+    def __enter__(self):
+        _LOCK.acquire()
+        self.was = jax.config.jax_enable_compilation_cache  # type: ignore[attr-defined]
+        jax.config.update("jax_enable_compilation_cache", False)
+
+    def __exit__(self, *exc):
+        jax.config.update("jax_enable_compilation_cache", self.was)
+        _LOCK.release()
+
+
+class StoredProgram:
+    """``jax.jit(fn)`` whose executables are stored on disk under ``key`` (module
+    docstring); ``key`` None: plain ``jax.jit``. Call it as the jitted function."""
+
+    def __init__(self, fn: Callable, key: str | None):
+        self.jitted = jax.jit(fn, keep_unused=True)  # a stored executable takes every argument
+        self.key = key
+        self._executables: dict = {}
+        self._checked: set = set()
+
+    def __call__(self, *args):
+        folder = None if self.key is None else store_dir()
+        if folder is None:
+            return self.jitted(*args)
+        sig = _signature(args)
+        ex = self._executables.get(sig)
+        if ex is None:
+            ex = self._executables[sig] = self._load_or_build(folder, sig, args)
+        if ex is False:
+            return self.jitted(*args)
+        if sig in self._checked:
+            return ex(*args)
+        path = self._path(folder, sig)
+        marker = path.with_suffix(".trying")
+        try:  # a stored executable's first call is checked to its end
+            marker.touch()
+            out = jax.block_until_ready(ex(*args))
+        except Exception:  # noqa: BLE001 - a bad stored program is replaced by tracing
+            self._executables[sig] = False
+            path.unlink(missing_ok=True)
+            return self.jitted(*args)
+        finally:
+            marker.unlink(missing_ok=True)
+        self._checked.add(sig)
+        return out
+
+    def _path(self, folder: Path, sig) -> Path:
+        digest = hashlib.sha256(repr((_environment(), self.key, sig)).encode()).hexdigest()
+        return folder / f"{digest}.bin"
+
+    def _load_or_build(self, folder: Path, sig, args) -> Any:
+        from jax.experimental import serialize_executable as se
+
+        path = self._path(folder, sig)
+        if path.with_suffix(".trying").exists():  # its first run in another process never ended
+            path.unlink(missing_ok=True)
+            path.with_suffix(".trying").unlink(missing_ok=True)
+        if path.is_file():
+            try:
+                _register_kernels()
+                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+                return se.deserialize_and_load(payload, in_tree, out_tree)
+            except Exception:  # noqa: BLE001 - unreadable: rebuilt below
+                path.unlink(missing_ok=True)
+        try:
+            with _NoPersistentCache():
+                compiled = self.jitted.lower(*args).compile()
+            data = pickle.dumps(se.serialize(compiled))
+        except Exception:  # noqa: BLE001 - not serialisable here: the plain jit serves
+            return False
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except OSError:
+            pass
+        self._checked.add(sig)  # compiled here: nothing to check
+        return compiled
+
+
+def _register_kernels() -> None:
+    """Register jaxlib's LAPACK kernels, which a loaded executable may call."""
+    if not _REGISTERED:
+        from jaxlib import lapack
+
+        lapack.prepare_lapack_call("getrf_ffi", np.dtype("float64"))
+        _REGISTERED.append(True)
+
+
+_REGISTERED: list = []
+
+
+def stored_jit(fn: Callable, key: str | None) -> StoredProgram:
+    """A ``StoredProgram`` of ``fn`` under ``key`` (None: not stored)."""
+    return StoredProgram(fn, key)

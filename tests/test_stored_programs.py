@@ -1,0 +1,136 @@
+"""Compiled programs stored on disk between processes (``solver._stored``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spdslam.factors import BetweenFactor, PriorFactor
+from spdslam.geometry.se3 import from_tum
+from spdslam.solver import LevenbergMarquardt, NonlinearFactorGraph, Values, X, clear_caches
+from spdslam.solver._stored import StoredProgram, own_code, store_dir
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    monkeypatch.setenv("SPDSLAM_CACHE_DIR", str(tmp_path))
+    return tmp_path / "programs"
+
+
+def test_a_stored_program_is_loaded_not_traced_and_gives_the_same_result(store):
+    traced = []
+
+    def f(x, y):
+        traced.append(1)  # runs only while tracing
+        return np.float64(2.0) * x @ y, x.sum()
+
+    x, y = np.arange(12.0).reshape(3, 4), np.ones((4, 2))
+    first = StoredProgram(f, "test f")(x, y)
+    assert len(traced) == 1 and len(list(store.glob("*.bin"))) == 1
+    again = StoredProgram(f, "test f")  # a new process's program: loaded from the store
+    second = again(x, y)
+    assert len(traced) == 1
+    for a, b in zip(first, second):
+        np.testing.assert_array_equal(a, b)
+    again(x + 1, y)  # its compiled code is called from then on
+    assert len(traced) == 1
+    StoredProgram(f, "test f")(np.ones((2, 4)), y)  # other shapes: another program
+    assert len(traced) == 2 and len(list(store.glob("*.bin"))) == 2
+    StoredProgram(lambda a, b: f(a, b), None)(x, y)  # no key: plain jit (traced)
+    assert len(traced) == 3 and len(list(store.glob("*.bin"))) == 2
+
+
+def test_a_damaged_stored_program_is_rebuilt(store):
+    def f(x):
+        return x * 3.0
+
+    x = np.arange(4.0)
+    StoredProgram(f, "test g")(x)
+    (path,) = store.glob("*.bin")
+    path.write_bytes(b"not a program")
+    np.testing.assert_array_equal(StoredProgram(f, "test g")(x), 3 * x)
+    assert path.read_bytes() != b"not a program"
+
+
+def test_the_store_is_off_with_the_cache(monkeypatch):
+    monkeypatch.setenv("SPDSLAM_CACHE_DIR", "off")
+    assert store_dir() is None
+
+
+def test_only_spdslams_own_module_level_code_is_stored():
+    assert own_code(BetweenFactor.residual, PriorFactor.residual, None)
+    assert not own_code(lambda x: x)
+    assert not own_code(np.sum)
+
+    def local(x):
+        return x
+
+    assert not own_code(local)
+
+
+def test_an_optimisation_in_a_new_process_traces_no_builtin_program(store, monkeypatch):
+    from spdslam.solver import _problem
+
+    poses = [from_tum([0.1 * i, 0, 0, 0, 0, 0, 1]) for i in range(5)]
+    graph = NonlinearFactorGraph([PriorFactor(X(0), poses[0], sigma=0.1)] + [
+        BetweenFactor(X(i), X(i + 1), poses[i].inverse() @ poses[i + 1], sigma=0.1) for i in range(4)])
+    values = Values({X(i): from_tum([0.1 * i + 0.01 * i**2, 0.02, 0, 0, 0, 0, 1]) for i in range(5)})
+    first = LevenbergMarquardt().optimize(graph, values)
+    assert list(store.glob("*.bin"))
+    clear_caches()  # as a new process: no program in memory
+    traced = []
+    group_map = _problem._group_map
+    monkeypatch.setattr(_problem, "_group_map", lambda *a: traced.append(1) or group_map(*a))
+    second = LevenbergMarquardt().optimize(graph, values)
+    assert traced == []
+    assert second.final_cost == first.final_cost
+    for i in range(5):
+        np.testing.assert_array_equal(second.values[X(i)].wxyz_xyz, first.values[X(i)].wxyz_xyz)
+    clear_caches()
+    monkeypatch.setenv("SPDSLAM_CACHE_DIR", "off")  # the check can fail: without the store it traces
+    LevenbergMarquardt().optimize(graph, values)
+    assert traced
+
+
+_PROCESS = """
+import sys
+import numpy as np
+import jax.numpy as jnp
+from spdslam.solver import StoredProgram
+
+def solve(a, b):  # LAPACK kernels (getrf, syevd): a loaded executable must find them registered
+    return jnp.linalg.solve(a, b), jnp.linalg.eigh(a)[0]
+
+a = np.eye(3) * 2.0 + 0.1
+x, w = StoredProgram(solve, "test lapack")(a, np.arange(3.0))
+print(repr((x.tolist(), w.tolist())))
+"""
+
+
+def test_a_stored_program_that_calls_lapack_runs_in_a_new_process(store):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, SPDSLAM_CACHE_DIR=str(store.parent))
+    first = subprocess.run([sys.executable, "-c", _PROCESS], env=env, capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr
+    assert len(list(store.glob("*.bin"))) == 1
+    second = subprocess.run([sys.executable, "-c", _PROCESS], env=env, capture_output=True, text=True)
+    assert second.returncode == 0, second.stderr[-2000:]  # was a segmentation fault (exit -11)
+    assert second.stdout == first.stdout
+
+
+def test_a_stored_program_whose_first_run_never_ended_is_rebuilt(store):
+    def f(x):
+        return x + 1.0
+
+    x = np.arange(3.0)
+    StoredProgram(f, "test h")(x)
+    (path,) = store.glob("*.bin")
+    path.with_suffix(".trying").touch()  # as a process that crashed in its first run leaves it
+    before = path.stat().st_ino, path.stat().st_mtime_ns
+    again = StoredProgram(f, "test h")
+    np.testing.assert_array_equal(again(x), x + 1)
+    assert path.is_file() and not path.with_suffix(".trying").exists()
+    assert (path.stat().st_ino, path.stat().st_mtime_ns) != before  # compiled and stored anew
