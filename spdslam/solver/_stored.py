@@ -6,11 +6,14 @@ mode Jacobians, vmapped and chunked) that is most of a warm run's first optimisa
 *stored* program skips both: its executable is compiled once, serialised under a key of
 everything that decides it, and loaded by later processes:
 
-    key = H(spdslam's source, jax and jaxlib versions, backend, device, CPU flags,
-            the program's name and static description, its arguments' shapes and dtypes)
+    key = H(the source of spdslam's geometry, factors, solver and the front end's
+            initialisation, the jax, jaxlib and jaxlie versions, backend, device, CPU
+            flags, the program's name and static
+            description, its arguments' shapes and dtypes)
 
-Only programs made of spdslam's own code are stored (a residual defined elsewhere is traced
-as usual, since its code is not in the key). The executable is compiled without the
+Only programs made of the code of those packages are stored (a residual defined elsewhere is
+traced as usual, since its code is not in the key); an edit elsewhere (the association,
+mapping, io, the command line) keeps the stored programs. The executable is compiled without the
 persistent cache (one loaded from it cannot be serialised). Before an executable is loaded
 the LAPACK kernels it may call are registered (JAX does so only when it lowers a program
 that uses them; a loaded executable calling them unregistered crashes the process). A
@@ -48,16 +51,24 @@ def store_dir() -> Path | None:
     return cache_dir() / "programs"
 
 
+#: The modules whose code stored programs may be made of (their source is in every key).
+MODULES = ("geometry", "factors", "solver", "frontend._initialization")
+
+
 def _environment() -> str:
-    """spdslam's source, the JAX versions, backend, device and CPU flags, hashed."""
+    """The source of ``MODULES``, the versions, backend, device and CPU flags, hashed."""
     if not _ENV:
         h = hashlib.sha256()
         root = Path(__file__).resolve().parents[1]
-        for path in sorted(root.rglob("*.py")):
+        files = [root / (name.replace(".", "/") + ".py") for name in MODULES if "." in name]
+        files += [p for name in MODULES if "." not in name for p in (root / name).rglob("*.py")]
+        for path in sorted(files):
             h.update(str(path.relative_to(root)).encode())
             h.update(path.read_bytes())
         dev = jax.devices()[0]
-        h.update(repr((jax.__version__, getattr(jax.lib, "__version__", ""), jax.default_backend(),
+        from importlib.metadata import version
+
+        h.update(repr((jax.__version__, getattr(jax.lib, "__version__", ""), version("jaxlie"), jax.default_backend(),
                        dev.device_kind, getattr(dev.client, "platform_version", ""), platform.machine(),
                        bool(jax.config.jax_enable_x64))).encode())  # type: ignore[attr-defined]
         try:  # the CPU's instruction sets (an executable may use any of them)
@@ -71,13 +82,14 @@ def _environment() -> str:
 
 def own_code(*fns) -> bool:
     """Whether every function in ``fns`` (None allowed) is a module-level function of
-    spdslam without captured variables: code that the key's source hash covers."""
+    ``MODULES`` without captured variables: code that the key's source hash covers."""
     for fn in fns:
         if fn is None:
             continue
         mod = getattr(fn, "__module__", "") or ""
         qual = getattr(fn, "__qualname__", "") or ""
-        if (not mod.startswith("spdslam.") or "<locals>" in qual or "<lambda>" in qual
+        ours = any(mod == f"spdslam.{m}" or mod.startswith(f"spdslam.{m}.") for m in MODULES)
+        if (not ours or "<locals>" in qual or "<lambda>" in qual
                 or getattr(fn, "__closure__", None)):
             return False
     return True
