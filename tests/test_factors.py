@@ -17,8 +17,10 @@ from spdslam.factors import (
     ClassicOrientationFactor,
     Huber,
     InverseBoxFactor,
+    InverseCuboidBoxFactor,
     OrientationFactor,
     SemiInverseBoxFactor,
+    SemiInverseCuboidBoxFactor,
     ShapeFactor,
     SizeFactor,
     SupportPlaneFactor,
@@ -31,6 +33,7 @@ from spdslam.factors import (
     sqrt_information,
     support_plane_residual,
 )
+from spdslam.solver import L, X
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
 
@@ -310,3 +313,35 @@ def test_box_factor_jacobians_finite_for_degenerate_geometry():
             for x in (e, e.to_rts(), e.to_full()):
                 r, J = tangent_jacobians(res, (T, x), (box, CAM))
                 assert np.all(np.isfinite(r)) and all(np.all(np.isfinite(j)) for j in J), (res, type(x))
+
+
+@pytest.mark.parametrize("margin", [None, 5.0])
+@pytest.mark.parametrize("cls", [InverseBoxFactor, SemiInverseBoxFactor, InverseCuboidBoxFactor,
+                                 SemiInverseCuboidBoxFactor])
+def test_box_factors_built_as_arrays_are_the_factors_built_one_by_one(cls, margin):
+    import jax
+
+    cam = Camera(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    rng = np.random.default_rng(0)
+    corner = rng.uniform(0, 300, (40, 2))
+    boxes = np.c_[corner, corner + rng.uniform(1, 300, (40, 2))]
+    sigma = rng.uniform(1, 3, (40, 4))
+    many = cls.many([X(i) for i in range(40)], L(3), boxes, cam, sigma=sigma, robust=Huber(1.0),
+                    truncation_margin=margin)
+    assert len(many) == 40
+    for i, a in enumerate(many):
+        b = cls(X(i), L(3), boxes[i], cam, sigma=sigma[i], robust=Huber(1.0), truncation_margin=margin)
+        assert type(a) is cls and a.keys == b.keys and a.robust == b.robust
+        np.testing.assert_array_equal(a.sqrt_info, b.sqrt_info)
+        (la, ta, sa), (lb, tb, sb) = a.flat_args(), b.flat_args()
+        assert ta == tb and sa == sb
+        for x, y in zip(la + jax.tree.leaves(a.args), lb + jax.tree.leaves(b.args)):
+            np.testing.assert_array_equal(x, y)
+    default = cls.many([X(0)], [L(1)], boxes[:1], cam)[0]  # the type's default σ
+    np.testing.assert_array_equal(default.sqrt_info, cls(X(0), L(1), boxes[0], cam).sqrt_info)
+    with pytest.raises(ValueError, match=r"box must be finite \[u_min, v_min, u_max, v_max\], got \[5.0, 0\.0"):
+        cls.many([X(0), X(1)], L(1), [boxes[0], [5.0, 0.0, 1.0, 1.0]], cam)
+    with pytest.raises(ValueError, match="sigma must be finite and positive"):
+        cls.many([X(0)], L(1), boxes[:1], cam, sigma=-1.0)
+    with pytest.raises(ValueError, match="2 boxes, 1 pose keys"):
+        cls.many([X(0)], L(1), boxes[:2], cam)

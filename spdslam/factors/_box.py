@@ -37,7 +37,7 @@ from ..geometry import (
     project_cuboid_box,
     truncation_mask,
 )
-from ._base import Factor, Sigma
+from ._base import Factor, RobustKernel, Sigma
 
 __all__ = [
     "DEFAULT_TRUNCATION_MARGIN",
@@ -138,6 +138,57 @@ class _BoxFactor(Factor):
                 raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
             args = (box, camera, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
         super().__init__((pose_key, landmark_key), args, **noise)
+
+    @classmethod
+    def many(cls, pose_keys, landmark_keys, boxes, camera: Camera, *, sigma: Any = None,
+             robust: RobustKernel | None = None, truncation_margin: float | None = None) -> list:
+        """The factors ``cls(pose_keys[i], landmark_keys[i], boxes[i], camera, sigma=sigma[i],
+        …)`` of n boxes (n, 4), checked and built as arrays: the same factors as one by one
+        (``sigma``: a scalar, 4 values or (n, 4); None: the type's default), in a fraction
+        of the time. ``landmark_keys``: a list, or one key for all."""
+        boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+        n = len(boxes)
+        pose_keys = list(pose_keys)
+        landmark_keys = list(landmark_keys) if isinstance(landmark_keys, (list, np.ndarray)) \
+            else [landmark_keys] * n
+        if len(pose_keys) != n or len(landmark_keys) != n:
+            raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(pose_keys)} pose keys and "
+                             f"{len(landmark_keys)} landmark keys")
+        bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
+        if bad.any():
+            b = boxes[int(np.flatnonzero(bad)[0])]
+            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}")
+        if not isinstance(camera, Camera):
+            raise TypeError("camera must be a spdslam Camera")
+        if sigma is None:
+            sigma = cls.default_sigma()
+        s = np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4))
+        wrong = np.any(~np.isfinite(s) | (s <= 0), axis=1)
+        if wrong.any():
+            raise ValueError(f"sigma must be finite and positive, got {s[wrong][0].tolist()}")
+        W = np.zeros((n, 4, 4))
+        W[:, np.arange(4), np.arange(4)] = 1.0 / s  # sqrt_information's diag(1/σ), row by row
+        if truncation_margin is not None:
+            if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
+                raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
+            masks = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
+        out = []
+        if not n:
+            return out
+        # the solver's layout of the first factor's arguments (Factor.flat_args), shared
+        first = cls(pose_keys[0], landmark_keys[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
+                    truncation_margin=truncation_margin)
+        leaves, treedef, shapes = first.flat_args()
+        for i in range(n):
+            f = object.__new__(cls)
+            args = (boxes[i], camera) if truncation_margin is None else (boxes[i], camera, masks[i])
+            for name, value in (("keys", (pose_keys[i], landmark_keys[i])), ("args", args),
+                                ("sqrt_info", W[i]), ("robust", robust),
+                                ("_flat", ([boxes[i], *leaves[1:-1], masks[i]] if truncation_margin is not None
+                                           else [boxes[i], *leaves[1:]], treedef, shapes))):
+                object.__setattr__(f, name, value)
+            out.append(f)
+        return out
 
 
 class InverseBoxFactor(_BoxFactor):

@@ -287,18 +287,15 @@ OBJECT_FACTORS: dict[str, ObjectFactorRule] = {r.name: r for r in (
 def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
                  robust) -> list:
     """The box factor of each of the track's detections (module docstring)."""
-    key = L(track.id)
     shape = object_shape(method, ctx.priors, track.label)
     box_factor = BOX_FACTORS[box_model, shape]
-    out = []
-    for f, b in zip(track.frames, track.boxes):
-        sigma = s[box_factor.kind]
-        if box_model == "inverse":
-            size = np.array([b[2] - b[0], b[3] - b[1]] * 2)
-            sigma = sigma + s[box_factor.kind + "_relative"] * size
-        out.append(box_factor(X(f), key, b, ctx.camera, sigma=sigma, robust=robust,
-                              truncation_margin=method.margin))
-    return out
+    boxes = np.asarray(track.boxes, dtype=float).reshape(-1, 4)
+    sigma = np.broadcast_to(np.asarray(s[box_factor.kind], dtype=float), (len(boxes), 4))
+    if box_model == "inverse":
+        size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
+        sigma = sigma + s[box_factor.kind + "_relative"] * size
+    return box_factor.many([X(f) for f in track.frames], L(track.id), boxes, ctx.camera, sigma=sigma,
+                           robust=robust, truncation_margin=method.margin)
 
 
 def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,

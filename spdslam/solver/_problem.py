@@ -700,8 +700,9 @@ class Problem:
         """A copy of ``base`` (a Values) with this problem's variables set from ``vars_``."""
         out = base.copy()
         for ts, keys, x in zip(self.tspecs, self.type_keys, vars_):
+            # read-only NumPy rows of the (immutable) results: no transfer per variable
             leaves = [np.asarray(a) for a in jax.tree.leaves(x)]
-            rows = jax.device_put([[a[i] for a in leaves] for i in range(len(keys))])
-            for k, lv in zip(keys, rows):
-                out._data[k] = jax.tree.unflatten(ts.treedef, lv)
+            unflatten = ts.treedef.unflatten
+            for i, k in enumerate(keys):
+                out._data[k] = unflatten([a[i] for a in leaves])
         return out
