@@ -128,9 +128,17 @@ def test_a_stored_program_whose_first_run_never_ended_is_rebuilt(store):
     x = np.arange(3.0)
     StoredProgram(f, "test h")(x)
     (path,) = store.glob("*.bin")
-    path.with_suffix(".trying").touch()  # as a process that crashed in its first run leaves it
+    import os
+    import subprocess
+
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a process id that no longer runs
+    running = path.with_suffix(f".{os.getppid()}.trying")  # another process running it now
+    running.touch()
     before = path.stat().st_ino, path.stat().st_mtime_ns
-    again = StoredProgram(f, "test h")
-    np.testing.assert_array_equal(again(x), x + 1)
-    assert path.is_file() and not path.with_suffix(".trying").exists()
+    np.testing.assert_array_equal(StoredProgram(f, "test h")(x), x + 1)
+    assert (path.stat().st_ino, path.stat().st_mtime_ns) == before  # loaded: no sign of a crash
+    path.with_suffix(f".{gone.pid}.trying").touch()  # as a process that crashed in its first run leaves it
+    np.testing.assert_array_equal(StoredProgram(f, "test h")(x), x + 1)
+    assert path.is_file() and not path.with_suffix(f".{gone.pid}.trying").exists() and running.exists()
     assert (path.stat().st_ino, path.stat().st_mtime_ns) != before  # compiled and stored anew

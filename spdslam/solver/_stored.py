@@ -18,7 +18,8 @@ persistent cache (one loaded from it cannot be serialised). Before an executable
 the LAPACK kernels it may call are registered (JAX does so only when it lowers a program
 that uses them; a loaded executable calling them unregistered crashes the process). A
 stored executable that fails to load or to run is deleted and the program traced as usual;
-one whose first run did not end (a marker file left beside it) is deleted too. The store lives in
+one whose first run did not end (a marker file left beside it by a process that is gone) is
+deleted too. The store lives in
 ``cache_dir()/programs``; ``SPDSLAM_CACHE_DIR=off`` turns it off with the cache.
 """
 
@@ -136,7 +137,7 @@ class StoredProgram:
         if sig in self._checked:
             return ex(*args)
         path = self._path(folder, sig)
-        marker = path.with_suffix(".trying")
+        marker = path.with_suffix(f".{os.getpid()}.trying")
         try:  # a stored executable's first call is checked to its end
             marker.touch()
             out = jax.block_until_ready(ex(*args))
@@ -157,9 +158,8 @@ class StoredProgram:
         from jax.experimental import serialize_executable as se
 
         path = self._path(folder, sig)
-        if path.with_suffix(".trying").exists():  # its first run in another process never ended
+        if _crashed(path):  # its first run in another process never ended
             path.unlink(missing_ok=True)
-            path.with_suffix(".trying").unlink(missing_ok=True)
         if path.is_file():
             try:
                 _register_kernels()
@@ -183,6 +183,22 @@ class StoredProgram:
             pass
         self._checked.add(sig)  # compiled here: nothing to check
         return compiled
+
+
+def _crashed(path: Path) -> bool:
+    """Whether a process that ran ``path``'s executable for the first time ended in it: a
+    marker ``NAME.PID.trying`` of a process that no longer runs (removed here). A process
+    still running it (another one mapping now) is no sign of a crash."""
+    crashed = False
+    for marker in path.parent.glob(path.stem + ".*.trying"):
+        try:
+            os.kill(int(marker.suffixes[-2][1:]), 0)
+        except (ValueError, IndexError, ProcessLookupError):
+            crashed = True
+            marker.unlink(missing_ok=True)
+        except OSError:  # alive, another user's
+            pass
+    return crashed
 
 
 def _register_kernels() -> None:
