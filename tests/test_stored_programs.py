@@ -142,3 +142,40 @@ def test_a_stored_program_whose_first_run_never_ended_is_rebuilt(store):
     np.testing.assert_array_equal(StoredProgram(f, "test h")(x), x + 1)
     assert path.is_file() and not path.with_suffix(f".{gone.pid}.trying").exists() and running.exists()
     assert (path.stat().st_ino, path.stat().st_mtime_ns) != before  # compiled and stored anew
+
+
+_SERVED = """
+import sys
+import numpy as np
+import jax.numpy as jnp
+from spdslam.solver import StoredProgram, enable_compilation_cache
+
+enable_compilation_cache()  # JAX's persistent cache, in SPDSLAM_CACHE_DIR
+
+def f(a, b):
+    return jnp.linalg.solve(a, b) * 2.0
+
+print(StoredProgram(f, "test served")(np.eye(3) * 2.0 + 0.1, np.arange(3.0)).tolist())
+"""
+
+
+def test_a_build_is_neither_served_nor_kept_by_the_persistent_cache(store):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, SPDSLAM_CACHE_DIR=str(store.parent))
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", _SERVED], env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return out.stdout
+
+    first = run()  # compiled and stored; not written to JAX's persistent cache
+    (path,) = store.glob("*.bin")
+    path.unlink()  # as after an edit of spdslam that leaves the program unchanged
+    # compiled afresh and stored again (an executable the cache had served would lack its
+    # machine code: a later process running it fails)
+    assert run() == first
+    assert [p.name for p in store.glob("*.bin")] == [path.name]
+    assert run() == first  # loaded and run

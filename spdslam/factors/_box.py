@@ -172,7 +172,7 @@ class _BoxFactor(Factor):
             if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
                 raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
             masks = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
-        out = []
+        out: list = []
         if not n:
             return out
         # the solver's layout of the first factor's arguments (Factor.flat_args), shared

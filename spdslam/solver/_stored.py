@@ -14,7 +14,13 @@ everything that decides it, and loaded by later processes:
 Only programs made of the code of those packages are stored (a residual defined elsewhere is
 traced as usual, since its code is not in the key); an edit elsewhere (the association,
 mapping, io, the command line) keeps the stored programs. The executable is compiled without the
-persistent cache (one loaded from it cannot be serialised). Before an executable is loaded
+persistent cache: an executable that JAX's persistent cache served cannot be serialised
+(it lacks its machine code; a later process that ran it would fail). A build therefore
+compiles with an option that does nothing on its backend (``_MARK``: a GPU flag on the CPU)
+but gives it its own cache key, with the cache's writes held off, so that the cache neither
+serves nor keeps it; should the cache serve it all the same (``jax.monitoring``'s cache-hit
+event during the compile), it is used in this process and not stored. Before an executable
+is loaded
 the LAPACK kernels it may call are registered (JAX does so only when it lowers a program
 that uses them; a loaded executable calling them unregistered crashes the process). A
 stored executable that fails to load or to run is deleted and the program traced as usual;
@@ -101,16 +107,39 @@ def _signature(args) -> tuple:
     return td, tuple((np.shape(a), str(a.dtype if hasattr(a, "dtype") else np.result_type(a))) for a in leaves)
 
 
-class _NoPersistentCache:
-    """Compile without the persistent cache (an executable it loaded cannot be serialised)."""
+def _mark() -> dict:
+    """A compiler option without effect on this backend (module docstring)."""
+    if jax.default_backend() == "cpu":
+        return {"xla_gpu_enable_triton_gemm": False}
+    return {"xla_cpu_enable_fast_math": False}
+
+
+class _FreshCompile:
+    """The compiles in its ``with`` block are not written to JAX's persistent cache, and
+    ``served`` says whether the cache served one (one block at a time: the counter is
+    global)."""
+
+    hits = 0
+    _listening = False
+
+    @classmethod
+    def _listen(cls, event: str, **kwargs) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            cls.hits += 1
 
     def __enter__(self):
         _LOCK.acquire()
-        self.was = jax.config.jax_enable_compilation_cache  # type: ignore[attr-defined]
-        jax.config.update("jax_enable_compilation_cache", False)
+        if not _FreshCompile._listening:
+            jax.monitoring.register_event_listener(_FreshCompile._listen)
+            _FreshCompile._listening = True
+        self.before = _FreshCompile.hits
+        self.was = jax.config.jax_persistent_cache_min_compile_time_secs  # type: ignore[attr-defined]
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1e12)
+        return self
 
     def __exit__(self, *exc):
-        jax.config.update("jax_enable_compilation_cache", self.was)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", self.was)
+        self.served = _FreshCompile.hits > self.before
         _LOCK.release()
 
 
@@ -168,8 +197,11 @@ class StoredProgram:
             except Exception:  # noqa: BLE001 - unreadable: rebuilt below
                 path.unlink(missing_ok=True)
         try:
-            with _NoPersistentCache():
-                compiled = self.jitted.lower(*args).compile()
+            with _FreshCompile() as cache:
+                compiled = self.jitted.lower(*args).compile(_mark())
+            if cache.served:  # not serialisable: used here only
+                self._checked.add(sig)
+                return compiled
             data = pickle.dumps(se.serialize(compiled))
         except Exception:  # noqa: BLE001 - not serialisable here: the plain jit serves
             return False
