@@ -233,3 +233,75 @@ def test_demo_target_map_from_automatic_tracks():
     _, s = evaluate_objects(r.objects, seq.objects_gt)
     print(f"demo (truncation, 10 % outliers), automatic tracks: {s}")
     assert s["matched"] == len(seq.objects_gt) and s["mean_iou"] >= 0.7, s
+
+
+# --- the association's array kernels against their plain definitions -------------------------
+
+
+def test_segment_medians_are_numpy_medians():
+    """One sort for all segments gives ``np.median`` of each exactly: odd and even sizes,
+    empty segments, values over many binades (sorted in chunks) and non-positive values."""
+    from spdslam.frontend._association import _segment_medians
+
+    rng = np.random.default_rng(0)
+    for values in (lambda n: rng.uniform(0.01, 3.0, n), lambda n: np.exp(rng.uniform(-300, 300, n)),
+                   lambda n: rng.normal(0.0, 1.0, n), lambda n: np.round(rng.uniform(1, 4, n))):
+        counts = rng.integers(0, 9, 40)
+        counts[:3] = [0, 1, 2]
+        v = values(int(counts.sum()))
+        med, has = _segment_medians(v, counts)
+        ends = np.cumsum(counts)
+        want = [np.median(v[e - c : e]) if c else 0.0 for e, c in zip(ends, counts)]
+        assert np.array_equal(has, counts > 0) and np.array_equal(med, want)
+
+
+def test_scene_kernels_match_their_definitions():
+    """The fast paths of the coarse landmarks against the plain formulas: the batched fits
+    and ``fit``; ``local_centres`` (dense and sparse detections) against the full (m, n)
+    time weights exp(−½(Δf/σ)²) + 10⁻¹²; ``project`` against ``geometry.project_box`` and
+    ``in_front``; the closed-form shape distance against ``spd.distance``."""
+    from spdslam.frontend import _association as A
+    from spdslam.geometry import Ellipsoid, in_front, project_box, spd
+
+    for seq in (make_room_sequence(0, truncation=True, outliers=0.1),
+                dataclasses.replace(make_room_sequence(1, truncation=True), priors=None)):
+        s = AssociationSettings()
+        sc = A._Scene(seq, s)
+        groups = [g for g in A._tracklets(sc, s) if g.size >= 3]
+        fits = sc.fit_groups(groups)
+        for i, g in enumerate(groups):
+            one = sc.fit(g)
+            assert one.ok == fits.ok[i] and np.allclose(one.X, fits.X[i], rtol=1e-9, atol=1e-12)
+        ok = np.flatnonzero(fits.ok)
+        a, b = np.meshgrid(ok, ok)
+        assert np.allclose(A._shape_distance(sc, fits.radii[a.ravel()], fits.radii[b.ravel()]),
+                           spd.distance(fits.P[a.ravel()], fits.P[b.ravel()]), atol=1e-12)
+        for i in ok[:6]:
+            for g in (groups[i], groups[i][::4]):  # dense (Toeplitz blocks) and sparse
+                fit = sc.fit(g)
+                frames = np.arange(sc.F)
+                X = sc.local_centres(g, fit, frames, s.window)
+                W = np.exp(-0.5 * ((sc.frame[g][None, :] - frames[:, None]) / s.window) ** 2) + 1e-12
+                tot = W.sum(1)[:, None]
+                S = W @ sc.terms[g]
+                Af = (S[:, :9] + S[:, 12:21] / tot).reshape(-1, 3, 3)
+                bf = S[:, 9:12] + S[:, 21:] / tot
+                if fit.plane is not None:
+                    r_v = np.sqrt(sc.up @ fit.P @ sc.up)
+                    w_pl = 1.0 / (0.25 * r_v + 0.02) ** 2
+                    Af = Af + w_pl * np.outer(fit.plane[:3], fit.plane[:3])
+                    bf = bf + w_pl * (r_v - fit.plane[3]) * fit.plane[:3]
+                # to round-off, amplified by the conditioning (far from few detections, poor)
+                err = np.abs(X - np.linalg.solve(Af, bf[..., None])[..., 0]).max(axis=1)
+                assert np.all(err <= 1e-14 * np.linalg.cond(Af) * np.abs(X).max(axis=1) + 1e-12)
+                boxes, vis = sc.project(X, fit.P, frames)
+                pose = (sc.R, sc.C)
+                want_vis = np.asarray(in_front(Ellipsoid(np.broadcast_to(fit.P, (sc.F, 3, 3)), X), pose, 0.05))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    want = np.clip(np.asarray(project_box(Ellipsoid(np.broadcast_to(fit.P, (sc.F, 3, 3)), X),
+                                                          pose, seq.camera)), 0.0, [sc.W, sc.H, sc.W, sc.H])
+                want_vis &= (want[:, 2] > want[:, 0]) & (want[:, 3] > want[:, 1])
+                assert np.array_equal(vis, want_vis)
+                assert np.allclose(boxes[vis], want[vis], atol=1e-7)
+                one_frame, one_vis = sc.project(X[:5], np.broadcast_to(fit.P, (5, 3, 3)), 7)
+                assert np.allclose(one_frame, sc.project(X[:5], fit.P, np.full(5, 7))[0], atol=1e-9)

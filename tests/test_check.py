@@ -53,6 +53,21 @@ def test_interpolated_poses_are_exact_at_samples_and_refused_across_gaps():
     np.testing.assert_array_equal(ends[:, 3:], Rotation.from_quat(P[[0, 0, 1, 3, 3], 4:]).as_quat())
 
 
+def test_box_iou_takes_the_same_numbers_on_numpys_direct_path():
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(3)
+    a = np.sort(rng.uniform(0, 100, (50, 2, 2)), axis=1).reshape(50, 4)[:, [0, 2, 1, 3]]
+    b = np.sort(rng.uniform(0, 100, (50, 2, 2)), axis=1).reshape(50, 4)[:, [0, 2, 1, 3]]
+    b[0] = np.nan
+    b[1] = [5.0, 5.0, 5.0, 9.0]  # empty
+    b[2] = [9.0, 9.0, 1.0, 1.0]  # inverted
+    direct = geometry_box_iou(a[:, None], b[None])  # float64 NumPy: the direct path
+    generic = np.asarray(geometry_box_iou(jnp.asarray(a)[:, None], jnp.asarray(b)[None]))
+    np.testing.assert_array_equal(direct, generic)
+    np.testing.assert_array_equal(direct, geometry_box_iou(a[:, None].tolist(), b[None].tolist()))
+
+
 def test_box_iou_and_the_distortion_round_trip():
     a = np.array([[0, 0, 10, 10], [0, 0, 10, 10]], float)
     b = np.array([[0, 0, 10, 10], [5, 0, 15, 10]], float)

@@ -3,6 +3,8 @@ is u_max − u_min, no +1 pixel)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from ._arrays import array_namespace
@@ -16,15 +18,25 @@ def box_iou(a, b):
     |a ∩ b| = max(0, min(a₂, b₂) − max(a₀, b₀)) · max(0, min(a₃, b₃) − max(a₁, b₁)) and
     |c| = max(0, c₂ − c₀) · max(0, c₃ − c₁); 0 where the union is empty. A box with
     u_max ≤ u_min or v_max ≤ v_min overlaps nothing (IoU 0 with any box). Computed in
-    float (NumPy: float64)."""
-    xp = array_namespace(a, b)
-    a, b = xp.asarray(a, dtype=float), xp.asarray(b, dtype=float)
-    w = xp.clip(xp.minimum(a[..., 2], b[..., 2]) - xp.maximum(a[..., 0], b[..., 0]), 0, None)
-    h = xp.clip(xp.minimum(a[..., 3], b[..., 3]) - xp.maximum(a[..., 1], b[..., 1]), 0, None)
+    float (NumPy: float64). NumPy arrays of floats take a direct path (the association calls
+    it per frame on a few boxes, where the namespace dispatch was most of the time)."""
+    if isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype == np.float64:
+        xp: Any = np
+
+        def pos(x):
+            return np.maximum(x, 0.0)  # = clip(x, 0, None), NaN included
+    else:
+        xp = array_namespace(a, b)
+        a, b = xp.asarray(a, dtype=float), xp.asarray(b, dtype=float)
+
+        def pos(x):
+            return xp.clip(x, 0, None)
+    w = pos(xp.minimum(a[..., 2], b[..., 2]) - xp.maximum(a[..., 0], b[..., 0]))
+    h = pos(xp.minimum(a[..., 3], b[..., 3]) - xp.maximum(a[..., 1], b[..., 1]))
     inter = w * h
 
     def area(c):
-        return xp.clip(c[..., 2] - c[..., 0], 0, None) * xp.clip(c[..., 3] - c[..., 1], 0, None)
+        return pos(c[..., 2] - c[..., 0]) * pos(c[..., 3] - c[..., 1])
 
     union = area(a) + area(b) - inter
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN boxes (no effect on JAX)

@@ -149,6 +149,7 @@ class StoredProgram:
 
     def __init__(self, fn: Callable, key: str | None):
         self.jitted = jax.jit(fn, keep_unused=True)  # a stored executable takes every argument
+        self.__name__ = self.__qualname__ = getattr(fn, "__name__", "program")
         self.key = key
         self._executables: dict = {}
         self._checked: set = set()
