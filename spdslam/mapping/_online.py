@@ -211,13 +211,16 @@ class OnlineMapper:
 
     ``background`` (``OnlineSettings``): the optimisations run in a worker thread. Then
     ``add_frame`` only checks and screens the frame and, when the worker is idle, takes it in
-    (pose prediction, association; the worker takes in the frames that arrived while it was
-    busy, in order, before its next optimisation), and returns; ``current_map`` is the map the
-    last optimisation published (``OnlineMap.frames`` says which frames it used). The frames
-    are taken in and optimised in the same order either way, so the maps are the same as
-    without it; only when they are available differs (``FrameRecord.lag``). ``wait`` blocks
-    until the worker is idle; ``finish`` waits first. An error in the worker is raised by the
-    next ``add_frame``, ``wait`` or ``finish``.
+    (pose prediction, association), and returns; the frames that arrive while the worker
+    optimises wait in a queue, and the worker takes them all in, in order, before it
+    optimises again (once, on the latest window, however many optimisations came due
+    meanwhile). ``current_map`` is the map the last optimisation published
+    (``OnlineMap.frames`` says which frames it used). While the worker keeps up, the frames
+    are taken in and optimised as without it, and the maps are the same; when it falls
+    behind it skips the optimisations it missed rather than fall further behind
+    (``FrameRecord.lag`` says when each frame reached a map). ``wait`` blocks until the
+    worker is idle; ``finish`` waits first. An error in the worker is raised by the next
+    ``add_frame``, ``wait`` or ``finish``.
     """
 
     def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
@@ -439,20 +442,23 @@ class OnlineMapper:
         return False
 
     def _work(self) -> None:
-        """The worker (``background``): optimise, publish, take in the frames that arrived
-        meanwhile until the next optimisation is due; stop when none is waiting."""
+        """The worker (``background``): optimise, publish, take in every frame that arrived
+        meanwhile; optimise again if one of them made an optimisation due (one for all of
+        them: the latest window), else stop."""
         try:
             while True:
                 n = len(self)
                 self._publish(n, self._update())
+                due = False
                 while True:
                     with self._lock:
                         if not self._queue:
-                            self._busy = False
-                            return
+                            if not due:
+                                self._busy = False
+                                return
+                            break
                         frame = self._queue.popleft()
-                    if self._ingest(frame):
-                        break
+                    due = self._ingest(frame) or due
         except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
             with self._lock:
                 self._error = e
