@@ -19,6 +19,8 @@ screening, association, initialisation, graph (every ``build_graph``), each opti
 linearisation, uncertainty, write (the run folder: map.json, report, figures) and the whole
 process (wall). The older commit runs in a ``git worktree`` removed afterwards; the two
 checkouts alternate, ``--repeats`` times each, and the table gives medians and the ratio.
+Before them, ``spdslam --help`` and ``spdslam run --help`` are timed the same way (wall
+time of a fresh process, median of ``--help-repeats``).
 
     python3 benchmarks/pipeline.py --against d63919a
     python3 benchmarks/pipeline.py --against d63919a --repeats 3 --out benchmarks/results/pipeline.json
@@ -158,6 +160,18 @@ def measure(checkout: Path, seq: Path, cache: Path, work: Path, extra: list) -> 
     return rec
 
 
+def time_help(checkout: Path, args: list, repeats: int) -> float:
+    """Median wall time of ``spdslam ARGS`` (a help) in a fresh process of ``checkout``."""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    code = "import sys; from spdslam.cli import app; sys.argv = ['spdslam'] + sys.argv[1:]; app()"
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, check=True)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 def summarise(recs: list) -> dict:
     """Median over repeats of each stage (a stage called several times: their sum; the
     optimisations also one by one, the linearisations as the first and the rest)."""
@@ -199,6 +213,7 @@ def main() -> None:
     ap.add_argument("--against", default=None, help="an older commit to measure beside this checkout")
     ap.add_argument("--repeats", type=int, default=2, help="warm-cache runs per checkout")
     ap.add_argument("--no-empty", action="store_true", help="skip the empty-cache runs")
+    ap.add_argument("--help-repeats", type=int, default=5, help="runs of each help timed (0: none)")
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     ap.add_argument("extra", nargs="*", help="more options for spdslam run (after --)")
     args = ap.parse_args()
@@ -212,6 +227,19 @@ def main() -> None:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(wt), args.against],
                            check=True, capture_output=True)
             checkouts[args.against] = wt
+        helps: dict = {}
+        if args.help_repeats:
+            for label, cli in (("spdslam --help", ["--help"]), ("spdslam run --help", ["run", "--help"])):
+                helps[label] = {name: time_help(path, cli, args.help_repeats) for name, path in checkouts.items()}
+            names = list(checkouts)
+            print("| help (s, median of %d) | " % args.help_repeats + " | ".join(names)
+                  + (" | ratio |" if len(names) == 2 else " |"))
+            print("| --- " * (len(names) + 1 + (len(names) == 2)) + "|")
+            for label, by in helps.items():
+                vals = [by[n] for n in names]
+                cells = [f"{v:.2f}" for v in vals] + ([f"{vals[0] / vals[1]:.2f}×"] if len(vals) == 2 else [])
+                print(f"| {label} | " + " | ".join(cells) + " |")
+            print(flush=True)
         recs: dict = {name: {"empty": [], "warm": []} for name in checkouts}
         caches = {name: tmp / f"cache_{i}" for i, name in enumerate(checkouts)}
         works = {name: tmp / f"work_{i}" for i, name in enumerate(checkouts)}
@@ -257,7 +285,8 @@ def main() -> None:
                 for rs in by.values():
                     for r in rs:
                         r.pop("map", None)
-            args.out.write_text(json.dumps({"sequence": str(args.sequence), "table": table, "runs": recs},
+            args.out.write_text(json.dumps({"sequence": str(args.sequence), "help": helps, "table": table,
+                                            "runs": recs},
                                            indent=1))
             print(f"wrote {args.out}")
     finally:
