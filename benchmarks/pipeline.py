@@ -129,7 +129,9 @@ try:
     app(standalone_mode=False)
 except SystemExit as e:
     status = e.code or 0
-out = {"import": t_import, "status": status, "wall_in_process": time.perf_counter() - t_start}
+import spdslam
+out = {"import": t_import, "status": status, "wall_in_process": time.perf_counter() - t_start,
+       "spdslam": spdslam.__path__[0]}
 for name, _ in stages:
     if name in calls:
         out[name] = calls[name]
@@ -146,11 +148,14 @@ def measure(checkout: Path, seq: Path, cache: Path, work: Path, extra: list) -> 
     cmd = [sys.executable, "-c", DRIVER, str(stages), str(result), "run", str(seq), "--out",
            str(out), "--overwrite", *extra]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    # run in the checkout: ``python -c`` puts the working directory first on sys.path
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=checkout)
     wall = time.perf_counter() - t0
     if proc.returncode != 0 or not result.exists():
         raise SystemExit(f"pipeline.py: {checkout} failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
     rec = json.loads(result.read_text())
+    if Path(rec["spdslam"]).resolve() != (checkout / "spdslam").resolve():
+        raise SystemExit(f"pipeline.py: measured {rec['spdslam']}, not {checkout}")
     if rec["status"]:
         raise SystemExit(f"pipeline.py: spdslam run exited {rec['status']} in {checkout}:\n{proc.stderr[-3000:]}")
     rec["wall"] = wall
@@ -167,7 +172,7 @@ def time_help(checkout: Path, args: list, repeats: int) -> float:
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, check=True)
+        subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, check=True, cwd=checkout)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
@@ -217,6 +222,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     ap.add_argument("extra", nargs="*", help="more options for spdslam run (after --)")
     args = ap.parse_args()
+    args.sequence = args.sequence.resolve()
     if not args.sequence.exists():
         raise SystemExit(f"pipeline.py: {args.sequence} does not exist")
     tmp = Path(tempfile.mkdtemp(prefix="spdslam_pipeline_"))
