@@ -290,6 +290,18 @@ class OnlineMapper:
         self._worker: threading.Thread | None = None
         self._error: BaseException | None = None
         self._published = OnlineMap({}, np.zeros((0, 8)))
+        self._prime()
+
+    @staticmethod
+    def _prime() -> None:
+        """Run the pose arithmetic of a frame once (``_accept``, ``_ingest``, ``_associate``):
+        JAX compiles its small programs on first use (about 0.1 s in a new process), which
+        belongs to the mapper's start, not to its first frames."""
+        T = from_tum(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
+        wxyz = np.asarray(T.wxyz_xyz, float)
+        step = jaxlie.SE3(wxyz).inverse() @ jaxlie.SE3(wxyz)  # type: ignore[arg-type]
+        est = jaxlie.SE3(wxyz) @ step  # type: ignore[arg-type]
+        np.asarray(est.wxyz_xyz), np.asarray(est.rotation().as_matrix()), np.asarray(est.translation())
 
     # --- input ------------------------------------------------------------------------------
     def __len__(self) -> int:
