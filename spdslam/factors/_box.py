@@ -113,6 +113,10 @@ def cuboid_box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth
     return cuboid_in_front(landmark, T_wc, min_depth)
 
 
+#: ``_BoxFactor.many`` builds up to this many boxes with the plain constructor.
+_ONE_BY_ONE = 4
+
+
 class _BoxFactor(Factor):
     """A detected box [u_min, v_min, u_max, v_max] (px) of a landmark seen from a pose.
 
@@ -154,6 +158,10 @@ class _BoxFactor(Factor):
         if len(pose_keys) != n or len(landmark_keys) != n:
             raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(pose_keys)} pose keys and "
                              f"{len(landmark_keys)} landmark keys")
+        if n <= _ONE_BY_ONE:  # a few (the online mapper's new views): the plain constructor is quicker
+            rows = [None] * n if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4))
+            return [cls(pose_keys[i], landmark_keys[i], boxes[i], camera, sigma=rows[i], robust=robust,
+                        truncation_margin=truncation_margin) for i in range(n)]
         bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
         if bad.any():
             b = boxes[int(np.flatnonzero(bad)[0])]
@@ -173,8 +181,6 @@ class _BoxFactor(Factor):
                 raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
             masks = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
         out: list = []
-        if not n:
-            return out
         # the solver's layout of the first factor's arguments (Factor.flat_args), shared
         first = cls(pose_keys[0], landmark_keys[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
                     truncation_margin=truncation_margin)
