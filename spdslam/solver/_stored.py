@@ -13,20 +13,20 @@ everything that decides it, and loaded by later processes:
 
 Only programs made of the code of those packages are stored (a residual defined elsewhere is
 traced as usual, since its code is not in the key); an edit elsewhere (the association,
-mapping, io, the command line) keeps the stored programs. The executable is compiled without the
-persistent cache: an executable that JAX's persistent cache served cannot be serialised
+mapping, io, the command line) keeps the stored programs. The executable is compiled
+without the persistent cache: an executable that JAX's persistent cache served cannot be serialised
 (it lacks its machine code; a later process that ran it would fail). A build therefore
-compiles with an option that does nothing on its backend (``_MARK``: a GPU flag on the CPU)
+compiles with an option that does nothing on its backend (``_mark``: a GPU flag on the CPU)
 but gives it its own cache key, with the cache's writes held off, so that the cache neither
 serves nor keeps it; should the cache serve it all the same (``jax.monitoring``'s cache-hit
 event during the compile), it is used in this process and not stored. Before an executable
-is loaded
-the LAPACK kernels it may call are registered (JAX does so only when it lowers a program
-that uses them; a loaded executable calling them unregistered crashes the process). A
-stored executable that fails to load or to run is deleted and the program traced as usual;
-one whose first run did not end (a marker file left beside it by a process that is gone) is
-deleted too. The store lives in
-``cache_dir()/programs``; ``SPDSLAM_CACHE_DIR=off`` turns it off with the cache.
+is loaded the LAPACK kernels it may call are registered (JAX does so only when it lowers a
+program that uses them; a loaded executable calling them unregistered crashes the
+process). A stored executable that fails to load or to run is deleted and the program
+traced as usual; one whose first run did not end (a marker file left beside it by a
+process that is gone) is deleted too. The store lives in ``cache_dir()/programs``, one
+compressed file per program (nothing else removes them: ``rm -r`` the folder to clear it);
+``SPDSLAM_CACHE_DIR=off`` turns it off with the cache.
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import pickle
 import platform
 import tempfile
 import threading
+import zlib
 from pathlib import Path
 from typing import Any, Callable
 
@@ -193,7 +194,7 @@ class StoredProgram:
         if path.is_file():
             try:
                 _register_kernels()
-                payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+                payload, in_tree, out_tree = pickle.loads(zlib.decompress(path.read_bytes()))
                 return se.deserialize_and_load(payload, in_tree, out_tree)
             except Exception:  # noqa: BLE001 - unreadable: rebuilt below
                 path.unlink(missing_ok=True)
@@ -203,7 +204,7 @@ class StoredProgram:
             if cache.served:  # not serialisable: used here only
                 self._checked.add(sig)
                 return compiled
-            data = pickle.dumps(se.serialize(compiled))
+            data = zlib.compress(pickle.dumps(se.serialize(compiled)), 1)  # about a quarter the size
         except Exception:  # noqa: BLE001 - not serialisable here: the plain jit serves
             return False
         try:
