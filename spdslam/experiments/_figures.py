@@ -396,7 +396,7 @@ def plot_latency(path, records, rate: float | None = None, title: str = "", dpi:
         lag = 1e3 * np.array([getattr(r, "lag", np.nan) for r in records], dtype=float)
         if np.isfinite(lag).any():
             ax.plot(frame, lag, lw=0.8, color="tab:purple", alpha=0.7,
-                    label=f"map lag (median {np.nanmedian(lag):.3g} ms)")
+                    label=f"map lag (median {np.nanmedian(lag) / 1e3:.3g} s)")
     if rate:
         ax.axhline(1e3 / rate, color="k", ls="--", lw=1, label=f"frame period at {rate:.3g} Hz")
     ax.set_yscale("log")
