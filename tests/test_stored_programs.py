@@ -66,6 +66,15 @@ def test_only_spdslams_own_module_level_code_is_stored():
         return x
 
     assert not own_code(local)
+    from spdslam.factors import Huber
+    from spdslam.geometry import Ellipsoid
+
+    assert own_code(Huber, Ellipsoid)  # classes of the covered modules
+
+    class Kernel(Huber):  # a user's kernel: its code is not in the key
+        pass
+
+    assert not own_code(Kernel)
 
 
 def test_an_optimisation_in_a_new_process_traces_no_builtin_program(store, monkeypatch):

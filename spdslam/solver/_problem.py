@@ -257,15 +257,19 @@ def _name(fn) -> str:
     return f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', repr(fn))}"
 
 
+def _jaxlie(cls) -> bool:
+    """A jaxlie type (its version is in every stored program's key)."""
+    return _name(cls).startswith("jaxlie.")
+
+
 def _stored_key(spec: _GroupSpec, tspecs) -> str | None:
     """The description of a group's programs for the store (``_stored``), or None when
-    they are not all spdslam's own code (a user's residual, kernel or variable type)."""
+    they are not all code the store's key covers (``own_code``: a user's residual, kernel
+    or variable type is traced as usual)."""
     kernel = type(spec.robust) if spec.robust is not None else None
-    if not own_code(spec.residual, spec.valid) or (kernel is not None and not _name(kernel).startswith("spdslam.")):
+    if not own_code(spec.residual, spec.valid, kernel, *(ts.cls for ts in tspecs if not _jaxlie(ts.cls))):
         return None
     types = [(_name(ts.cls), str(ts.treedef), ts.dim) for ts in tspecs]
-    if not all(name.startswith(("spdslam.", "jaxlie.")) for name, _, _ in types):
-        return None
     return repr((_name(spec.residual), spec.var_types, spec.dims, str(spec.args_treedef), spec.has_sqrt_info,
                  repr(spec.robust), None if spec.valid is None else _name(spec.valid), types))
 
@@ -292,7 +296,7 @@ def _retract_kernel(ts: _TypeSpec):
             return jax.tree.map(lambda a, b: jnp.where(fr.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), y, x)
 
         name = _name(ts.cls)
-        key = f"retract {name} {ts.treedef} {ts.dim}" if name.startswith(("spdslam.", "jaxlie.")) else None
+        key = f"retract {name} {ts.treedef} {ts.dim}" if _jaxlie(ts.cls) or own_code(ts.cls) else None
         k = _RETRACT[ts] = stored_jit(retract, key)
     return k
 

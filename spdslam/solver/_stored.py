@@ -89,8 +89,8 @@ def _environment() -> str:
 
 
 def own_code(*fns) -> bool:
-    """Whether every function in ``fns`` (None allowed) is a module-level function of
-    ``MODULES`` without captured variables: code that the key's source hash covers."""
+    """Whether every function or class in ``fns`` (None allowed) is defined at module level
+    in ``MODULES``, without captured variables: code that the key's source hash covers."""
     for fn in fns:
         if fn is None:
             continue
