@@ -11,7 +11,7 @@ linearised as
     J = ∂r(x ⊞ δ)/∂δ = ∂r/∂x · ∂(x ⊞ δ)/∂δ|₀,
 
 the pushforward ∂(x ⊞ δ)/∂δ|₀ of the basis vectors being computed once per free variable
-(not once per factor) and pushed through the residual with ``jax.jvp``. A key position that
+(not once per factor) and pushed through the residual with ``jax.jvp`` (``_linearize``). A key position that
 every factor of a sub-group shares (one landmark seen by all cameras) is not broadcast: the
 residual is vmapped over the factors with that argument unbatched. H = JᵀJ and g = Jᵀr are
 formed from the dense (rows × n) Jacobian for small n (one matmul), else by scattering the
@@ -27,8 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import manifold
-from ._linearize import finish, retract_rows, whitened
+from ._linearize import finish, jvp_jacobian, pushforward, retract_rows, tangent_directions, whitened
 from ._problem import Problem
 
 __all__ = ["DENSE_JACOBIAN_MAX_N", "BatchedKernel", "BatchedLayout"]
@@ -148,19 +147,6 @@ def _pick(tree, mode):
     return jax.tree.map(lambda a: a[idx], tree), True
 
 
-def _pushforward(ts, x):
-    """∂(x ⊞ δ)/∂δ at δ = 0 for every row of a stacked pytree x: leaves (rows, dim, ...)."""
-    op = manifold.ops(ts.cls)
-    eye = jnp.eye(ts.dim)
-    zero = jnp.zeros(ts.dim)
-
-    def one(xi):
-        f = lambda d: op.retract(xi, d)  # noqa: E731
-        return jax.vmap(lambda e: jax.jvp(f, (zero,), (e,))[1])(eye)
-
-    return jax.vmap(one)(x)
-
-
 class BatchedKernel:
     """The per-problem functions of one static structure (unjitted; traced by drivers)."""
 
@@ -199,18 +185,8 @@ class BatchedKernel:
                 return whitened(spec.residual, W_i, vals, args_i)
 
             if jac and D > 0:
-                dirs, o = [], 0
-                for T, d in zip(tans_i, dims):
-                    if len(dims) > 1:
-                        T = jax.tree.map(
-                            lambda a, o=o, d=d: jnp.concatenate(
-                                [jnp.zeros((o,) + a.shape[1:], a.dtype), a,
-                                 jnp.zeros((D - o - d,) + a.shape[1:], a.dtype)]), T)
-                    dirs.append(T)
-                    o += d
                 primals = tuple(xs_i[p] for p in free_pos)
-                r, Jt = jax.vmap(lambda *t: jax.jvp(res, primals, t), out_axes=(None, 0))(*dirs)
-                J = Jt.T
+                r, J = jvp_jacobian(res, primals, tangent_directions(tans_i, dims))
             else:
                 r, J = res(*[xs_i[p] for p in free_pos]), None
             return finish(spec, r, J, xs_i, args_i)
@@ -225,7 +201,7 @@ class BatchedKernel:
 
     def _pushforwards(self, xf):
         return tuple(
-            _pushforward(ts, x) if nf else None
+            pushforward(ts.cls, x) if nf else None
             for ts, x, nf in zip(self.tspecs, xf, self.nfree)
         )
 

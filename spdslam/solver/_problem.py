@@ -15,7 +15,11 @@ Layout (built once per call to the optimiser, in ``Problem.__init__``):
 
 Linearisation of a group is one vmapped computation: for each factor,
 
-    r̃(δ) = W r(x₁ ⊞ δ₁, …, x_k ⊞ δ_k, args),   J = ∂r̃/∂δ |_{δ=0}  (jax.jacfwd),
+    r̃(δ) = W r(x₁ ⊞ δ₁, …, x_k ⊞ δ_k, args),   J = ∂r̃/∂δ |_{δ=0} = ∂r̃/∂x · ∂(x ⊞ δ)/∂δ|₀,
+
+the pushforwards ∂(x ⊞ δ)/∂δ|₀ computed once per variable and gathered per factor like the
+variables (``_linearize``; types with non-float leaves are differentiated per factor with
+``jax.jacfwd`` instead),
 
 with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. Each group is
 one jitted call (its per-factor JᵀJ and Jᵀr̃ are scattered into their slots on the host).
@@ -45,7 +49,15 @@ import numpy as np
 
 from ..factors import CustomFactor, RobustKernel
 from ..geometry import manifold
-from ._linearize import finish, retract_rows, whitened
+from ._linearize import (
+    differentiable,
+    finish,
+    jvp_jacobian,
+    pushforward,
+    retract_rows,
+    tangent_directions,
+    whitened,
+)
 from ._stored import own_code, stored_jit
 
 __all__ = ["Problem", "bucket", "CHUNK"]
@@ -139,9 +151,10 @@ def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 
 
-def _group_map(spec: _GroupSpec, tspecs, xs, mask, data, mode: str):
+def _group_map(spec: _GroupSpec, tspecs, xs, Ts, mask, data, mode: str):
     """Per-factor terms of one group, mapped over its factors in chunks; ``xs``: per key
-    position, the variables of each factor (gathered on the host, ``_Kernels``).
+    position, the variables of each factor (gathered on the host, ``_Kernels``); ``Ts``: their
+    pushforwards, gathered alike (None: J by ``jax.jacfwd`` through the retractions).
 
     mode "cost":   (½ρ(s) (nf,), valid, finite)
     mode "sparse": (JᵀJ upper triangle (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)
@@ -158,10 +171,15 @@ def _group_map(spec: _GroupSpec, tspecs, xs, mask, data, mode: str):
     iu, ju = np.triu_indices(D)
 
     def one(item):
-        xs_i, args_i, W_i, mask_i = item
+        xs_i, Ts_i, args_i, W_i, mask_i = item
         if mode == "cost":
             r = whitened(spec.residual, W_i, xs_i, args_i)
             J = None
+        elif Ts_i is not None:
+            def res(*ys):
+                return whitened(spec.residual, W_i, ys, args_i)
+
+            r, J = jvp_jacobian(res, tuple(xs_i), tangent_directions(Ts_i, spec.dims))
         else:
 
             def fun(d):
@@ -184,8 +202,8 @@ def _group_map(spec: _GroupSpec, tspecs, xs, mask, data, mode: str):
     nf = mask.shape[0]
     batch = _chunk(nf, D)
     if batch >= nf:
-        return jax.vmap(one)((xs, args, W, mask))
-    return jax.lax.map(one, (xs, args, W, mask), batch_size=batch)
+        return jax.vmap(one)((xs, Ts, args, W, mask))
+    return jax.lax.map(one, (xs, Ts, args, W, mask), batch_size=batch)
 
 
 def _chunk(nf: int, D: int) -> int:
@@ -216,8 +234,13 @@ class _GroupKernels:
         stored = _stored_key(spec, tspecs)
 
         def program(mode, n_out):
-            def f(xs, m, d):
-                return _group_map(spec, tspecs, xs, m, d, mode)[:n_out]
+            def cost(xs, m, d):
+                return _group_map(spec, tspecs, xs, None, m, d, mode)[:n_out]
+
+            def linearization(xs, Ts, m, d):
+                return _group_map(spec, tspecs, xs, Ts, m, d, mode)[:n_out]
+
+            f: Callable = cost if mode == "cost" else linearization
 
             # named after the residual, as JAX's compile log and profiles show it
             f.__name__ = f.__qualname__ = f"{getattr(spec.residual, '__name__', 'residual')}_{mode}"
@@ -228,12 +251,16 @@ class _GroupKernels:
         #: (``compile_sizes``)
         self.sizes: set[int] = set()
         self.example: tuple | None = None
+        self.example_T = None
 
-    def note(self, xs, mask, data) -> None:
+    def note(self, xs, Ts, mask, data) -> None:
         self.sizes.add(int(mask.shape[0]))
-        if self.example is None:  # row 0 is all that padding repeats: keep a few rows only
-            head = lambda a: np.array(np.asarray(a)[:_EXAMPLE_ROWS])  # noqa: E731
+        # row 0 is all that padding repeats: keep a few rows only
+        head = lambda a: np.array(np.asarray(a)[:_EXAMPLE_ROWS])  # noqa: E731
+        if self.example is None:
             self.example = (jax.tree.map(head, xs), None, jax.tree.map(head, data))
+        if self.example_T is None and Ts is not None:
+            self.example_T = jax.tree.map(head, Ts)
 
     def compile_sizes(self, sizes) -> int:
         """Compile the cost and linearisation programs for each padded factor count in
@@ -246,8 +273,9 @@ class _GroupKernels:
         done = 0
         for n in sorted(set(int(k) for k in sizes) - self.sizes):
             grow = lambda a, n=n: _pad_rows(np.asarray(a)[:n], n)  # noqa: E731
-            args = (jax.tree.map(grow, xs), np.zeros(n, bool), jax.tree.map(grow, data))
-            jax.block_until_ready((self.cost(*args), self.sparse(*args)))
+            x, m, d = jax.tree.map(grow, xs), np.zeros(n, bool), jax.tree.map(grow, data)
+            T = None if self.example_T is None else jax.tree.map(grow, self.example_T)
+            jax.block_until_ready((self.cost(x, m, d), self.sparse(x, T, m, d)))
             self.sizes.add(n)
             done += 1
         return done
@@ -285,6 +313,8 @@ _EXAMPLE_ROWS = 8
 _GROUP_KERNELS: dict[Any, _GroupKernels] = {}
 #: Retractions by variable type.
 _RETRACT: dict[_TypeSpec, Callable] = {}
+#: Pushforwards of the tangent basis by variable type.
+_PUSHFORWARD: dict[_TypeSpec, Callable] = {}
 
 
 def _retract_kernel(ts: _TypeSpec):
@@ -298,6 +328,19 @@ def _retract_kernel(ts: _TypeSpec):
         name = _name(ts.cls)
         key = f"retract {name} {ts.treedef} {ts.dim}" if _jaxlie(ts.cls) or own_code(ts.cls) else None
         k = _RETRACT[ts] = stored_jit(retract, key)
+    return k
+
+
+def _pushforward_kernel(ts: _TypeSpec):
+    """The jitted ∂(x ⊞ δ)/∂δ|₀ of every row of one variable type (``_linearize.pushforward``)."""
+    k = _PUSHFORWARD.get(ts)
+    if k is None:
+        def push(x):
+            return pushforward(ts.cls, x)
+
+        name = _name(ts.cls)
+        key = f"pushforward {name} {ts.treedef} {ts.dim}" if _jaxlie(ts.cls) or own_code(ts.cls) else None
+        k = _PUSHFORWARD[ts] = stored_jit(push, key)
     return k
 
 
@@ -331,30 +374,43 @@ class _Kernels:
                 gk = _GROUP_KERNELS[key] = _GroupKernels(*key)
             self.groups.append(gk)
         self.retract = [_retract_kernel(ts) for ts in tspecs]
+        self.pushforward = [_pushforward_kernel(ts) for ts in tspecs]
 
-    def _inputs(self, k, vars_host, gidx, data):
-        """(variables of each key position of group k's factors, pad mask, data)."""
+    def _pushforwards(self, vars_):
+        """Per type: the pushforwards of its rows, on the host like ``_host``'s variables
+        (None for a type with non-float leaves)."""
+        return [_host([push(x)])[0] if differentiable(x) else None
+                for push, x in zip(self.pushforward, vars_)]
+
+    def _inputs(self, k, vars_host, gidx, data, push_host=None):
+        """(variables of each key position of group k's factors, their pushforwards (None
+        without ``push_host`` or when a position's type has none), pad mask, data)."""
         idx, mask = gidx
-        xs = []
-        for p, t in enumerate(self.gspecs[k].var_types):
-            leaves, td = vars_host[t]
-            rows = idx[:, p]
-            xs.append(td.unflatten([a[rows] for a in leaves]))
-        self.groups[k].note(xs, mask, data)
+        var_types = self.gspecs[k].var_types
+        gather = lambda host, p, t: host[t][1].unflatten([a[idx[:, p]] for a in host[t][0]])  # noqa: E731
+        xs = [gather(vars_host, p, t) for p, t in enumerate(var_types)]
+        Ts = None
+        if push_host is not None and all(push_host[t] is not None for t in var_types):
+            Ts = [gather(push_host, p, t) for p, t in enumerate(var_types)]
+        self.groups[k].note(xs, Ts, mask, data)
+        return xs, Ts, mask, data
+
+    def _cost_inputs(self, k, vars_host, gidx, data):
+        xs, _, mask, data = self._inputs(k, vars_host, gidx, data)
         return xs, mask, data
 
     def evaluate(self, vars_, gdata, gidx):
         """(F = Σ ½ρ, validity per group)."""
         vh = _host(vars_)
-        out = [gk.cost(*self._inputs(k, vh, ix, d))
+        out = [gk.cost(*self._cost_inputs(k, vh, ix, d))
                for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx))]
         cost = float(sum(np.sum(np.asarray(hr)) for hr, _ in out))
         return cost, tuple(None if v is None else np.asarray(v) for _, v in out)
 
     def linearize_sparse(self, vars_, gdata, gidx):
         """(per group (JᵀJ upper triangles, Jᵀr), F, validity per group, all finite)."""
-        vh = _host(vars_)
-        out = [gk.sparse(*self._inputs(k, vh, ix, d))
+        vh, th = _host(vars_), self._pushforwards(vars_)
+        out = [gk.sparse(*self._inputs(k, vh, ix, d, th))
                for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx))]
         terms = tuple((hc, gc) for hc, gc, _, _, _ in out)
         cost = float(sum(np.sum(np.asarray(hr)) for _, _, hr, _, _ in out))
@@ -371,7 +427,8 @@ class _Kernels:
         return new, cost, bad
 
     def group_terms(self, k, vars_, data, gidx):
-        r, J, _, _, fin = self.groups[k].terms(*self._inputs(k, _host(vars_), gidx, data))
+        r, J, _, _, fin = self.groups[k].terms(
+            *self._inputs(k, _host(vars_), gidx, data, self._pushforwards(vars_)))
         return r, J, fin
 
 
@@ -641,7 +698,7 @@ class Problem:
         K = self.kernels
         out: dict = {f.kind: 0 for f in self.factors}
         for k, (gk, d, ix) in enumerate(zip(K.groups, self.gdata, self.gidx)):
-            hr = np.asarray(gk.cost(*K._inputs(k, vh, ix, d))[0])
+            hr = np.asarray(gk.cost(*K._cost_inputs(k, vh, ix, d))[0])
             kinds = [self.factors[int(fi)].kind for fi in self.group_fids[k]]
             if len(set(kinds)) == 1:
                 out[kinds[0]] = out[kinds[0]] + np.sum(hr)
