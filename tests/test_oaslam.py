@@ -42,6 +42,12 @@ def test_undistortion_inverts_the_radial_tangential_model():
     uv = rng.uniform([0, 0], [640, 480], size=(200, 2))
     np.testing.assert_allclose(distort(undistort_points(uv, CAM, DIST)), uv, atol=1e-8)
     np.testing.assert_allclose(undistort_points(uv, CAM, np.zeros(5)), uv, atol=1e-12)
+    # many points, in any leading shape (worked on in chunks): each as if alone
+    many = rng.uniform([0, 0], [640, 480], size=(3, 5000, 2))
+    q = undistort_points(many, CAM, DIST)
+    assert q.shape == many.shape
+    np.testing.assert_allclose(distort(q), many, atol=1e-8)
+    np.testing.assert_array_equal(q[2, 4097], undistort_points(many[2, 4097], CAM, DIST))
 
 
 def test_undistorted_box_encloses_the_pinhole_outline_of_what_the_box_bounds():

@@ -8,11 +8,13 @@ Landmark factors take any ellipsoid parameterisation (SPD, RTS or Full); pose fa
 from ._base import Cauchy as Cauchy
 from ._base import CustomFactor as CustomFactor
 from ._base import Factor as Factor
+from ._base import FactorBatch as FactorBatch
 from ._base import GaussianNoise as GaussianNoise
 from ._base import Huber as Huber
 from ._base import RobustKernel as RobustKernel
 from ._base import Sigma as Sigma
 from ._base import default_sigmas as default_sigmas
+from ._base import diagonal_sqrt_information as diagonal_sqrt_information
 from ._base import factor_types as factor_types
 from ._base import robust_groups as robust_groups
 from ._base import robust_weighting as robust_weighting

@@ -36,6 +36,7 @@ from ..geometry import manifold
 
 __all__ = [
     "Factor",
+    "FactorBatch",
     "CustomFactor",
     "Sigma",
     "GaussianNoise",
@@ -44,6 +45,7 @@ __all__ = [
     "Cauchy",
     "robust_weighting",
     "sqrt_information",
+    "diagonal_sqrt_information",
     "tangent_jacobians",
     "factor_types",
     "robust_groups",
@@ -145,6 +147,21 @@ def sqrt_information(
             raise ValueError("information matrix is not positive definite") from None
         return L.T
     return np.eye(dim)
+
+
+def diagonal_sqrt_information(sigma: Any, n: int, dim: int) -> np.ndarray:
+    """W = diag(1/σ) for each of n factors (n, dim, dim): ``sigma`` a scalar, dim values or
+    (n, dim), each finite and positive (``sqrt_information``'s check, row by row)."""
+    try:
+        s = np.broadcast_to(np.asarray(sigma, dtype=float), (n, dim))
+    except ValueError:
+        raise ValueError(f"sigma must be a scalar, {dim} values or ({n}, {dim}), got shape {np.shape(sigma)}") from None
+    wrong = np.any(~np.isfinite(s) | (s <= 0), axis=1)
+    if wrong.any():
+        raise ValueError(f"sigma must be finite and positive, got {s[wrong][0].tolist()}")
+    W = np.zeros((n, dim, dim))
+    W[:, np.arange(dim), np.arange(dim)] = 1.0 / s
+    return W
 
 
 class GaussianNoise:
@@ -355,6 +372,84 @@ class Factor:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.kind}, keys={self.keys!r})"
+
+
+class FactorBatch:
+    """n factors of one registered type held as columns (the jaxls way): the keys as one
+    column per variable, the measurement data stacked along a leading axis (the leaves of
+    one factor's ``args`` with an extra first axis), W stacked (n, m, m) or None (identity),
+    one robust kernel. The solver lays a batch out with array operations, without a Python
+    object per factor; ``batch[i]`` and iteration give the same factors one by one
+    (``Factor``), for code that wants them. Made by a type's ``many`` (box and pose
+    factors); a graph holds it as one entry (``NonlinearFactorGraph.add``).
+
+    ``treedef``/``shapes``: the tree structure of one factor's ``args`` and its leaves'
+    ((shape, dtype), …), as ``Factor.flat_args`` gives them.
+    """
+
+    __slots__ = ("factor_type", "key_columns", "leaves", "treedef", "shapes", "sqrt_info", "robust")
+    factor_type: "type[Factor]"
+    key_columns: tuple
+    leaves: list
+    treedef: Any
+    shapes: tuple
+    sqrt_info: np.ndarray | None
+    robust: RobustKernel | None
+
+    def __init__(self, factor_type: "type[Factor]", key_columns, leaves, treedef, shapes,
+                 sqrt_info=None, robust: RobustKernel | None = None):
+        cols = tuple(list(c) for c in key_columns)
+        n = len(cols[0]) if cols else 0
+        if any(len(c) != n for c in cols) or any(len(a) != n for a in leaves) or (
+                sqrt_info is not None and len(sqrt_info) != n):
+            raise ValueError(f"{factor_type.__name__} batch: key columns, data and noise of different lengths")
+        for name, value in (("factor_type", factor_type), ("key_columns", cols), ("leaves", list(leaves)),
+                            ("treedef", treedef), ("shapes", tuple(shapes)), ("sqrt_info", sqrt_info),
+                            ("robust", robust)):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name, value):
+        raise AttributeError("FactorBatch is immutable: use with_robust()")
+
+    @property
+    def kind(self) -> str:
+        return self.factor_type.kind
+
+    @property
+    def residual(self) -> Callable[..., Any]:
+        return self.factor_type.residual
+
+    @property
+    def valid(self) -> Callable[..., Any] | None:
+        return self.factor_type.valid
+
+    def __len__(self) -> int:
+        return len(self.key_columns[0]) if self.key_columns else 0
+
+    def __getitem__(self, i: int) -> Factor:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"factor {i} of a batch of {n}")
+        i %= n
+        f = object.__new__(self.factor_type)
+        leaves = [a[i] for a in self.leaves]
+        for name, value in (("keys", tuple(c[i] for c in self.key_columns)),
+                            ("args", tuple(jax.tree.unflatten(self.treedef, leaves))),
+                            ("sqrt_info", None if self.sqrt_info is None else self.sqrt_info[i]),
+                            ("robust", self.robust), ("_flat", (leaves, self.treedef, self.shapes))):
+            object.__setattr__(f, name, value)
+        return f
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def with_robust(self, robust: RobustKernel | None) -> "FactorBatch":
+        """A copy with another robust kernel."""
+        return FactorBatch(self.factor_type, self.key_columns, self.leaves, self.treedef, self.shapes,
+                           self.sqrt_info, robust)
+
+    def __repr__(self) -> str:
+        return f"FactorBatch({self.kind}, {len(self)} factors)"
 
 
 class CustomFactor(Factor):

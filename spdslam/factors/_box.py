@@ -37,7 +37,7 @@ from ..geometry import (
     project_cuboid_box,
     truncation_mask,
 )
-from ._base import Factor, RobustKernel, Sigma
+from ._base import Factor, FactorBatch, RobustKernel, Sigma, diagonal_sqrt_information
 
 __all__ = [
     "DEFAULT_TRUNCATION_MARGIN",
@@ -113,10 +113,6 @@ def cuboid_box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth
     return cuboid_in_front(landmark, T_wc, min_depth)
 
 
-#: ``_BoxFactor.many`` builds up to this many boxes with the plain constructor.
-_ONE_BY_ONE = 4
-
-
 class _BoxFactor(Factor):
     """A detected box [u_min, v_min, u_max, v_max] (px) of a landmark seen from a pose.
 
@@ -145,11 +141,11 @@ class _BoxFactor(Factor):
 
     @classmethod
     def many(cls, pose_keys, landmark_keys, boxes, camera: Camera, *, sigma: Any = None,
-             robust: RobustKernel | None = None, truncation_margin: float | None = None) -> list:
+             robust: RobustKernel | None = None, truncation_margin: float | None = None) -> FactorBatch:
         """The factors ``cls(pose_keys[i], landmark_keys[i], boxes[i], camera, sigma=sigma[i],
-        …)`` of n boxes (n, 4), checked and built as arrays: the same factors as one by one
-        (``sigma``: a scalar, 4 values or (n, 4); None: the type's default), in a fraction
-        of the time. ``landmark_keys``: a list, or one key for all."""
+        …)`` of n boxes (n, 4) as one ``FactorBatch``, checked and built as arrays: the same
+        factors as one by one (``sigma``: a scalar, 4 values or (n, 4); None: the type's
+        default). ``landmark_keys``: a list, or one key for all."""
         boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
         n = len(boxes)
         pose_keys = list(pose_keys)
@@ -158,43 +154,22 @@ class _BoxFactor(Factor):
         if len(pose_keys) != n or len(landmark_keys) != n:
             raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(pose_keys)} pose keys and "
                              f"{len(landmark_keys)} landmark keys")
-        if n <= _ONE_BY_ONE:  # a few (the online mapper's new views): the plain constructor is quicker
-            rows = [None] * n if sigma is None else np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4))
-            return [cls(pose_keys[i], landmark_keys[i], boxes[i], camera, sigma=rows[i], robust=robust,
-                        truncation_margin=truncation_margin) for i in range(n)]
         bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
         if bad.any():
             b = boxes[int(np.flatnonzero(bad)[0])]
             raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}")
         if not isinstance(camera, Camera):
             raise TypeError("camera must be a spdslam Camera")
-        if sigma is None:
-            sigma = cls.default_sigma()
-        s = np.broadcast_to(np.asarray(sigma, dtype=float), (n, 4))
-        wrong = np.any(~np.isfinite(s) | (s <= 0), axis=1)
-        if wrong.any():
-            raise ValueError(f"sigma must be finite and positive, got {s[wrong][0].tolist()}")
-        W = np.zeros((n, 4, 4))
-        W[:, np.arange(4), np.arange(4)] = 1.0 / s  # sqrt_information's diag(1/σ), row by row
-        if truncation_margin is not None:
-            if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
-                raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
-            masks = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
-        out: list = []
-        # the solver's layout of the first factor's arguments (Factor.flat_args), shared
-        first = cls(pose_keys[0], landmark_keys[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
-                    truncation_margin=truncation_margin)
+        W = diagonal_sqrt_information(cls.default_sigma() if sigma is None else sigma, n, 4)
+        # the solver's layout of the first factor's arguments (Factor.flat_args): box,
+        # camera (the same for all), truncation mask
+        first = cls(None, None, boxes[0] if n else np.array([0.0, 0.0, 1.0, 1.0]), camera,
+                    sqrt_info=W[0] if n else None, robust=robust, truncation_margin=truncation_margin)
         leaves, treedef, shapes = first.flat_args()
-        for i in range(n):
-            f = object.__new__(cls)
-            args = (boxes[i], camera) if truncation_margin is None else (boxes[i], camera, masks[i])
-            for name, value in (("keys", (pose_keys[i], landmark_keys[i])), ("args", args),
-                                ("sqrt_info", W[i]), ("robust", robust),
-                                ("_flat", ([boxes[i], *leaves[1:-1], masks[i]] if truncation_margin is not None
-                                           else [boxes[i], *leaves[1:]], treedef, shapes))):
-                object.__setattr__(f, name, value)
-            out.append(f)
-        return out
+        stacked = [boxes] + [np.broadcast_to(a, (n,) + a.shape) for a in leaves[1:]]
+        if truncation_margin is not None:
+            stacked[-1] = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
+        return FactorBatch(cls, (pose_keys, landmark_keys), stacked, treedef, shapes, W, robust)
 
 
 class InverseBoxFactor(_BoxFactor):

@@ -178,11 +178,12 @@ def _odometry(ctx: SequenceContext, s: dict) -> list:
     steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # type: ignore[arg-type]
     out: list = [PriorFactor(X(0), ctx.poses[0], sigma=s["first_pose"])]
     odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
-    out += [BetweenFactor(X(i), X(i + 1), jaxlie.SE3(step), sigma=odo)
-            for i, step in enumerate(steps)]
+    n = len(steps)
+    if n:
+        out.append(BetweenFactor.many([X(i) for i in range(n)], [X(i + 1) for i in range(n)], steps, sigma=odo))
     pose_sigma = absolute_sigma(s)
-    if pose_sigma is not None:
-        out += [PriorFactor(X(i), T, sigma=pose_sigma) for i, T in enumerate(ctx.poses) if i > 0]
+    if pose_sigma is not None and n:
+        out.append(PriorFactor.many([X(i) for i in range(1, n + 1)], q[1:], sigma=pose_sigma))
     return out
 
 
@@ -294,8 +295,8 @@ def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: 
     if box_model == "inverse":
         size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
         sigma = sigma + s[box_factor.kind + "_relative"] * size
-    return box_factor.many([X(f) for f in track.frames], L(track.id), boxes, ctx.camera, sigma=sigma,
-                           robust=robust, truncation_margin=method.margin)
+    return [box_factor.many([X(f) for f in track.frames], L(track.id), boxes, ctx.camera, sigma=sigma,
+                            robust=robust, truncation_margin=method.margin)]
 
 
 def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,

@@ -649,9 +649,9 @@ class OnlineMapper:
         """[(frame, box factor)] of object k's ``views`` [(frame, box)] (made once per view)."""
         if not views:
             return []
-        out = box_factors(self._ctx0, self._track(k, views), self.method, self.method.box_model,
-                           self._sigmas, self._robust)
-        return [(f, fac) for (f, _), fac in zip(views, out)]
+        out = NonlinearFactorGraph(box_factors(self._ctx0, self._track(k, views), self.method,
+                                               self.method.box_model, self._sigmas, self._robust))
+        return [(f, fac) for (f, _), fac in zip(views, out)]  # one factor per view
 
     def _measurement(self, k, meas) -> list:
         """[(frame, factor)] of object k's measured ellipsoids ``meas``."""

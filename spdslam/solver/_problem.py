@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..factors import CustomFactor, RobustKernel
+from ..factors import CustomFactor, FactorBatch, RobustKernel
 from ..geometry import manifold
 from ._linearize import (
     differentiable,
@@ -102,7 +102,11 @@ class _GroupSpec:
 
 
 class _GroupBuild:
-    __slots__ = ("sig", "fids", "idx", "args", "W", "first")
+    """One group's factors as they are laid out: single factors row by row (``fids``,
+    ``idx``, ``args``, ``W``, ``kinds``), batches and flushed runs of singles as arrays
+    (``chunks``: factor ids, variable rows, stacked leaves, stacked W, kind runs)."""
+
+    __slots__ = ("sig", "fids", "idx", "args", "W", "kinds", "first", "chunks")
 
     def __init__(self, sig, first) -> None:
         self.sig, self.first = sig, first
@@ -110,6 +114,59 @@ class _GroupBuild:
         self.idx: list[list[int]] = []
         self.args: list[list[np.ndarray]] = []
         self.W: list[Any] = []
+        self.kinds: list[str] = []
+        self.chunks: list[tuple] = []
+
+    def _flush(self) -> None:
+        if not self.fids:
+            return
+        n, nl = len(self.fids), len(self.sig[3])
+        self.chunks.append((
+            np.asarray(self.fids), np.asarray(self.idx, np.int32).reshape(n, -1),
+            [np.stack([a[j] for a in self.args]) for j in range(nl)],
+            np.stack(self.W) if self.sig[4] is not None else None,
+            [(k, 1) for k in self.kinds]))
+        self.fids, self.idx, self.args, self.W, self.kinds = [], [], [], [], []
+
+    def add_batch(self, fids, idx, leaves, W, kind) -> None:
+        self._flush()
+        self.chunks.append((fids, idx, leaves, W, [(kind, len(fids))]))
+
+    def arrays(self):
+        """(factor ids, variable rows (nf, k), stacked leaves, stacked W or None, kind runs)."""
+        self._flush()
+        cat = lambda xs: xs[0] if len(xs) == 1 else np.concatenate(xs)  # noqa: E731
+        c = self.chunks
+        leaves = [cat([np.asarray(ch[2][j]) for ch in c]) for j in range(len(self.sig[3]))]
+        W = cat([np.asarray(ch[3]) for ch in c]) if self.sig[4] is not None else None
+        return (cat([ch[0] for ch in c]), cat([ch[1] for ch in c]), leaves, W,
+                [run for ch in c for run in ch[4]])
+
+
+class _FactorList:
+    """The factors of a problem by global index, batches unpacked only where asked."""
+
+    def __init__(self, entries: list) -> None:
+        self.entries = entries
+        sizes = [len(e) if isinstance(e, FactorBatch) else 1 for e in entries]
+        self.starts = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
+
+    def __len__(self) -> int:
+        return int(self.starts[-1])
+
+    def __getitem__(self, i: int):
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        e = int(np.searchsorted(self.starts, i, side="right")) - 1
+        entry = self.entries[e]
+        return entry[i - int(self.starts[e])] if isinstance(entry, FactorBatch) else entry
+
+    def __iter__(self):
+        for e in self.entries:
+            if isinstance(e, FactorBatch):
+                yield from e
+            else:
+                yield e
 
 
 def _describe(f, fi) -> str:
@@ -463,9 +520,9 @@ class Problem:
 
     def __init__(self, graph: Iterable, values: Any, fixed: Iterable[Hashable] = (),
                  check_free: bool = True, rows: dict | None = None):
-        factors = list(graph)
+        entries = graph.entries() if hasattr(graph, "entries") else list(graph)
         rows = rows or {}
-        self.factors = factors
+        self.factors = factors = _FactorList(entries)
         fixed = set(fixed)
         for k in fixed:
             if k not in values:
@@ -479,52 +536,47 @@ class Problem:
         t_leaves: list[list[list[Any]]] = []
         groups: dict[Any, _GroupBuild] = {}
 
-        for fi, f in enumerate(factors):
-            slots = []
-            for k in f.keys:
-                s = key_slot.get(k)
-                if s is None:
-                    if k not in values:
-                        raise ValueError(
-                            f"{_describe(f, fi)} refers to key {k!r}, which has no value"
-                        )
-                    v = values[k]
-                    cls = type(v)
-                    ti = type_index.get(cls)
-                    leaves, treedef = jax.tree.flatten(v)
-                    if ti is None:
-                        try:
-                            manifold.ops(cls)
-                        except TypeError as e:
-                            raise TypeError(f"value for key {k!r}: {e}") from None
-                        ti = type_index[cls] = len(t_cls)
-                        t_cls.append(cls)
-                        t_treedef.append(treedef)
-                        t_shapes.append([np.shape(x) for x in leaves])
-                        t_keys.append([])
-                        t_leaves.append([])
-                    elif treedef != t_treedef[ti] or [np.shape(x) for x in leaves] != t_shapes[ti]:
-                        raise ValueError(
-                            f"value for key {k!r} ({cls.__name__}) has a different layout "
-                            f"from other {cls.__name__} values"
-                        )
-                    s = key_slot[k] = (ti, len(t_keys[ti]))
-                    t_keys[ti].append(k)
-                    t_leaves[ti].append(leaves)
-                slots.append(s)
+        def slot(k, fi):
+            """(type index, row) of key k, registered at its first use (by factor #fi)."""
+            s = key_slot.get(k)
+            if s is not None:
+                return s
+            if k not in values:
+                f = factors[fi]
+                raise ValueError(f"{_describe(f, fi)} refers to key {k!r}, which has no value")
+            v = values[k]
+            cls = type(v)
+            ti = type_index.get(cls)
+            leaves, treedef = jax.tree.flatten(v)
+            if ti is None:
+                try:
+                    manifold.ops(cls)
+                except TypeError as e:
+                    raise TypeError(f"value for key {k!r}: {e}") from None
+                ti = type_index[cls] = len(t_cls)
+                t_cls.append(cls)
+                t_treedef.append(treedef)
+                t_shapes.append([np.shape(x) for x in leaves])
+                t_keys.append([])
+                t_leaves.append([])
+            elif treedef != t_treedef[ti] or [np.shape(x) for x in leaves] != t_shapes[ti]:
+                raise ValueError(
+                    f"value for key {k!r} ({cls.__name__}) has a different layout "
+                    f"from other {cls.__name__} values"
+                )
+            s = key_slot[k] = (ti, len(t_keys[ti]))
+            t_keys[ti].append(k)
+            t_leaves[ti].append(leaves)
+            return s
+
+        def add_one(f, fi):
+            slots = [slot(k, fi) for k in f.keys]
             if len(set(f.keys)) != len(f.keys):
                 raise ValueError(f"{_describe(f, fi)} uses a key more than once")
             leaves, treedef, shapes = f.flat_args()
             W = f.sqrt_info
-            sig = (
-                f.residual,
-                tuple([s[0] for s in slots]),
-                treedef,
-                shapes,
-                None if W is None else W.shape,
-                f.robust,
-                f.valid,
-            )
+            sig = (f.residual, tuple([s[0] for s in slots]), treedef, shapes,
+                   None if W is None else W.shape, f.robust, f.valid)
             gb = groups.get(sig)
             if gb is None:
                 gb = groups[sig] = _GroupBuild(sig, fi)
@@ -532,6 +584,43 @@ class Problem:
             gb.idx.append([s[1] for s in slots])
             gb.args.append(leaves)
             gb.W.append(W)
+            gb.kinds.append(f.kind)
+
+        def add_batch(b: FactorBatch, fi: int) -> bool:
+            """Lay out a batch's factors (#fi onwards) as arrays; False when they do not form
+            one group (a key column of mixed types): then they go one by one."""
+            n, k = len(b), len(b.key_columns)
+            flat = [key for row in zip(*b.key_columns) for key in row]  # factor by factor
+            for j, key in enumerate(flat):
+                if key not in key_slot:
+                    slot(key, fi + j // k)
+            sl = np.array([key_slot[key] for key in flat], np.int64).reshape(n, k, 2)
+            types = sl[:, :, 0]
+            if np.any(types != types[:1]):
+                return False
+            rows_ = sl[:, :, 1]
+            for a in range(k):
+                for c in range(a + 1, k):
+                    same = np.flatnonzero((types[:, a] == types[:, c]) & (rows_[:, a] == rows_[:, c]))
+                    if same.size:
+                        j = int(same[0])
+                        raise ValueError(f"{_describe(b[j], fi + j)} uses a key more than once")
+            W = b.sqrt_info
+            sig = (b.residual, tuple(int(t) for t in types[0]), b.treedef, b.shapes,
+                   None if W is None else W.shape[1:], b.robust, b.valid)
+            gb = groups.get(sig)
+            if gb is None:
+                gb = groups[sig] = _GroupBuild(sig, fi)
+            gb.add_batch(np.arange(fi, fi + n), rows_.astype(np.int32), b.leaves, W, b.kind)
+            return True
+
+        for e, entry in enumerate(entries):
+            fi = int(factors.starts[e])
+            if not isinstance(entry, FactorBatch):
+                add_one(entry, fi)
+            elif len(entry) and not add_batch(entry, fi):
+                for j, f in enumerate(entry):
+                    add_one(f, fi + j)
 
         # --- variable types ------------------------------------------------------------
         self.tspecs = tuple(
@@ -576,6 +665,8 @@ class Problem:
         # --- factor groups -------------------------------------------------------------
         gspecs, gdata, gidx = [], [], []
         self.group_fids, self.group_cols, self.group_nf = [], [], []
+        #: per group, its factors' kinds as runs [(kind, count), …] in its factors' order
+        self.group_kinds: list[list[tuple[str, int]]] = []
         for gb in groups.values():
             f0 = factors[gb.first]
             m = _residual_dim(f0, gb, [values[k] for k in f0.keys],
@@ -600,12 +691,11 @@ class Problem:
                 robust=f0.robust,
                 valid=f0.valid,
             )
-            nf = len(gb.fids)
+            fids, idx, stacked, W, kinds = gb.arrays()
+            nf = len(fids)
             nf_pad = bucket(nf, rows.get(f0.kind, 8))
-            idx = np.asarray(gb.idx, np.int32).reshape(nf, len(var_types))
-            leaves = [jnp.asarray(_pad_rows(np.stack([a[j] for a in gb.args]), nf_pad))
-                      for j in range(len(gb.sig[3]))]
-            W = jnp.asarray(_pad_rows(np.stack(gb.W), nf_pad)) if spec.has_sqrt_info else None
+            leaves = [jnp.asarray(_pad_rows(a, nf_pad)) for a in stacked]
+            W = jnp.asarray(_pad_rows(W, nf_pad)) if spec.has_sqrt_info else None
             mask = np.arange(nf_pad) < nf
             # global tangent index of each local coordinate, -1 where fixed
             cols = []
@@ -617,7 +707,8 @@ class Problem:
             gspecs.append(spec)
             gdata.append((leaves, W))
             gidx.append((_pad_rows(idx, nf_pad), jnp.asarray(mask)))
-            self.group_fids.append(np.asarray(gb.fids))
+            self.group_fids.append(fids)
+            self.group_kinds.append(kinds)
             self.group_cols.append(G)
             self.group_nf.append(nf)
         self.gspecs = tuple(gspecs)
@@ -696,13 +787,14 @@ class Problem:
         vars_ = self.vars if vars_ is None else vars_
         vh = _host(vars_)
         K = self.kernels
-        out: dict = {f.kind: 0 for f in self.factors}
+        out: dict = {e.kind: 0 for e in self.factors.entries}
         for k, (gk, d, ix) in enumerate(zip(K.groups, self.gdata, self.gidx)):
             hr = np.asarray(gk.cost(*K._cost_inputs(k, vh, ix, d))[0])
-            kinds = [self.factors[int(fi)].kind for fi in self.group_fids[k]]
-            if len(set(kinds)) == 1:
-                out[kinds[0]] = out[kinds[0]] + np.sum(hr)
+            runs = self.group_kinds[k]
+            if len({kind for kind, _ in runs}) == 1:
+                out[runs[0][0]] = out[runs[0][0]] + np.sum(hr)
                 continue
+            kinds = [kind for kind, n in runs for _ in range(n)]
             padded = np.array(kinds + [None] * (len(hr) - len(kinds)), dtype=object)
             for kind in dict.fromkeys(padded[: self.group_nf[k]]):
                 out[kind] = out[kind] + np.sum(np.where(padded == kind, hr, 0.0))
