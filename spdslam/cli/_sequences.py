@@ -321,6 +321,81 @@ def run(
 
 
 @app.command()
+def localize(
+    sequence: Path = typer.Argument(..., help=_SEQUENCE_HELP),
+    map_path: Path = typer.Option(..., "--map", help="A saved map: the output folder of spdslam run "
+                                  "(or its map.json)."),
+    out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
+    sim3: bool = typer.Option(False, "--sim3", help="Also estimate a scale (the recording's odometry has none of "
+        "its own, as from a monocular front end)."),
+    match_tolerance: float = typer.Option(0.15, help="Metres within which a matched object's centre must land "
+        "in the map."),
+    method: str = typer.Option("multi-spd", help=_METHOD_HELP),
+    option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, "
+        "NAME=VALUE, repeatable (docs/formats.md)."),
+    overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequence has images."),
+    overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
+) -> None:
+    """Put a new recording into a saved map's frame, from the objects alone.
+
+    Maps the recording in its own frame (as spdslam run does), matches its objects to the
+    map's by label, size and layout, and writes the run moved into the map's frame (OUT/map.json,
+    OUT/trajectory.txt, ...) with OUT/localization.json: T_map_sequence, scale, covariance,
+    matches and the agreement of the boxes with the map's projected objects. Refuses, in one
+    line and writing nothing, when fewer than three objects match or two transforms fit
+    about equally (docs/map-reuse.md).
+    """
+    import numpy as np
+
+    from ..experiments import localize_sequence, write_run
+    from ..io import MapFormatError, dumps_strict, read_map
+    from ..mapping import LocalizationError
+
+    if not (math.isfinite(match_tolerance) and match_tolerance > 0):
+        fail(f"--match-tolerance: expected a positive number of metres, got {match_tolerance}")
+    settings = _settings(method)
+    options = _format_options(option)
+    _sequence_path(sequence)
+    check_output(out, [sequence, map_path])
+    _check_out(out, overwrite)
+    try:
+        _, map_objects = read_map(map_path)
+    except MapFormatError as e:
+        fail(str(e))
+    except OSError as e:
+        fail(f"--map: cannot read {map_path}: {e.strerror or e}")
+    seq = _load_sequence(sequence, options)
+    try:
+        moved, loc, doc = localize_sequence(seq, map_objects, settings, sim3=sim3, tolerance=match_tolerance,
+                                            progress=_progress)
+    except LocalizationError as e:
+        fail(f"{seq.name}: cannot localise against {map_path}: {e}")
+    except ValueError as e:
+        fail(f"{seq.name}: {e}")
+    up = None if seq.priors is None or seq.priors.up is None else \
+        loc.T_map_sequence[:3, :3] @ np.asarray(seq.priors.up, float)
+    try:
+        metrics = write_run(out, seq, moved, overlay=overlay, overwrite=overwrite, source=sequence, up=up,
+                            extra={"localization.json": dumps_strict(doc) + "\n"})
+    except FileExistsError as e:
+        fail(f"--out: {e}")
+    except OSError as e:
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    _print_result(moved)
+    R = loc.T_map_sequence[:3, :3]
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    console.print(f"localised: {len(loc.matches)} objects matched (the best rival transform matches "
+                  f"{loc.runner_up}), centre rms {loc.rms:.3f} m, rotation {angle:.1f}°, translation "
+                  f"{np.linalg.norm(loc.T_map_sequence[:3, 3]):.3f} m" + (f", scale {loc.scale:.4f}" if sim3 else ""))
+    agreement = doc.get("agreement", {})
+    if "iou" in agreement:
+        console.print(f"the map's objects from the localised poses: median IoU {agreement['iou']:.3f} "
+                      f"over {agreement['pairs']} box pairs")
+    _print_metrics(metrics)
+    console.print(f"wrote {out}")
+
+
+@app.command()
 def evaluate(
     out: Path = typer.Argument(..., help="Output folder of spdslam run (or its map.json)."),
     sequence: Path = typer.Argument(..., help="The sequence folder with ground truth."),

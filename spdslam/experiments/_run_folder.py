@@ -35,12 +35,15 @@ def frame_rate(seq) -> float | None:
 
 
 def write_run(out, seq, result, records=None, *, overlay: bool = True,
-              max_overlays: int | None = 60, overwrite: bool = False, source=None) -> dict:
+              max_overlays: int | None = 60, overwrite: bool = False, source=None,
+              up=None, extra: dict | None = None) -> dict:
     """Write the run ``result`` (a ``mapping.MapResult``) of ``seq`` into the folder ``out``
     (module docstring), atomically, and return its metrics (``evaluation.evaluate_run``).
     ``records``: an online run's ``FrameRecord`` s (latency.csv and latency.png);
     ``source``: the sequence folder it was read from, recorded (absolute) as map.json's
-    ``sequence`` so that ``spdslam view OUT`` finds it."""
+    ``sequence`` so that ``spdslam view OUT`` finds it. ``up``: the gravity direction of the
+    result's frame for map_top.png (default the sequence's); ``extra``: {file name: text}
+    written beside (``spdslam localize``'s localization.json)."""
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
@@ -54,13 +57,17 @@ def write_run(out, seq, result, records=None, *, overlay: bool = True,
         if "summary" in metrics or "ate" in metrics:
             (tmp / "metrics.json").write_text(dumps_strict(metrics) + "\n", encoding="utf-8")
             (tmp / "report.md").write_text(report_markdown(metrics, m), encoding="utf-8")
-        up = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
+        for name, text in (extra or {}).items():
+            (tmp / name).write_text(text, encoding="utf-8")
+        gravity = up
+        if gravity is None:
+            gravity = (0, 0, 1) if seq.priors is None or seq.priors.up is None else seq.priors.up
         T = np.asarray(metrics["to_groundtruth"]) if "to_groundtruth" in metrics else None
         gt_cuboids, gt_traj = ground_truth_in_map_frame(seq, T)
         labels = [f"{o.label} {o.id}" for o in result.objects]
         plot_map_top(
             tmp / "map_top.png", [o.ellipsoid for o in result.objects], labels=labels,
-            gt_cuboids=gt_cuboids, trajectory=result.poses_tum, gt_trajectory=gt_traj, up=up,
+            gt_cuboids=gt_cuboids, trajectory=result.poses_tum, gt_trajectory=gt_traj, up=gravity,
             title=f"{result.method.name} on {seq.name}",
         )
         if overlay and seq.images:

@@ -20,13 +20,14 @@ def _points(x, name: str) -> np.ndarray:
     return p
 
 
-def align_rigid(src, dst, with_scale: bool = False):
-    """(R, t, s) minimising Σᵢ ‖dstᵢ − (s R srcᵢ + t)‖², R ∈ SO(3) (Horn / Umeyama 1991).
+def align_rigid(src, dst, with_scale: bool = False, weights=None):
+    """(R, t, s) minimising Σᵢ wᵢ ‖dstᵢ − (s R srcᵢ + t)‖², R ∈ SO(3) (Horn / Umeyama 1991).
 
-    With X = src − μ_src, Y = dst − μ_dst (centred, N×3) and the cross-covariance
-    Σ = YᵀX / N = U D Vᵀ (SVD): R = U S Vᵀ, S = diag(1, 1, sign det(U Vᵀ)) (a proper
-    rotation even for reflected data); s = tr(D S) / σ²_src, σ²_src = ‖X‖²_F / N
-    (s = 1 unless ``with_scale``); t = μ_dst − s R μ_src.
+    With weighted means μ, X = src − μ_src, Y = dst − μ_dst (centred, N×3), W = Σ wᵢ and the
+    cross-covariance Σ = Σᵢ wᵢ yᵢ xᵢᵀ / W = U D Vᵀ (SVD): R = U S Vᵀ, S = diag(1, 1,
+    sign det(U Vᵀ)) (a proper rotation even for reflected data); s = tr(D S) / σ²_src,
+    σ²_src = Σᵢ wᵢ ‖xᵢ‖² / W (s = 1 unless ``with_scale``); t = μ_dst − s R μ_src.
+    ``weights``: N non-negative numbers, not all zero (default all 1).
 
     ``src``, ``dst``: N×3, N ≥ 3. Raises ``ValueError`` for fewer than 3 points, non-finite
     input, or a degenerate configuration (either set collinear or coincident, or Σ of rank
@@ -38,8 +39,17 @@ def align_rigid(src, dst, with_scale: bool = False):
     n = X.shape[0]
     if n < 3:
         raise ValueError(f"rigid alignment needs at least 3 point pairs, got {n}")
-    mu_x, mu_y = X.mean(axis=0), Y.mean(axis=0)
-    X, Y = X - mu_x, Y - mu_y
+    if weights is None:
+        mu_x, mu_y = X.mean(axis=0), Y.mean(axis=0)
+        X, Y = X - mu_x, Y - mu_y
+    else:
+        w = np.asarray(weights, dtype=float)
+        if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+            raise ValueError(f"weights must be {n} finite non-negative numbers, not all zero")
+        w = w / w.sum()
+        mu_x, mu_y = w @ X, w @ Y
+        root = np.sqrt(w * n)[:, None]  # Σ and σ² below divide by n
+        X, Y = (X - mu_x) * root, (Y - mu_y) * root
     scale = max(np.abs(X).max(), np.abs(Y).max(), np.abs(mu_x).max(), np.abs(mu_y).max(), 1e-300)
     for name, Z in (("src", X), ("dst", Y)):
         sv = np.linalg.svd(Z, compute_uv=False)

@@ -38,6 +38,13 @@ from ._online import FrameRecord as FrameRecord
 from ._online import OnlineMap as OnlineMap
 from ._online import OnlineMapper as OnlineMapper
 from ._online import run_online as run_online
+from ._reuse import Localization as Localization
+from ._reuse import LocalizationError as LocalizationError
+from ._reuse import localize_objects as localize_objects
+from ._reuse import localized_result as localized_result
+from ._reuse import moved_sequence as moved_sequence
+from ._reuse import transform_ellipsoid as transform_ellipsoid
+from ._reuse import transform_poses_tum as transform_poses_tum
 from ._run import ASSOCIATIONS as ASSOCIATIONS
 from ._run import MAX_CENTER_SIGMA as MAX_CENTER_SIGMA
 from ._run import MAX_LOG_RADIUS_SIGMA as MAX_LOG_RADIUS_SIGMA

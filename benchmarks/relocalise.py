@@ -1,0 +1,120 @@
+"""Relocalisation from objects on fr2_desk's halves (issue 37; docs/map-reuse.md).
+
+fr2_desk is cut into its two halves. One half is mapped as it is (the map); the other is
+re-expressed as a new recording would be: every pose moved by G = S · T₀⁻¹ (T₀ its first
+pose, so that trial 0 starts at the identity as a new ORB-SLAM2 run would; S a random
+rigid motion for the other trials, seeded; under --sim3 also a random scale in [0.5, 2]),
+mapped in that frame, and localised against the map (``experiments.localize_sequence``).
+Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` transforms each.
+
+The answer is compared with the motion capture's relation of the two halves: each half's
+input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
+frame maps to the map's by M_map⁻¹ M_rec G⁻¹. Prints a row per trial and a summary, and
+writes the figures as JSON with --out.
+
+    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from spdslam.evaluation import trajectory_alignment
+from spdslam.experiments import localize_sequence
+from spdslam.io import read_sequence
+from spdslam.mapping import LocalizationError, RunSettings, moved_sequence, run_sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+FR2 = ROOT / "../shared/data/tum_fr2_desk"
+
+
+def pose_matrix(row) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(row[3:7]).as_matrix()
+    T[:3, 3] = row[:3]
+    return T
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sequence", type=Path, default=FR2)
+    ap.add_argument("--trials", type=int, default=10, help="transforms per direction")
+    ap.add_argument("--sim3", action="store_true", help="random scale in [0.5, 2] too, localised with Sim(3)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None)
+    a = ap.parse_args()
+    fr2 = read_sequence(a.sequence)
+    n = len(fr2)
+    halves = {1: fr2.subset(np.arange(0, n // 2)), 2: fr2.subset(np.arange(n // 2, n))}
+    settings = RunSettings.of("multi-spd")
+    maps, M = {}, {}
+    for k, h in halves.items():
+        t0 = time.perf_counter()
+        maps[k] = run_sequence(h, settings).objects
+        M[k] = trajectory_alignment(np.c_[h.timestamps, h.poses_tum], h.groundtruth_tum)
+        print(f"map of half {k}: {len(maps[k])} objects ({time.perf_counter() - t0:.1f} s)")
+    rng = np.random.default_rng(a.seed)
+    rows = []
+    for map_k, rec_k in ((1, 2), (2, 1)):
+        rec = halves[rec_k]
+        T0 = pose_matrix(rec.poses_tum[0])
+        for trial in range(a.trials):
+            S = np.eye(4)
+            if trial:
+                S[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+                S[:3, 3] = rng.uniform(-3.0, 3.0, 3)
+            s = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0)))) if a.sim3 and trial else 1.0
+            T0i = np.linalg.inv(T0)
+            # x ↦ s R_S (R₀ᵀ x − R₀ᵀ t₀) + t_S: the first camera at the origin, then S (scaled)
+            G = np.eye(4)
+            G[:3, :3] = S[:3, :3] @ T0i[:3, :3]
+            G[:3, 3] = s * S[:3, :3] @ T0i[:3, 3] + S[:3, 3]
+            seq = moved_sequence(rec, G, s)
+            t0 = time.perf_counter()
+            row = {"map": map_k, "recording": rec_k, "trial": trial, "scale_applied": s}
+            try:
+                _, loc, doc = localize_sequence(seq, maps[map_k], settings, sim3=a.sim3)
+            except LocalizationError as e:
+                row.update(localised=False, reason=str(e), seconds=time.perf_counter() - t0)
+                rows.append(row)
+                print(f"map {map_k} ← half {rec_k}, trial {trial}: refused: {e}")
+                continue
+            # truth: recording frame → its ORB frame (G⁻¹, scale 1/s) → map's ORB frame (M_map⁻¹ M_rec)
+            Rg, tg = G[:3, :3], G[:3, 3]
+            Minv = np.linalg.inv(M[map_k]) @ M[rec_k]
+            R_true = Minv[:3, :3] @ Rg.T
+            t_true = Minv[:3, :3] @ (-Rg.T @ tg / s) + Minv[:3, 3]
+            R_est, t_est = loc.T_map_sequence[:3, :3], loc.T_map_sequence[:3, 3]
+            rot = float(np.degrees(Rotation.from_matrix(R_est.T @ R_true).magnitude()))
+            # the translation error where it matters: the recording's first camera
+            c0 = seq.poses_tum[0, :3]
+            trans = float(np.linalg.norm(loc.scale * R_est @ c0 + t_est - (R_true @ c0 / s + t_true)))
+            scale_err = float(loc.scale * s - 1.0)
+            row.update(localised=True, rotation_deg=rot, translation_m=trans, scale_error=scale_err,
+                       matches=len(loc.matches), runner_up=loc.runner_up, center_rms=loc.rms,
+                       agreement_iou=doc.get("agreement", {}).get("iou"), seconds=time.perf_counter() - t0)
+            rows.append(row)
+            print(f"map {map_k} ← half {rec_k}, trial {trial}: {len(loc.matches)} matches (rival "
+                  f"{loc.runner_up}), rotation error {rot:.2f}°, translation error {100 * trans:.1f} cm"
+                  + (f", scale error {100 * scale_err:+.2f} %" if a.sim3 else "") + f" ({row['seconds']:.1f} s)")
+    ok = [r for r in rows if r["localised"]]
+    summary = {"trials": len(rows), "localised": len(ok), "sim3": a.sim3}
+    if ok:
+        for key in ("rotation_deg", "translation_m", "scale_error"):
+            v = np.abs([r[key] for r in ok])
+            summary[key] = {"median": float(np.median(v)), "max": float(np.max(v))}
+    print(json.dumps(summary, indent=1))
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps({"summary": summary, "trials": rows}, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()

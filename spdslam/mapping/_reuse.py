@@ -1,0 +1,342 @@
+"""Maps that outlive a recording: the transform that puts a recording's objects into a saved
+map's frame, found from the objects alone (docs/map-reuse.md).
+
+Given the objects of a new recording (in its odometry's frame) and those of a map, find
+T_map_sequence: x_map = s R x_seq + t (s = 1 for SE(3); Sim(3) when the recording's scale is
+unknown, as from a monocular front end):
+
+1. **Candidates**: pairs (recording object, map object) of one label whose sorted radii agree
+   within ``size_ratio`` (SE(3)), or whose shapes (radii over the largest) agree (Sim(3)).
+2. **Hypotheses**: every triple of candidates with distinct objects on both sides whose three
+   pairwise centre distances agree (within ``tolerance`` m; as ratios under Sim(3)), aligned
+   in closed form (Horn / Umeyama, ``geometry.align_rigid``).
+3. **Consensus**: a hypothesis scores the recording objects whose centre lands within
+   ``tolerance`` of a candidate partner; the best is refitted on its inliers, matched one to
+   one (``scipy.optimize.linear_sum_assignment`` on the centre distances), twice, then
+   refitted with Cauchy weights (scale ``tolerance``/3: an object that one recording mapped
+   apart pulls less).
+4. **Refusal** (``LocalizationError``, one line): fewer than three matches; matched centres
+   on a line (the rotation about it is free); or a rival transform, ``RIVAL_DEG`` or
+   2·``tolerance`` apart, that pairs at least two objects differently and matches as many
+   (a symmetric layout).
+
+The covariance of the transform is that of the least-squares fit of the matched centres,
+residual variance estimated from the fit (at least ``tolerance``/3 per axis, since the map's
+marginals leave out model error), in the left-perturbation coordinates x ↦ Exp(ξ)·x,
+ξ = (v, ω) in jaxlie's order, with log s last under Sim(3).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..geometry import Ellipsoid, align_rigid
+
+__all__ = ["Localization", "LocalizationError", "localize_objects", "transform_ellipsoid",
+           "transform_poses_tum", "localized_result", "moved_sequence"]
+
+
+#: A rival transform lies at least this far in rotation (degrees), or 2·tolerance in
+#: translation, from the answer.
+RIVAL_DEG = 5.0
+#: Reweighted refits of the matched centres (Cauchy, scale ``tolerance``/3).
+IRLS_ITERATIONS = 5
+
+
+class LocalizationError(ValueError):
+    """The objects do not fix a unique transform (the message says why, in one line)."""
+
+
+@dataclass(frozen=True)
+class Localization:
+    """x_map = ``scale`` · R x_seq + t, with ``T_map_sequence`` = [[R, t], [0, 1]] (the scale
+    kept apart); ``covariance`` (6×6, or 7×7 with log s) in the module's coordinates;
+    ``matches`` [(recording object id, map object id)]; ``residuals`` the matched centres'
+    distances after the fit (m, map frame); ``runner_up`` the matches of the best distinct
+    transform (0 when none)."""
+
+    T_map_sequence: np.ndarray
+    scale: float
+    covariance: np.ndarray
+    matches: list
+    residuals: np.ndarray
+    runner_up: int
+    candidates: int
+    sim3: bool = False
+    notes: list = field(default_factory=list)
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals**2))) if len(self.residuals) else float("nan")
+
+    def apply(self, x) -> np.ndarray:
+        """Points (…, 3) of the recording's frame in the map's frame."""
+        R, t = self.T_map_sequence[:3, :3], self.T_map_sequence[:3, 3]
+        return self.scale * np.asarray(x, float) @ R.T + t
+
+    def as_dict(self) -> dict:
+        """localization.json's content."""
+        return {
+            "T_map_sequence": self.T_map_sequence.tolist(),
+            "scale": float(self.scale),
+            "sim3": bool(self.sim3),
+            "covariance": self.covariance.tolist(),
+            "covariance_coordinates": "left perturbation x -> Exp(xi) x, xi = (v [m], omega [rad])"
+                                      + (", log scale" if self.sim3 else ""),
+            "matches": [[int(a), int(b)] for a, b in self.matches],
+            "center_residuals": [float(r) for r in self.residuals],
+            "center_rms": self.rms,
+            "runner_up_matches": int(self.runner_up),
+            "candidate_pairs": int(self.candidates),
+            "notes": list(self.notes),
+        }
+
+
+def _parts(objects):
+    ids = [int(o.id) for o in objects]
+    labels = [str(o.label) for o in objects]
+    centers = np.array([np.asarray(o.ellipsoid.center, float) for o in objects]).reshape(-1, 3)
+    radii = np.array([np.sort(np.sqrt(np.linalg.eigvalsh(np.asarray(o.ellipsoid.P, float))))
+                      for o in objects]).reshape(-1, 3)
+    return ids, labels, centers, radii
+
+
+def _candidates(seq, mp, sim3: bool, size_ratio: float) -> np.ndarray:
+    """(k, 2) index pairs (recording, map) that could be one object."""
+    _, la, _, ra = seq
+    _, lb, _, rb = mp
+    out = []
+    for i, j in itertools.product(range(len(la)), range(len(lb))):
+        if la[i] != lb[j]:
+            continue
+        a, b = (ra[i] / ra[i][-1], rb[j] / rb[j][-1]) if sim3 else (ra[i], rb[j])
+        if np.all(np.maximum(a / b, b / a) <= size_ratio):
+            out.append((i, j))
+    return np.array(out, int).reshape(-1, 2)
+
+
+def _triples(cand: np.ndarray, cs: np.ndarray, cm: np.ndarray, sim3: bool, tol: float,
+             max_triples: int) -> np.ndarray:
+    """(h, 3) candidate indices whose triangles agree (distinct objects on both sides)."""
+    k = len(cand)
+    if k < 3:
+        return np.zeros((0, 3), int)
+    ds = np.linalg.norm(cs[cand[:, 0], None] - cs[None, cand[:, 0]], axis=-1)
+    dm = np.linalg.norm(cm[cand[:, 1], None] - cm[None, cand[:, 1]], axis=-1)
+    distinct = (cand[:, 0, None] != cand[None, :, 0]) & (cand[:, 1, None] != cand[None, :, 1])
+    if sim3:  # distances agree up to one scale: compare as ratios (a small distance says little)
+        pair_ok = distinct & (ds > tol) & (dm > tol)
+    else:
+        pair_ok = distinct & (np.abs(ds - dm) <= 2.0 * tol)
+    out = []
+    for a in range(k):
+        bs = np.flatnonzero(pair_ok[a, a + 1:]) + a + 1
+        for b in bs:
+            cs_ = bs[bs > b]
+            cs_ = cs_[pair_ok[b, cs_]]
+            if sim3 and cs_.size:
+                s_ab = dm[a, b] / ds[a, b]
+                ok = (np.abs(dm[a, cs_] / ds[a, cs_] / s_ab - 1.0) <= 0.1) & \
+                     (np.abs(dm[b, cs_] / ds[b, cs_] / s_ab - 1.0) <= 0.1)
+                cs_ = cs_[ok]
+            out.extend((a, b, c) for c in cs_)
+            if len(out) >= max_triples:
+                return np.array(out[:max_triples], int)
+    return np.array(out, int).reshape(-1, 3)
+
+
+def _fit(src, dst, sim3, weights=None):
+    try:
+        R, t, s = align_rigid(src, dst, with_scale=sim3, weights=weights)
+    except ValueError:
+        return None
+    return R, t, s
+
+
+def _assign(cand, cs, cm, R, t, s, tol):
+    """One-to-one matches (candidate indices) within ``tol`` after the transform."""
+    from scipy.optimize import linear_sum_assignment
+
+    d = np.linalg.norm(s * cs[cand[:, 0]] @ R.T + t - cm[cand[:, 1]], axis=1)
+    ok = d <= tol
+    if not ok.any():
+        return np.zeros(0, int)
+    si = np.unique(cand[ok, 0])
+    mj = np.unique(cand[ok, 1])
+    cost = np.full((len(si), len(mj)), 1e6)
+    for c in np.flatnonzero(ok):
+        a, b = np.searchsorted(si, cand[c, 0]), np.searchsorted(mj, cand[c, 1])
+        cost[a, b] = min(cost[a, b], d[c])
+    r, c = linear_sum_assignment(cost)
+    keep = cost[r, c] < 1e6
+    pairs = {(si[a], mj[b]) for a, b in zip(r[keep], c[keep])}
+    return np.array([q for q in range(len(cand)) if ok[q] and (cand[q, 0], cand[q, 1]) in pairs], int)
+
+
+def _angle_deg(Ra, Rb) -> float:
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _covariance(cs, R, t, s, residuals, tol, sim3):
+    """Covariance of the fit in left-perturbation coordinates (module docstring)."""
+    y = s * cs @ R.T + t
+    n = len(y)
+    rows = []
+    for p in y:
+        J = np.zeros((3, 7 if sim3 else 6))
+        J[:, :3] = np.eye(3)
+        J[:, 3:6] = -np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+        if sim3:
+            J[:, 6] = p - t
+        rows.append(J)
+    J = np.concatenate(rows)
+    dof = max(3 * n - J.shape[1], 1)
+    var = max(float(np.sum(residuals**2)) / dof, (tol / 3.0) ** 2)
+    try:
+        return var * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return np.full((J.shape[1],) * 2, np.inf)
+
+
+def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance: float = 0.15,
+                     size_ratio: float = 2.0, max_triples: int = 20_000) -> Localization:
+    """The transform that puts ``seq_objects`` (``io.MapObject``, the recording's frame) onto
+    ``map_objects`` (the map's frame): module docstring. Raises ``LocalizationError`` when
+    the objects do not fix one."""
+    seq, mp = _parts(list(seq_objects)), _parts(list(map_objects))
+    cs, cm = seq[2], mp[2]
+    cand = _candidates(seq, mp, sim3, size_ratio)
+    usable = min(len(np.unique(cand[:, 0])), len(np.unique(cand[:, 1]))) if len(cand) else 0
+    if usable < 3:
+        raise LocalizationError(
+            f"fewer than three usable matches: {usable} recording object(s) share a label and "
+            f"a size with a map object ({len(seq[0])} in the recording, {len(mp[0])} in the map)")
+    triples = _triples(cand, cs, cm, sim3, tolerance, max_triples)
+    hyps = []
+    for tri in triples:
+        fit = _fit(cs[cand[tri, 0]], cm[cand[tri, 1]], sim3)
+        if fit is None:
+            continue
+        R, t, s = fit
+        if sim3 and not (0.05 < s < 20.0):
+            continue
+        inl = _assign(cand, cs, cm, R, t, s, tolerance)
+        if len(inl) >= 3:
+            hyps.append((len(inl), R, t, s, inl))
+    if not hyps:
+        raise LocalizationError(
+            f"fewer than three usable matches: no three of the {len(cand)} candidate pairs "
+            f"agree on a transform within {tolerance} m")
+    hyps.sort(key=lambda h: -h[0])
+    _, R, t, s, inl = hyps[0]
+    for _ in range(2):  # refit on the inliers, then match again
+        fit = _fit(cs[cand[inl, 0]], cm[cand[inl, 1]], sim3)
+        if fit is None:
+            raise LocalizationError(
+                "the matched objects' centres lie on a line: the rotation about it is not fixed")
+        R, t, s = fit
+        new = _assign(cand, cs, cm, R, t, s, tolerance)
+        if len(new) < 3:
+            break
+        inl = new
+    # the best rival: a transform that pairs at least two objects differently and lies apart
+    # (a nearby transform that pairs them alike is the same answer)
+    best = {tuple(p) for p in cand[inl]}
+    runner_up, apart = 0, 0.0
+    for n, R2, t2, _, inl2 in hyps:
+        differs = sum(tuple(p) not in best for p in cand[inl2]) >= 2
+        if differs and (_angle_deg(R, R2) > RIVAL_DEG or np.linalg.norm(t - t2) > 2.0 * tolerance):
+            runner_up, apart = n, _angle_deg(R, R2)
+            break
+    if runner_up >= len(inl):
+        raise LocalizationError(
+            f"the layout is ambiguous: two transforms {apart:.0f}° apart each match {runner_up} objects "
+            f"(a symmetric arrangement)")
+    pairs = cand[inl]
+    res = np.linalg.norm(s * cs[pairs[:, 0]] @ R.T + t - cm[pairs[:, 1]], axis=1)
+    for _ in range(IRLS_ITERATIONS):  # Cauchy weights: an object mapped apart in one recording counts less
+        w = 1.0 / (1.0 + (res / (tolerance / 3.0)) ** 2)
+        fit = _fit(cs[pairs[:, 0]], cm[pairs[:, 1]], sim3, w)
+        if fit is None:
+            break
+        R, t, s = fit
+        res = np.linalg.norm(s * cs[pairs[:, 0]] @ R.T + t - cm[pairs[:, 1]], axis=1)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    cov = _covariance(cs[pairs[:, 0]], R, t, s, res, tolerance, sim3)
+    order = np.argsort(pairs[:, 0])
+    matches = [(seq[0][pairs[i, 0]], mp[0][pairs[i, 1]]) for i in order]
+    return Localization(T, float(s), cov, matches, res[order], int(runner_up), len(cand), sim3)
+
+
+def transform_ellipsoid(e: Ellipsoid, T: np.ndarray, scale: float = 1.0) -> Ellipsoid:
+    """The ellipsoid moved by x ↦ s R x + t: (s² R P Rᵀ, s R c + t)."""
+    R, t = np.asarray(T, float)[:3, :3], np.asarray(T, float)[:3, 3]
+    P = scale**2 * R @ np.asarray(e.P, float) @ R.T
+    return Ellipsoid(0.5 * (P + P.T), scale * R @ np.asarray(e.center, float) + t)
+
+
+def transform_poses_tum(rows, T: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """TUM rows (timestamp tx ty tz qx qy qz qw) of camera-to-world poses moved by
+    x ↦ s R x + t: the camera centre moves as a point, the orientation is R·R_wc."""
+    from scipy.spatial.transform import Rotation
+
+    rows = np.asarray(rows, float)
+    R, t = np.asarray(T, float)[:3, :3], np.asarray(T, float)[:3, 3]
+    out = rows.copy()
+    out[:, 1:4] = scale * rows[:, 1:4] @ R.T + t
+    q = (Rotation.from_matrix(R) * Rotation.from_quat(rows[:, 4:8])).as_quat()
+    out[:, 4:8] = q
+    return out
+
+
+def _moved_object(o, T, scale):
+    """A ``MapObject`` moved by x ↦ s R x + t; its centre's σ per axis rotated (the diagonal of
+    R diag(σ²) Rᵀ, times s), its log-radius σ unchanged."""
+    u = o.uncertainty
+    if u:
+        R = np.asarray(T, float)[:3, :3]
+        u = dict(u)
+        sig = np.asarray(u["center_sigma"], float)
+        u["center_sigma"] = (scale * np.sqrt(np.diag(R @ np.diag(sig**2) @ R.T))).tolist()
+        u["center_sigma_max"] = scale * float(u["center_sigma_max"])
+    return replace(o, ellipsoid=transform_ellipsoid(o.ellipsoid, T, scale), uncertainty=u)
+
+
+def localized_result(result, loc: Localization):
+    """A ``MapResult`` moved into the map's frame: its objects, first estimates and poses."""
+    T, s = loc.T_map_sequence, loc.scale
+    note = (f"localised against a map from {len(loc.matches)} objects: centre rms {loc.rms:.3f} m"
+            + (f", scale {s:.4f}" if loc.sim3 else ""))
+    return replace(result, objects=[_moved_object(o, T, s) for o in result.objects],
+                   initial_objects=[_moved_object(o, T, s) for o in result.initial_objects],
+                   poses_tum=transform_poses_tum(result.poses_tum, T, s),
+                   notes=[*result.notes, note])
+
+
+def moved_sequence(seq, T: np.ndarray, scale: float = 1.0):
+    """``seq`` re-expressed in another frame, x ↦ s R x + t: its poses, and the priors that
+    live in its frame (support planes [n; d] ↦ [R n; s d − (R n)·t], the up direction, and the
+    translation parts of the trajectory's sigmas, times s). Camera-frame data (boxes,
+    measured ellipsoids) and the ground truth (evaluation aligns to it) are unchanged."""
+    T = np.asarray(T, float)
+    R, t = T[:3, :3], T[:3, 3]
+    rows = transform_poses_tum(np.c_[seq.timestamps, seq.poses_tum], T, scale)[:, 1:]
+    pr = seq.priors
+    if pr is not None:
+        def plane(p):
+            n = R @ np.asarray(p[:3], float)
+            return np.r_[n, scale * float(p[3]) - n @ t]
+
+        def scaled(sig):
+            return None if sig is None else np.asarray(sig, float) * np.r_[scale, 1.0]
+
+        pr = replace(pr, support_planes=[plane(p) for p in pr.support_planes],
+                     up=None if pr.up is None else R @ np.asarray(pr.up, float),
+                     trajectory_sigma=scaled(pr.trajectory_sigma),
+                     trajectory_absolute_sigma=scaled(pr.trajectory_absolute_sigma))
+    return replace(seq, poses_tum=rows, priors=pr)

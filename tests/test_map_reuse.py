@@ -1,0 +1,181 @@
+"""Maps that outlive a recording: localisation against a saved map from the objects alone."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import assert_cli_error as assert_error
+from conftest import assert_cli_ok as assert_ok
+from conftest import cli_invoke as invoke
+from scipy.spatial.transform import Rotation
+
+import spdslam  # noqa: F401
+from spdslam import Camera, Ellipsoid, look_at, project_box
+from spdslam.io import MapObject, read_sequence, write_sequence
+from spdslam.mapping import (
+    LocalizationError,
+    localize_objects,
+    moved_sequence,
+    transform_ellipsoid,
+    transform_poses_tum,
+)
+from spdslam.synthetic import make_room_sequence
+
+
+def _objects(specs, seed: int = 0):
+    """MapObjects of (label, centre, radii) with a random orientation each."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, (label, c, r) in enumerate(specs):
+        R = Rotation.random(random_state=rng).as_matrix()
+        out.append(MapObject(i, label, Ellipsoid.from_axes(R, c, r)))
+    return out
+
+
+def _move(objects, T, s=1.0, ids_from: int = 100, noise: float = 0.0, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    out = []
+    for o in objects:
+        e = transform_ellipsoid(o.ellipsoid, T, s)
+        e = Ellipsoid(np.asarray(e.P), np.asarray(e.center) + rng.normal(0, noise, 3))
+        out.append(MapObject(ids_from + o.id, o.label, e))
+    return out
+
+
+def _rigid(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    T[:3, 3] = rng.uniform(-3, 3, 3)
+    return T
+
+
+ROOM = [("chair", (0.0, 0.0, 0.4), (0.3, 0.3, 0.45)), ("cup", (1.2, 0.4, 0.8), (0.05, 0.05, 0.06)),
+        ("tv", (2.0, -1.0, 1.2), (0.5, 0.05, 0.3)), ("book", (-1.0, 1.5, 0.7), (0.12, 0.08, 0.02)),
+        ("book", (-0.6, 1.4, 0.7), (0.12, 0.08, 0.02)), ("bottle", (0.3, -1.2, 0.8), (0.04, 0.04, 0.12))]
+
+
+@pytest.mark.parametrize("sim3", [False, True])
+def test_localisation_recovers_the_transform_with_spurious_objects_on_both_sides(sim3):
+    """The recording is the map moved by G (scaled under Sim(3)), with 1 cm of noise on the
+    centres, one map object it never saw and one object the map does not have: the answer
+    is G⁻¹, the matches are the true pairs."""
+    objs = _objects(ROOM)
+    G, s = _rigid(3), (1.7 if sim3 else 1.0)
+    rec = _move(objs[1:], G, s, noise=0.01)  # the map's chair is not in the recording
+    rec.append(MapObject(999, "plant", Ellipsoid.from_axes(np.eye(3), (5.0, 5.0, 5.0), (0.2, 0.2, 0.4))))
+    loc = localize_objects(rec, objs, sim3=sim3)
+    assert sorted(loc.matches) == [(100 + i, i) for i in range(1, 6)]
+    assert loc.runner_up < len(loc.matches)
+    back = loc.apply([(s * G[:3, :3] @ np.asarray(o.ellipsoid.center) + G[:3, 3]) for o in objs])
+    np.testing.assert_allclose(back, [np.asarray(o.ellipsoid.center) for o in objs], atol=0.03)
+    assert abs(loc.scale * s - 1.0) < (0.02 if sim3 else 1e-12)
+    assert loc.covariance.shape == ((7, 7) if sim3 else (6, 6))
+    assert np.all(np.linalg.eigvalsh(loc.covariance) > 0)
+    doc = loc.as_dict()
+    assert np.asarray(doc["T_map_sequence"]).shape == (4, 4) and doc["matches"][0] == list(loc.matches[0])
+    json.dumps(doc)
+
+
+def test_too_few_matches_are_refused():
+    objs = _objects(ROOM[:2])
+    with pytest.raises(LocalizationError, match="fewer than three usable matches"):
+        localize_objects(_move(objs, _rigid(1)), objs)
+    # three objects, but of labels the map does not have
+    other = _objects([("vase", (0, 0, 0), (0.1, 0.1, 0.2)), ("lamp", (1, 0, 0), (0.1, 0.1, 0.3)),
+                      ("bowl", (0, 1, 0), (0.1, 0.1, 0.05))])
+    with pytest.raises(LocalizationError, match="fewer than three usable matches"):
+        localize_objects(other, _objects(ROOM))
+
+
+def test_symmetric_layouts_are_refused():
+    """Four like objects on a square, and two like objects mirrored about a third: a rotation
+    maps each layout onto itself, so the objects do not fix the transform."""
+    square = _objects([("chair", (x, y, 0.4), (0.3, 0.3, 0.45)) for x, y in ((0, 0), (1, 0), (1, 1), (0, 1))])
+    square = [replace(o, ellipsoid=Ellipsoid.from_axes(np.eye(3), o.ellipsoid.center, (0.3, 0.3, 0.45)))
+              for o in square]
+    with pytest.raises(LocalizationError, match="ambiguous"):
+        localize_objects(_move(square, _rigid(2)), square)
+    mirror = [MapObject(0, "cup", Ellipsoid.from_axes(np.eye(3), (-0.5, 0.0, 0.8), (0.05, 0.05, 0.06))),
+              MapObject(1, "cup", Ellipsoid.from_axes(np.eye(3), (0.5, 0.0, 0.8), (0.05, 0.05, 0.06))),
+              MapObject(2, "bottle", Ellipsoid.from_axes(np.eye(3), (0.0, 0.7, 0.8), (0.04, 0.04, 0.12)))]
+    with pytest.raises(LocalizationError, match="ambiguous"):
+        localize_objects(_move(mirror, _rigid(4)), mirror)
+
+
+def test_moving_objects_and_poses_together_keeps_every_box():
+    """transform_ellipsoid and transform_poses_tum use one convention: an object and a camera
+    moved by the same x ↦ s R x + t give the same box (a projection does not see scale)."""
+    cam = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
+    e = Ellipsoid.from_axes(Rotation.from_rotvec([0.2, 0.1, 0.3]).as_matrix(), (0.1, 0.2, 0.3), (0.3, 0.2, 0.1))
+    T_wc = look_at(np.array([3.0, 1.0, 1.0]), np.zeros(3))
+    q = np.asarray(T_wc.wxyz_xyz)
+    row = np.r_[0.0, q[4:], q[1:4], q[0]]
+    G = _rigid(5)
+    for s in (1.0, 0.6):
+        moved = transform_poses_tum(row[None], G, s)[0]
+        import jaxlie
+
+        T2 = jaxlie.SE3(np.r_[moved[7], moved[4:7], moved[1:4]])
+        np.testing.assert_allclose(project_box(transform_ellipsoid(e, G, s), T2, cam), project_box(e, T_wc, cam),
+                                   atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """(a synthetic room as a folder, the same room moved by G as a second folder, G)."""
+    base = tmp_path_factory.mktemp("reuse")
+    seq = make_room_sequence(0, frames=40, objects=5)
+    write_sequence(seq, base / "room")
+    G = _rigid(7)
+    write_sequence(moved_sequence(read_sequence(base / "room"), G), base / "moved")
+    return base, G
+
+
+def test_cli_localize_writes_the_run_in_the_map_frame(room):
+    base, G = room
+    assert_ok(invoke("run", base / "room", "--out", base / "map"))
+    out = base / "loc"
+    r = invoke("localize", base / "moved", "--map", base / "map", "--out", out)
+    assert_ok(r)
+    assert "localised:" in r.output
+    doc = json.loads((out / "localization.json").read_text())
+    T = np.asarray(doc["T_map_sequence"])
+    np.testing.assert_allclose(T @ G, np.eye(4), atol=0.02)
+    assert doc["scale"] == 1.0 and len(doc["matches"]) >= 3 and doc["agreement"]["pairs"] > 0
+    for name in ("map.json", "trajectory.txt", "map_top.png"):
+        assert (out / name).exists()
+    # the localised trajectory is the map run's, to the fit's accuracy
+    a = np.loadtxt(base / "map" / "trajectory.txt")
+    b = np.loadtxt(out / "trajectory.txt")
+    assert np.max(np.abs(a[:, 1:4] - b[:, 1:4])) < 0.05
+
+
+def test_cli_localize_refuses_in_one_line_and_writes_nothing(room, tmp_path):
+    base, _ = room
+    # a map of one object: fewer than three usable matches, refused before any mapping
+    if not (base / "map").exists():
+        assert_ok(invoke("run", base / "room", "--out", base / "map"))
+    m = json.loads((base / "map" / "map.json").read_text())
+    m["objects"] = m["objects"][:1]
+    small = tmp_path / "small"
+    small.mkdir()
+    (small / "map.json").write_text(json.dumps(m))
+    out = tmp_path / "loc"
+    r = invoke("localize", base / "moved", "--map", small, "--out", out)
+    assert_error(r, "cannot localise against", "fewer than three usable matches: the map has 1 object")
+    assert not out.exists()
+    # refused after the recording is mapped (its three objects are not the map's): the last
+    # line says why, and nothing is written
+    m["objects"] = [dict(o, label="vase") for o in json.loads((base / "map" / "map.json").read_text())["objects"]]
+    (small / "map.json").write_text(json.dumps(m))
+    r = invoke("localize", base / "moved", "--map", small, "--out", out)
+    assert r.exit_code == 2 and isinstance(r.exception, SystemExit)
+    last = r.stderr.splitlines()[-1]
+    assert last.startswith("spdslam: error: ") and "fewer than three usable matches" in last, last
+    assert "Traceback" not in r.stderr and not out.exists()
+    assert_error(invoke("localize", base / "moved", "--map", tmp_path / "nothing", "--out", out), "map.json")
+    assert not out.exists()
