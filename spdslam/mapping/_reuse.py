@@ -16,9 +16,9 @@ unknown, as from a monocular front end):
    refitted with Cauchy weights (scale ``tolerance``/3: an object that one recording mapped
    apart pulls less).
 4. **Refusal** (``LocalizationError``, one line): fewer than three matches; matched centres
-   on a line (the rotation about it is free); or a rival transform, ``RIVAL_DEG`` or
-   2·``tolerance`` apart, that pairs at least two objects differently and matches as many
-   (a symmetric layout).
+   on a line (the rotation about it is free); or a rival transform that pairs at least two
+   objects differently, puts the matched objects elsewhere (their median displacement
+   between the two over 2·``tolerance``) and matches as many (a symmetric layout).
 
 The covariance of the transform is that of the least-squares fit of the matched centres,
 residual variance estimated from the fit (at least ``tolerance``/3 per axis, since the map's
@@ -39,9 +39,6 @@ __all__ = ["Localization", "LocalizationError", "localize_objects", "transform_e
            "transform_poses_tum", "localized_result", "moved_sequence"]
 
 
-#: A rival transform lies at least this far in rotation (degrees), or 2·tolerance in
-#: translation, from the answer.
-RIVAL_DEG = 5.0
 #: Reweighted refits of the matched centres (Cauchy, scale ``tolerance``/3).
 IRLS_ITERATIONS = 5
 
@@ -243,13 +240,16 @@ def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance:
         if len(new) < 3:
             break
         inl = new
-    # the best rival: a transform that pairs at least two objects differently and lies apart
-    # (a nearby transform that pairs them alike is the same answer)
+    # the best rival: a transform that pairs at least two objects differently and puts the
+    # matched objects elsewhere (median displacement over 2·tolerance); a nearby transform
+    # that swaps two neighbouring objects of one label is the same answer
     best = {tuple(p) for p in cand[inl]}
+    mine = cs[cand[inl, 0]]
     runner_up, apart = 0, 0.0
-    for n, R2, t2, _, inl2 in hyps:
+    for n, R2, t2, s2, inl2 in hyps:
         differs = sum(tuple(p) not in best for p in cand[inl2]) >= 2
-        if differs and (_angle_deg(R, R2) > RIVAL_DEG or np.linalg.norm(t - t2) > 2.0 * tolerance):
+        moved = np.median(np.linalg.norm(s * mine @ R.T + t - (s2 * mine @ R2.T + t2), axis=1))
+        if differs and moved > 2.0 * tolerance:
             runner_up, apart = n, _angle_deg(R, R2)
             break
     if runner_up >= len(inl):
