@@ -6,18 +6,22 @@ pose, so that trial 0 starts at the identity as a new ORB-SLAM2 run would; S a r
 rigid motion for the other trials, seeded; under --sim3 also a random scale in [0.5, 2]),
 mapped in that frame, and localised against the map (``experiments.localize_sequence``).
 Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` transforms each.
+``--merge``: instead, the halves merged (``experiments.merge_recordings``; half 2 moved by
+the first ``--trials`` transforms) and evaluated against fr2_desk's ground truth beside the
+whole sequence's run: mean IoU, and duplicates of a matched ground-truth object.
 
 The answer is compared with the motion capture's relation of the two halves: each half's
 input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
 frame maps to the map's by M_map⁻¹ M_rec G⁻¹. Prints a row per trial and a summary, and
 writes the figures as JSON with --out.
 
-    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--out FILE]
+    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--merge] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -25,10 +29,16 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from spdslam.evaluation import trajectory_alignment
-from spdslam.experiments import localize_sequence
+from spdslam.evaluation import evaluate_run, trajectory_alignment
+from spdslam.experiments import localize_sequence, merge_recordings
 from spdslam.io import read_sequence
-from spdslam.mapping import LocalizationError, RunSettings, moved_sequence, run_sequence
+from spdslam.mapping import (
+    LocalizationError,
+    RunSettings,
+    moved_sequence,
+    run_sequence,
+    transform_ellipsoid,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 FR2 = ROOT / "../shared/data/tum_fr2_desk"
@@ -41,18 +51,69 @@ def pose_matrix(row) -> np.ndarray:
     return T
 
 
+def transform_of(rec, rng, trial: int, sim3: bool):
+    """(G, s) of a trial: the first camera at the origin, then a random S (trial > 0)."""
+    T0i = np.linalg.inv(pose_matrix(rec.poses_tum[0]))
+    S = np.eye(4)
+    if trial:
+        S[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        S[:3, 3] = rng.uniform(-3.0, 3.0, 3)
+    s = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0)))) if sim3 and trial else 1.0
+    # x ↦ s R_S (R₀ᵀ x − R₀ᵀ t₀) + t_S: the first camera at the origin, then S (scaled)
+    G = np.eye(4)
+    G[:3, :3] = S[:3, :3] @ T0i[:3, :3]
+    G[:3, 3] = s * S[:3, :3] @ T0i[:3, 3] + S[:3, 3]
+    return G, s
+
+
+def summary_of(seq, result) -> dict:
+    m = evaluate_run(result.as_dict(), result.objects, result.initial_objects, result.poses_tum, seq)
+    s = m["summary"]
+    return {"objects": len(result.objects), "mean_iou": s["mean_iou"], "matched": s["matched"],
+            "duplicates": s["duplicates"], "ate_mm": 1e3 * m["ate"]["rmse"] if "ate" in m else None}
+
+
+def merge_study(fr2, halves, settings, a) -> None:
+    rng = np.random.default_rng(a.seed)
+    t0 = time.perf_counter()
+    whole = summary_of(fr2, run_sequence(fr2, settings))
+    print(f"whole sequence: {whole} ({time.perf_counter() - t0:.1f} s)")
+    map_a = run_sequence(halves[1], settings).objects
+    map_b = run_sequence(halves[2], settings).objects
+    rows = []
+    for trial in range(a.trials):
+        G, s = transform_of(halves[2], rng, trial, a.sim3)
+        seq_b = moved_sequence(halves[2], G, s)
+        objs_b = [dataclasses.replace(o, ellipsoid=transform_ellipsoid(o.ellipsoid, G, s)) for o in map_b]
+        t0 = time.perf_counter()
+        result, joined, loc, doc = merge_recordings(halves[1], map_a, seq_b, objs_b, settings, sim3=a.sim3)
+        row = {"trial": trial, **summary_of(joined, result), "in_both": doc["in_both"], "only_a": doc["only_a"],
+               "only_b": doc["only_b"], "new": doc["new"], "seconds": time.perf_counter() - t0}
+        rows.append(row)
+        print(f"merge, trial {trial}: {row}")
+    out = {"whole": whole, "merges": rows}
+    print(json.dumps(out, indent=1))
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sequence", type=Path, default=FR2)
     ap.add_argument("--trials", type=int, default=10, help="transforms per direction")
     ap.add_argument("--sim3", action="store_true", help="random scale in [0.5, 2] too, localised with Sim(3)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--merge", action="store_true", help="merge the halves instead (see above)")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)
     n = len(fr2)
     halves = {1: fr2.subset(np.arange(0, n // 2)), 2: fr2.subset(np.arange(n // 2, n))}
     settings = RunSettings.of("multi-spd")
+    if a.merge:
+        return merge_study(fr2, halves, settings, a)
     maps, M = {}, {}
     for k, h in halves.items():
         t0 = time.perf_counter()
@@ -63,18 +124,8 @@ def main() -> None:
     rows = []
     for map_k, rec_k in ((1, 2), (2, 1)):
         rec = halves[rec_k]
-        T0 = pose_matrix(rec.poses_tum[0])
         for trial in range(a.trials):
-            S = np.eye(4)
-            if trial:
-                S[:3, :3] = Rotation.random(random_state=rng).as_matrix()
-                S[:3, 3] = rng.uniform(-3.0, 3.0, 3)
-            s = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0)))) if a.sim3 and trial else 1.0
-            T0i = np.linalg.inv(T0)
-            # x ↦ s R_S (R₀ᵀ x − R₀ᵀ t₀) + t_S: the first camera at the origin, then S (scaled)
-            G = np.eye(4)
-            G[:3, :3] = S[:3, :3] @ T0i[:3, :3]
-            G[:3, 3] = s * S[:3, :3] @ T0i[:3, 3] + S[:3, 3]
+            G, s = transform_of(rec, rng, trial, a.sim3)
             seq = moved_sequence(rec, G, s)
             t0 = time.perf_counter()
             row = {"map": map_k, "recording": rec_k, "trial": trial, "scale_applied": s}

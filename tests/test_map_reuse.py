@@ -179,3 +179,52 @@ def test_cli_localize_refuses_in_one_line_and_writes_nothing(room, tmp_path):
     assert "Traceback" not in r.stderr and not out.exists()
     assert_error(invoke("localize", base / "moved", "--map", tmp_path / "nothing", "--out", out), "map.json")
     assert not out.exists()
+
+
+def test_map_reuse_md_python_block_runs(room, tmp_path, monkeypatch):
+    """docs/map-reuse.md's Python block, run where map1/ is a saved map and day2/ the same
+    room moved: it localises."""
+    import re
+    import shutil
+    from pathlib import Path
+
+    base, G = room
+    if not (base / "map").exists():
+        assert_ok(invoke("run", base / "room", "--out", base / "map"))
+    shutil.copytree(base / "map", tmp_path / "map1")
+    shutil.copytree(base / "moved", tmp_path / "day2")
+    doc = Path(__file__).resolve().parents[1] / "docs" / "map-reuse.md"
+    blocks = re.findall(r"```python\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    assert len(blocks) == 1
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {"__name__": "docs_map_reuse"}
+    exec(compile(blocks[0], f"{doc}:block1", "exec"), scope)
+    loc = scope["loc"]
+    assert len(loc.matches) >= 3
+    np.testing.assert_allclose(loc.T_map_sequence @ G, np.eye(4), atol=0.02)
+
+
+def test_cli_merge_makes_one_object_of_each_seen_twice(room, tmp_path):
+    """The room and the same room moved (a second recording of one place): the merged map
+    has each object once, continuing one object of each run."""
+    base, _ = room
+    if not (base / "map").exists():
+        assert_ok(invoke("run", base / "room", "--out", base / "map"))
+    assert_ok(invoke("run", base / "moved", "--out", tmp_path / "b"))
+    out = tmp_path / "merged"
+    r = invoke("merge", base / "map", tmp_path / "b", "--out", out)
+    assert_ok(r)
+    assert "merged:" in r.output
+    doc = json.loads((out / "merge.json").read_text())
+    n = len(json.loads((base / "map" / "map.json").read_text())["objects"])
+    assert doc["in_both"] == n and doc["only_a"] == doc["only_b"] == doc["new"] == 0
+    assert doc["a_not_kept"] == [] and doc["b_not_kept"] == []
+    assert len(json.loads((out / "map.json").read_text())["objects"]) == n
+    assert len(np.loadtxt(out / "trajectory.txt")) == 80  # both recordings' frames
+    # a run whose map.json does not say where its sequence is needs --sequence-b
+    m = json.loads((tmp_path / "b" / "map.json").read_text())
+    m.pop("sequence")
+    (tmp_path / "b" / "map.json").write_text(json.dumps(m))
+    assert_error(invoke("merge", base / "map", tmp_path / "b", "--out", tmp_path / "m2"),
+                 "records no sequence", "--sequence-b")
+    assert not (tmp_path / "m2").exists()

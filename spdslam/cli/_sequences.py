@@ -395,6 +395,82 @@ def localize(
     console.print(f"wrote {out}")
 
 
+def _recorded_sequence(run: Path, doc: dict, given: Path | None, option: str) -> Path:
+    """The sequence of a run: ``given``, else the one its map.json records."""
+    if given is not None:
+        return given
+    path = doc.get("sequence")
+    if not isinstance(path, str):
+        fail(f"{run}: its map.json records no sequence: give {option}")
+    return Path(path)
+
+
+@app.command()
+def merge(
+    run_a: Path = typer.Argument(..., help="A run's output folder (spdslam run): the result is in its frame."),
+    run_b: Path = typer.Argument(..., help="A second run's output folder, of the same place."),
+    out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
+    sequence_a: Path | None = typer.Option(None, help="RUN_A's sequence (default: the one its map.json records)."),
+    sequence_b: Path | None = typer.Option(None, help="RUN_B's sequence (default: the one its map.json records)."),
+    sim3: bool = typer.Option(False, "--sim3", help="Also estimate B's scale against A's."),
+    match_tolerance: float = typer.Option(0.15, help="Metres within which a matched object's centre must land."),
+    method: str = typer.Option("multi-spd", help=_METHOD_HELP),
+    overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequences have images."),
+    overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
+) -> None:
+    """One map of two recordings of the same place.
+
+    Localises RUN_B's objects against RUN_A's (as localize does), moves B's sequence into A's
+    frame, appends it to A's and maps the two as one sequence: an object seen in both becomes
+    one, estimated from both recordings' boxes. Writes the usual run outputs and
+    OUT/merge.json: for each object, the object of A and of B it continues, and the counts of
+    objects in both, only in A, only in B (docs/map-reuse.md).
+    """
+    from ..experiments import merge_recordings, write_run
+    from ..io import MapFormatError, dumps_strict, read_map
+    from ..mapping import LocalizationError
+
+    if not (math.isfinite(match_tolerance) and match_tolerance > 0):
+        fail(f"--match-tolerance: expected a positive number of metres, got {match_tolerance}")
+    settings = _settings(method)
+    maps = []
+    for run, option in ((run_a, "RUN_A"), (run_b, "RUN_B")):
+        try:
+            maps.append(read_map(run))
+        except MapFormatError as e:
+            fail(str(e))
+        except OSError as e:
+            fail(f"{option}: cannot read {run}: {e.strerror or e}")
+    (doc_a, objects_a), (doc_b, objects_b) = maps
+    path_a = _recorded_sequence(run_a, doc_a, sequence_a, "--sequence-a")
+    path_b = _recorded_sequence(run_b, doc_b, sequence_b, "--sequence-b")
+    for p in (path_a, path_b):
+        _sequence_path(p)
+    check_output(out, [run_a, run_b, path_a, path_b])
+    _check_out(out, overwrite)
+    seq_a, seq_b = _load_sequence(path_a), _load_sequence(path_b)
+    try:
+        result, joined, loc, doc = merge_recordings(seq_a, objects_a, seq_b, objects_b, settings, sim3=sim3,
+                                                    tolerance=match_tolerance, progress=_progress)
+    except LocalizationError as e:
+        fail(f"cannot merge {run_b} into {run_a}: {e}")
+    except ValueError as e:
+        fail(f"{seq_a.name}+{seq_b.name}: {e}")
+    try:
+        metrics = write_run(out, joined, result, overlay=overlay, overwrite=overwrite,
+                            extra={"merge.json": dumps_strict(doc) + "\n"})
+    except FileExistsError as e:
+        fail(f"--out: {e}")
+    except OSError as e:
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    _print_result(result)
+    console.print(f"merged: {len(result.objects)} objects: {doc['in_both']} in both recordings, {doc['only_a']} "
+                  f"only in A, {doc['only_b']} only in B, {doc['new']} in neither map before "
+                  f"(B localised from {len(loc.matches)} objects, centre rms {loc.rms:.3f} m)")
+    _print_metrics(metrics)
+    console.print(f"wrote {out}")
+
+
 @app.command()
 def evaluate(
     out: Path = typer.Argument(..., help="Output folder of spdslam run (or its map.json)."),

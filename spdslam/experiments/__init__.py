@@ -27,6 +27,7 @@ from ._figures import plot_map_top as plot_map_top
 from ._figures import plot_overlay as plot_overlay
 from ._figures import write_overlays as write_overlays
 from ._localize import localize_sequence as localize_sequence
+from ._localize import merge_recordings as merge_recordings
 from ._outputs import plot_convergence as plot_convergence
 from ._outputs import write_outputs as write_outputs
 from ._paper import MODEL_NAMES as MODEL_NAMES

@@ -40,6 +40,7 @@ from ._online import OnlineMapper as OnlineMapper
 from ._online import run_online as run_online
 from ._reuse import Localization as Localization
 from ._reuse import LocalizationError as LocalizationError
+from ._reuse import joined_sequence as joined_sequence
 from ._reuse import localize_objects as localize_objects
 from ._reuse import localized_result as localized_result
 from ._reuse import moved_sequence as moved_sequence

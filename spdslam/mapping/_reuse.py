@@ -36,7 +36,7 @@ import numpy as np
 from ..geometry import Ellipsoid, align_rigid
 
 __all__ = ["Localization", "LocalizationError", "localize_objects", "transform_ellipsoid",
-           "transform_poses_tum", "localized_result", "moved_sequence"]
+           "transform_poses_tum", "localized_result", "moved_sequence", "joined_sequence"]
 
 
 #: Reweighted refits of the matched centres (Cauchy, scale ``tolerance``/3).
@@ -128,7 +128,7 @@ def _triples(cand: np.ndarray, cs: np.ndarray, cm: np.ndarray, sim3: bool, tol: 
         pair_ok = distinct & (ds > tol) & (dm > tol)
     else:
         pair_ok = distinct & (np.abs(ds - dm) <= 2.0 * tol)
-    out = []
+    out: list[tuple[int, int, int]] = []
     for a in range(k):
         bs = np.flatnonzero(pair_ok[a, a + 1:]) + a + 1
         for b in bs:
@@ -139,10 +139,10 @@ def _triples(cand: np.ndarray, cs: np.ndarray, cm: np.ndarray, sim3: bool, tol: 
                 ok = (np.abs(dm[a, cs_] / ds[a, cs_] / s_ab - 1.0) <= 0.1) & \
                      (np.abs(dm[b, cs_] / ds[b, cs_] / s_ab - 1.0) <= 0.1)
                 cs_ = cs_[ok]
-            out.extend((a, b, c) for c in cs_)
+            out.extend((a, int(b), int(c)) for c in cs_)
             if len(out) >= max_triples:
-                return np.array(out[:max_triples], int)
-    return np.array(out, int).reshape(-1, 3)
+                return np.asarray(out[:max_triples], dtype=np.int64)
+    return np.asarray(out, dtype=np.int64).reshape(-1, 3)
 
 
 def _fit(src, dst, sim3, weights=None):
@@ -340,3 +340,32 @@ def moved_sequence(seq, T: np.ndarray, scale: float = 1.0):
                      trajectory_sigma=scaled(pr.trajectory_sigma),
                      trajectory_absolute_sigma=scaled(pr.trajectory_absolute_sigma))
     return replace(seq, poses_tum=rows, priors=pr)
+
+
+def joined_sequence(a, b, name: str | None = None):
+    """One sequence of ``a`` then ``b`` (both in one frame: ``b`` moved there first, e.g. by
+    ``moved_sequence``): b's frames, detections and measured ellipsoids renumbered after a's;
+    b's times shifted, when they do not follow a's, to start one median frame step after a's
+    last (images keyed alike). Camera, priors and ground truth are a's (the evaluation of a
+    join reads a's ground truth)."""
+    from dataclasses import replace as _replace
+
+    ta, tb = np.asarray(a.timestamps, float), np.asarray(b.timestamps, float)
+    shift = 0.0
+    if len(ta) and len(tb) and tb[0] <= ta[-1]:
+        steps = np.diff(ta)
+        shift = float(ta[-1] - tb[0] + (np.median(steps) if steps.size else 1.0))
+    n = len(a)
+    dets = list(a.detections) + [_replace(d, frame=d.frame + n, timestamp=d.timestamp + shift)
+                                 for d in b.detections]
+    ells = None
+    if a.ellipsoids is not None or b.ellipsoids is not None:
+        ells = list(a.ellipsoids or []) + [_replace(e, frame=e.frame + n, timestamp=e.timestamp + shift)
+                                           for e in b.ellipsoids or []]
+    images = None
+    if a.images or b.images:
+        images = dict(a.images or {})
+        images.update({t + shift: p for t, p in (b.images or {}).items()})
+    return _replace(a, name=name or f"{a.name}+{b.name}", timestamps=np.r_[ta, tb + shift],
+                    poses_tum=np.r_[np.asarray(a.poses_tum), np.asarray(b.poses_tum)],
+                    detections=dets, ellipsoids=ells, images=images)
