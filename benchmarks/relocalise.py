@@ -70,7 +70,8 @@ def summary_of(seq, result) -> dict:
     m = evaluate_run(result.as_dict(), result.objects, result.initial_objects, result.poses_tum, seq)
     s = m["summary"]
     return {"objects": len(result.objects), "mean_iou": s["mean_iou"], "matched": s["matched"],
-            "duplicates": s["duplicates"], "ate_mm": 1e3 * m["ate"]["rmse"] if "ate" in m else None}
+            "duplicates": s["duplicates"], "ate_mm": 1e3 * m["ate"]["optimized"]["rmse"] if "ate" in m else None,
+            "ate_input_mm": 1e3 * m["ate"]["input"]["rmse"] if "ate" in m else None}
 
 
 def merge_study(fr2, halves, settings, a) -> None:

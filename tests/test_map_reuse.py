@@ -14,7 +14,9 @@ from scipy.spatial.transform import Rotation
 
 import spdslam  # noqa: F401
 from spdslam import Camera, Ellipsoid, look_at, project_box
+from spdslam.geometry import align_rigid
 from spdslam.io import MapObject, read_sequence, write_sequence
+from spdslam.solver import X
 from spdslam.mapping import (
     LocalizationError,
     localize_objects,
@@ -228,3 +230,43 @@ def test_cli_merge_makes_one_object_of_each_seen_twice(room, tmp_path):
     assert_error(invoke("merge", base / "map", tmp_path / "b", "--out", tmp_path / "m2"),
                  "records no sequence", "--sequence-b")
     assert not (tmp_path / "m2").exists()
+
+
+def test_segments_are_checked_and_follow_a_subset():
+    seq = make_room_sequence(0, frames=20, objects=3)
+    joined = replace(seq, segments=(10,))
+    assert joined.subset(np.arange(0, 20, 3)).segments == (4,)  # frame 12 is the first kept from 10 on
+    assert joined.subset(np.arange(0, 10)).segments == ()
+    assert joined != seq and joined == replace(seq, segments=(10,))
+    for bad in ((0,), (20,), (12, 5)):
+        with pytest.raises(ValueError, match="segments must be increasing"):
+            replace(seq, segments=bad)
+
+
+def test_a_joined_recording_moves_as_one_body_onto_the_objects_it_shares():
+    """The room recorded twice, the second copy placed 8 cm and 2° off (a localisation's
+    error): mapped as one joined sequence, the second copy moves as one body (no odometry
+    across the junction, each pose bounded relative to the copy's first) towards the first
+    copy's poses (the same camera path): the offset more than halves (to 6 cm here, mostly
+    vertical; docs/map-reuse.md)."""
+    from spdslam.mapping import METHODS, build_graph, joined_sequence, run_sequence
+
+    seq = make_room_sequence(1, frames=40, objects=4)
+    seq = replace(seq, priors=seq.priors.replace(trajectory_absolute_sigma=np.array([0.002, 0.002])))
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix()
+    off[:3, 3] = [0.08, 0.0, 0.0]
+    joined = joined_sequence(seq, moved_sequence(seq, off))
+    assert joined.segments == (40,) and len(joined) == 80
+    graph = build_graph(joined, [], {}, METHODS["multi-spd"], "inverse")  # the trajectory's factors
+    keys = {f.keys for f in graph if f.kind == "between"}
+    assert (X(38), X(39)) in keys and (X(40), X(41)) in keys and (X(40), X(79)) in keys
+    assert (X(39), X(40)) not in keys  # nothing across the junction
+    result = run_sequence(joined, "multi-spd")
+    a, b = result.poses_tum[:40, 1:4], result.poses_tum[40:, 1:4]
+    given = moved_sequence(seq, off).poses_tum[:, :3]
+    before = np.linalg.norm(given - seq.poses_tum[:, :3], axis=1)
+    after = np.linalg.norm(b - a, axis=1)
+    assert np.median(after) < 0.5 * np.median(before), (np.median(before), np.median(after))
+    R, t, _ = align_rigid(b, given)  # one body: the copy's shape is its input's
+    assert np.max(np.linalg.norm(b @ R.T + t - given, axis=1)) < 0.005

@@ -235,7 +235,12 @@ class Priors:
 class Sequence:
     """A sequence: camera, trajectory (TUM rows, camera-to-world), detections and the
     optional ground truth, priors, images and measured ellipsoids
-    (:class:`EllipsoidDetection`, ``ellipsoids.txt``)."""
+    (:class:`EllipsoidDetection`, ``ellipsoids.txt``).
+
+    ``segments``: the first frame of each recording after the first, in a sequence joined
+    from several (``mapping.joined_sequence``): their trajectories are not linked by odometry,
+    and a later recording's poses move together, placed by the objects it shares with the
+    first. Not written to a sequence folder."""
 
     name: str
     camera: Camera
@@ -247,12 +252,17 @@ class Sequence:
     priors: Priors | None = None
     images: dict | None = None
     ellipsoids: list | None = None
+    segments: tuple = ()
 
     def __post_init__(self):
         t = frozen_array(self.timestamps)
         if t.ndim != 1:
             raise ValueError(f"timestamps must have shape (N,), got {t.shape}")
         object.__setattr__(self, "timestamps", t)
+        seg = tuple(int(k) for k in self.segments)
+        if any(not 0 < k < t.size for k in seg) or any(b <= a for a, b in zip(seg, seg[1:])):
+            raise ValueError(f"segments must be increasing frame indices in 1…{t.size - 1}, got {list(seg)}")
+        object.__setattr__(self, "segments", seg)
         object.__setattr__(self, "poses_tum", frozen_array(self.poses_tum, (t.size, 7)))
         object.__setattr__(self, "detections", list(self.detections))
         if self.objects_gt is not None:
@@ -289,9 +299,11 @@ class Sequence:
         ells = None if self.ellipsoids is None else [
             dataclasses.replace(e, frame=int(new[e.frame])) for e in self.ellipsoids
             if new[e.frame] >= 0]
+        # a segment starts at the first kept frame at or after its start
+        starts = sorted({int(k) for k in np.searchsorted(frames, self.segments)} - {0, frames.size})
         return dataclasses.replace(self, timestamps=self.timestamps[frames],
                                    poses_tum=self.poses_tum[frames], detections=dets,
-                                   ellipsoids=ells)
+                                   ellipsoids=ells, segments=tuple(starts))
 
     def detections_at(self, frame: int) -> list:
         """The detections of trajectory index ``frame``."""
@@ -312,6 +324,7 @@ class Sequence:
 
         return (
             self.name == other.name
+            and self.segments == other.segments
             and self.camera == other.camera
             and arrays_close(self.timestamps, other.timestamps)
             and arrays_close(self.poses_tum, other.poses_tum)

@@ -172,18 +172,44 @@ def absolute_sigma(s: dict):
     return np.r_[np.full(3, big if np.isinf(t) else t), np.full(3, big if np.isinf(r) else r)]
 
 
+#: σ (v m, ω rad) of the prior on the first pose of each later segment of a joined sequence,
+#: at the pose it was given (``Sequence.segments``): weak beside the objects it shares with
+#: the first segment, it only fixes what they leave free.
+SEGMENT_PRIOR_SIGMA = np.r_[np.full(3, 0.1), np.full(3, 0.05)]
+
+
 def _odometry(ctx: SequenceContext, s: dict) -> list:
+    """The trajectory's factors: a prior on the first pose, the odometry between consecutive
+    poses and, unless unbounded, a prior on each later pose; in a joined sequence
+    (``Sequence.segments``) no odometry across a segment's start, and a later segment's poses
+    bounded relative to its first pose instead of where they were given (between factors with
+    the per-pose σ), so that the segment moves as one body, placed by the objects it shares
+    (and held weakly at its first pose, ``SEGMENT_PRIOR_SIGMA``)."""
     q = ctx.wxyz_xyz
     # T_i⁻¹ T_{i+1}; jaxlie takes NumPy arrays
     steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # type: ignore[arg-type]
     out: list = [PriorFactor(X(0), ctx.poses[0], sigma=s["first_pose"])]
     odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
     n = len(steps)
-    if n:
-        out.append(BetweenFactor.many([X(i) for i in range(n)], [X(i + 1) for i in range(n)], steps, sigma=odo))
+    starts = ctx.seq.segments
+    linked = np.ones(n, bool)
+    linked[[k - 1 for k in starts]] = False
+    i = np.flatnonzero(linked)
+    if i.size:
+        out.append(BetweenFactor.many([X(int(k)) for k in i], [X(int(k) + 1) for k in i], steps[i], sigma=odo))
+    for k in starts:  # a weak hold where the segment was placed: its gauge if objects do not fix it
+        out.append(PriorFactor(X(k), ctx.poses[k], sigma=SEGMENT_PRIOR_SIGMA))
     pose_sigma = absolute_sigma(s)
-    if pose_sigma is not None and n:
-        out.append(PriorFactor.many([X(i) for i in range(1, n + 1)], q[1:], sigma=pose_sigma))
+    last = starts[0] if starts else n + 1  # frames 1 … last − 1 are bounded
+    if pose_sigma is not None and last > 1:
+        out.append(PriorFactor.many([X(k) for k in range(1, last)], q[1:last], sigma=pose_sigma))
+    if pose_sigma is not None:  # a later segment: each pose bounded relative to its first
+        for k0, k1 in zip(starts, [*starts[1:], n + 1]):
+            if k1 - k0 > 1:
+                rel = np.asarray((jaxlie.SE3(np.broadcast_to(q[k0], (k1 - k0 - 1, 7))).inverse()  # type: ignore[arg-type]
+                                  @ jaxlie.SE3(q[k0 + 1:k1])).wxyz_xyz)  # type: ignore[arg-type]
+                out.append(BetweenFactor.many([X(k0)] * (k1 - k0 - 1), [X(k) for k in range(k0 + 1, k1)], rel,
+                                              sigma=pose_sigma))
     return out
 
 

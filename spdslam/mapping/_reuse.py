@@ -344,7 +344,9 @@ def moved_sequence(seq, T: np.ndarray, scale: float = 1.0):
 
 def joined_sequence(a, b, name: str | None = None):
     """One sequence of ``a`` then ``b`` (both in one frame: ``b`` moved there first, e.g. by
-    ``moved_sequence``): b's frames, detections and measured ellipsoids renumbered after a's;
+    ``moved_sequence``), b starting a segment (``Sequence.segments``: no odometry links the
+    two, and b's poses move together when it is mapped); b's frames, detections and
+    measured ellipsoids renumbered after a's;
     b's times shifted, when they do not follow a's, to start one median frame step after a's
     last (images keyed alike). Camera, priors and ground truth are a's (the evaluation of a
     join reads a's ground truth)."""
@@ -368,4 +370,5 @@ def joined_sequence(a, b, name: str | None = None):
         images.update({t + shift: p for t, p in (b.images or {}).items()})
     return _replace(a, name=name or f"{a.name}+{b.name}", timestamps=np.r_[ta, tb + shift],
                     poses_tum=np.r_[np.asarray(a.poses_tum), np.asarray(b.poses_tum)],
-                    detections=dets, ellipsoids=ells, images=images)
+                    detections=dets, ellipsoids=ells, images=images,
+                    segments=(*a.segments, n, *(k + n for k in b.segments)))
