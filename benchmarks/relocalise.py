@@ -9,13 +9,17 @@ Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` tran
 ``--merge``: instead, the halves merged (``experiments.merge_recordings``; half 2 moved by
 the first ``--trials`` transforms) and evaluated against fr2_desk's ground truth beside the
 whole sequence's run: mean IoU, and duplicates of a matched ground-truth object.
+``--drift``: instead, fr2_desk's odometry with added drift (each frame step composed with
+Exp(n), n ~ N(0, diag(σ_t² I₃, σ_r² I₃)), seeded, at the rates of ``--rates``), mapped with
+the per-pose bound off (``trajectory_absolute_sigma: .inf``): ATE and mean IoU of the input
+and of the run.
 
 The answer is compared with the motion capture's relation of the two halves: each half's
 input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
 frame maps to the map's by M_map⁻¹ M_rec G⁻¹. Prints a row per trial and a summary, and
 writes the figures as JSON with --out.
 
-    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--merge] [--out FILE]
+    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--merge | --drift] [--out FILE]
 """
 
 from __future__ import annotations
@@ -74,6 +78,40 @@ def summary_of(seq, result) -> dict:
             "ate_input_mm": 1e3 * m["ate"]["input"]["rmse"] if "ate" in m else None}
 
 
+def drifted(seq, sigma_t: float, sigma_r: float, seed: int):
+    """``seq`` with a random walk added to its odometry (module docstring), unbounded."""
+    rng = np.random.default_rng(seed)
+    T = [pose_matrix(r) for r in seq.poses_tum]
+    out = [T[0]]
+    for i in range(1, len(T)):
+        n = rng.normal(0, sigma_r, 3)
+        step = np.linalg.inv(T[i - 1]) @ T[i]
+        E = np.eye(4)
+        E[:3, :3] = Rotation.from_rotvec(n).as_matrix()
+        E[:3, 3] = rng.normal(0, sigma_t, 3)
+        out.append(out[-1] @ step @ E)
+    rows = np.array([np.r_[M[:3, 3], Rotation.from_matrix(M[:3, :3]).as_quat()] for M in out])
+    priors = seq.priors.replace(trajectory_absolute_sigma=np.array([np.inf, np.inf]))
+    return dataclasses.replace(seq, poses_tum=rows, priors=priors)
+
+
+def drift_study(fr2, settings, a) -> None:
+    rows = []
+    for item in a.rates.split(","):
+        st, sr = (float(x) for x in item.split(":"))
+        seq = drifted(fr2, st, sr, a.seed)
+        t0 = time.perf_counter()
+        r = run_sequence(seq, settings)
+        row = {"sigma_t": st, "sigma_r": sr, **summary_of(seq, r), "seconds": time.perf_counter() - t0}
+        rows.append(row)
+        print(f"drift {st} m, {sr} rad per frame: {row}")
+    print(json.dumps(rows, indent=1))
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps({"drift": rows}, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
+
+
 def merge_study(fr2, halves, settings, a) -> None:
     rng = np.random.default_rng(a.seed)
     t0 = time.perf_counter()
@@ -107,6 +145,9 @@ def main() -> None:
     ap.add_argument("--sim3", action="store_true", help="random scale in [0.5, 2] too, localised with Sim(3)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--merge", action="store_true", help="merge the halves instead (see above)")
+    ap.add_argument("--drift", action="store_true", help="drifted odometry instead (see above)")
+    ap.add_argument("--rates", default="0:0,0.0005:0.00025,0.001:0.0005,0.002:0.001",
+                    help="σ_t:σ_r (m:rad per frame) of --drift, comma-separated")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)
@@ -115,6 +156,8 @@ def main() -> None:
     settings = RunSettings.of("multi-spd")
     if a.merge:
         return merge_study(fr2, halves, settings, a)
+    if a.drift:
+        return drift_study(fr2, settings, a)
     maps, M = {}, {}
     for k, h in halves.items():
         t0 = time.perf_counter()
