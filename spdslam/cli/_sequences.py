@@ -180,10 +180,22 @@ def _print_latency(records, rate) -> None:
                   + (f" (frame period {1e3 / rate:.3g} ms)" if rate else ""))
 
 
+def _write_run(out, seq, result, **options) -> dict:
+    """``experiments.write_run``, its errors as one line."""
+    from ..experiments import write_run
+
+    try:
+        return write_run(out, seq, result, **options)
+    except FileExistsError as e:
+        fail(f"--out: {e}")
+    except OSError as e:  # the folder became unwritable, the disk is full, …
+        fail(f"--out: cannot write {out}: {e.strerror or e}")
+
+
 def _run_and_write(seq, settings, out, overwrite, overlay, source=None):
     """Map ``seq`` with ``settings`` (``experiments.map_sequence``) and write the run's folder
     ``out`` (``experiments.write_outputs``); errors as one line."""
-    from ..experiments import frame_rate, map_sequence, write_run
+    from ..experiments import frame_rate, map_sequence
 
     _check_out(out, overwrite)
     try:
@@ -192,13 +204,7 @@ def _run_and_write(seq, settings, out, overwrite, overlay, source=None):
         fail(f"{seq.name}: {e}")
     if records is not None:
         _print_latency(records, frame_rate(seq))
-    try:
-        metrics = write_run(out, seq, result, records, overlay=overlay, overwrite=overwrite,
-                            source=source)
-    except FileExistsError as e:
-        fail(f"--out: {e}")
-    except OSError as e:  # the folder became unwritable, the disk is full, …
-        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    metrics = _write_run(out, seq, result, records=records, overlay=overlay, overwrite=overwrite, source=source)
     _print_result(result)
     _print_metrics(metrics)
     console.print(f"wrote {out}")
@@ -347,7 +353,7 @@ def localize(
     """
     import numpy as np
 
-    from ..experiments import localize_sequence, write_run
+    from ..experiments import localize_sequence
     from ..io import MapFormatError, dumps_strict, read_map
     from ..mapping import LocalizationError
 
@@ -374,13 +380,8 @@ def localize(
         fail(f"{seq.name}: {e}")
     up = None if seq.priors is None or seq.priors.up is None else \
         loc.T_map_sequence[:3, :3] @ np.asarray(seq.priors.up, float)
-    try:
-        metrics = write_run(out, seq, moved, overlay=overlay, overwrite=overwrite, source=sequence, up=up,
-                            extra={"localization.json": dumps_strict(doc) + "\n"})
-    except FileExistsError as e:
-        fail(f"--out: {e}")
-    except OSError as e:
-        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    metrics = _write_run(out, seq, moved, overlay=overlay, overwrite=overwrite, source=sequence, up=up,
+                         extra={"localization.json": dumps_strict(doc) + "\n"})
     _print_result(moved)
     R = loc.T_map_sequence[:3, :3]
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
@@ -426,7 +427,7 @@ def merge(
     OUT/merge.json: for each object, the object of A and of B it continues, and the counts of
     objects in both, only in A, only in B (docs/map-reuse.md).
     """
-    from ..experiments import merge_recordings, write_run
+    from ..experiments import merge_recordings
     from ..io import MapFormatError, dumps_strict, read_map
     from ..mapping import LocalizationError
 
@@ -456,13 +457,8 @@ def merge(
         fail(f"cannot merge {run_b} into {run_a}: {e}")
     except ValueError as e:
         fail(f"{seq_a.name}+{seq_b.name}: {e}")
-    try:
-        metrics = write_run(out, joined, result, overlay=overlay, overwrite=overwrite,
-                            extra={"merge.json": dumps_strict(doc) + "\n"})
-    except FileExistsError as e:
-        fail(f"--out: {e}")
-    except OSError as e:
-        fail(f"--out: cannot write {out}: {e.strerror or e}")
+    metrics = _write_run(out, joined, result, overlay=overlay, overwrite=overwrite,
+                         extra={"merge.json": dumps_strict(doc) + "\n"})
     _print_result(result)
     console.print(f"merged: {len(result.objects)} objects: {doc['in_both']} in both recordings, {doc['only_a']} "
                   f"only in A, {doc['only_b']} only in B, {doc['new']} in neither map before "
