@@ -179,7 +179,8 @@ def _angle_deg(Ra, Rb) -> float:
 
 
 def _covariance(cs, R, t, s, residuals, tol, sim3):
-    """Covariance of the fit in left-perturbation coordinates (module docstring)."""
+    """Covariance of the fit in left-perturbation coordinates (module docstring): for each
+    matched centre y = s R c + t, ∂(Exp(ξ)·y)/∂ξ = [I, −[y]×, y] (the last under Sim(3))."""
     y = s * cs @ R.T + t
     n = len(y)
     rows = []
@@ -187,8 +188,8 @@ def _covariance(cs, R, t, s, residuals, tol, sim3):
         J = np.zeros((3, 7 if sim3 else 6))
         J[:, :3] = np.eye(3)
         J[:, 3:6] = -np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
-        if sim3:
-            J[:, 6] = p - t
+        if sim3:  # Exp of the scale multiplies the transformed point
+            J[:, 6] = p
         rows.append(J)
     J = np.concatenate(rows)
     dof = max(3 * n - J.shape[1], 1)
