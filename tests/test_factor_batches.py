@@ -144,3 +144,15 @@ def test_a_key_column_of_mixed_types_is_laid_out_one_by_one():
     np.testing.assert_array_equal(ha, hb)
     np.testing.assert_array_equal(ga, gb)
     assert ca == cb
+
+
+def test_the_batched_solver_takes_a_list_with_batches():
+    """A plain list holding a FactorBatch is laid out like the same factors one by one by
+    the batched solver too."""
+    from spdslam.solver import BatchedProblem
+
+    poses, boxes, steps, values = _scene(n_poses=6, n_objects=1)
+    one, many = _graphs(poses, boxes, steps)
+    a = BatchedProblem(list(one), values)
+    b = BatchedProblem(many.entries(), values)
+    assert len(a.factors) == len(b.factors) and [f.keys for f in a.factors] == [f.keys for f in b.factors]

@@ -51,6 +51,7 @@ from ._compile import (
     compiled_executable,
     shape_signature,
 )
+from ._graph import NonlinearFactorGraph
 from ._lm import (
     CONVERGED_REASONS,
     HYPER,
@@ -185,7 +186,7 @@ class BatchedProblem:
             values = Values(values)
         self.template_values = values
         self.fixed = list(fixed)
-        self.factors = list(graph)
+        self.factors = list(NonlinearFactorGraph(graph))  # batches (FactorBatch) one by one
         self._init_from_problem(Problem(self.factors, values, self.fixed))
 
     def _set_optimizer(self, optimizer):
