@@ -311,6 +311,10 @@ OBJECT_FACTORS: dict[str, ObjectFactorRule] = {r.name: r for r in (
 )}
 
 
+#: ``box_factors`` makes up to this many boxes one by one, more as one ``FactorBatch``.
+FEW_BOXES = 4
+
+
 def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
                  robust) -> list:
     """The box factor of each of the track's detections (module docstring)."""
@@ -321,6 +325,9 @@ def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: 
     if box_model == "inverse":
         size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
         sigma = sigma + s[box_factor.kind + "_relative"] * size
+    if len(boxes) <= FEW_BOXES:  # the online mapper's new views: plain factors are quicker to make
+        return [box_factor(X(f), L(track.id), b, ctx.camera, sigma=sg, robust=robust,
+                           truncation_margin=method.margin) for f, b, sg in zip(track.frames, boxes, sigma)]
     return [box_factor.many([X(f) for f in track.frames], L(track.id), boxes, ctx.camera, sigma=sigma,
                             robust=robust, truncation_margin=method.margin)]
 
