@@ -4,11 +4,14 @@ fr2_desk is cut into its two halves. One half is mapped as it is (the map); the 
 re-expressed as a new recording would be: every pose moved by G = S · T₀⁻¹ (T₀ its first
 pose, so that trial 0 starts at the identity as a new ORB-SLAM2 run would; S a random
 rigid motion for the other trials, seeded; under --sim3 also a random scale in [0.5, 2]),
-mapped in that frame, and localised against the map (``experiments.localize_sequence``).
+mapped in that frame, and localised against the map (``experiments.localize_sequence``:
+from the objects, then refined with the recording's boxes; both answers are scored).
 Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` transforms each.
 ``--merge``: instead, the halves merged (``experiments.merge_recordings``; half 2 moved by
 the first ``--trials`` transforms) and evaluated against fr2_desk's ground truth beside the
 whole sequence's run: mean IoU, and duplicates of a matched ground-truth object.
+``--online``: instead, each half replayed frame by frame through a ``LocalizingMapper``
+holding the other half's map: when it localised, and the final transform's error.
 ``--drift``: instead, fr2_desk's odometry with added drift (each frame step composed with
 Exp(n), n ~ N(0, diag(σ_t² I₃, σ_r² I₃)), seeded, at the rates of ``--rates``), mapped with
 the per-pose bound off (``trajectory_absolute_sigma: .inf``): ATE and mean IoU of the input
@@ -19,7 +22,7 @@ input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the
 frame maps to the map's by M_map⁻¹ M_rec G⁻¹. Prints a row per trial and a summary, and
 writes the figures as JSON with --out.
 
-    python3 benchmarks/relocalise.py [--trials 10] [--sim3] [--merge | --drift] [--out FILE]
+    python3 benchmarks/relocalise.py [--trials 10] [--sim3 [--refine-scale]] [--merge | --drift | --online] [--out FILE]
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from spdslam.experiments import localize_sequence, merge_recordings
 from spdslam.io import read_sequence
 from spdslam.mapping import (
     LocalizationError,
+    LocalizingMapper,
     RunSettings,
     moved_sequence,
     run_sequence,
@@ -68,6 +72,58 @@ def transform_of(rec, rng, trial: int, sim3: bool):
     G[:3, :3] = S[:3, :3] @ T0i[:3, :3]
     G[:3, 3] = s * S[:3, :3] @ T0i[:3, 3] + S[:3, 3]
     return G, s
+
+
+def error_of(M, map_k: int, rec_k: int, G, s: float, c0):
+    """(T, scale) ↦ (rotation error °, translation error m at the point c0 of the recording's
+    frame, scale error) against the truth: the recording's frame → its ORB frame (G⁻¹, scale
+    1/s) → the map's ORB frame (M_map⁻¹ M_rec)."""
+    Rg, tg = G[:3, :3], G[:3, 3]
+    Minv = np.linalg.inv(M[map_k]) @ M[rec_k]
+    R_true = Minv[:3, :3] @ Rg.T
+    t_true = Minv[:3, :3] @ (-Rg.T @ tg / s) + Minv[:3, 3]
+
+    def errors(T_est, s_est):
+        R_est, t_est = np.asarray(T_est)[:3, :3], np.asarray(T_est)[:3, 3]
+        return (float(np.degrees(Rotation.from_matrix(R_est.T @ R_true).magnitude())),
+                float(np.linalg.norm(s_est * R_est @ c0 + t_est - (R_true @ c0 / s + t_true))),
+                float(s_est * s - 1.0))
+
+    return errors
+
+
+def online_study(halves, maps, M, settings, a) -> None:
+    """Each half replayed frame by frame through a ``LocalizingMapper`` holding the other
+    half's map (trial 0's transform: the recording starts at the identity): the frame at
+    which it localised, the time its tries took, and the error of the final transform."""
+    rows = []
+    for map_k, rec_k in ((1, 2), (2, 1)):
+        rec = halves[rec_k]
+        G, s = transform_of(rec, np.random.default_rng(a.seed), 0, False)
+        seq = moved_sequence(rec, G, s)
+        mapper = LocalizingMapper(maps[map_k], seq.camera, seq.priors, settings)
+        by_frame: dict = {}
+        for d in seq.detections:
+            by_frame.setdefault(d.frame, []).append(d)
+        t0 = time.perf_counter()
+        for i in range(len(seq)):
+            mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
+        result = mapper.finish()
+        loc = mapper.localization
+        row = {"map": map_k, "recording": rec_k, "frames": len(seq), "localized_at": mapper.localized_at,
+               "localize_seconds": mapper.localize_seconds, "seconds": time.perf_counter() - t0,
+               "objects": len(result.objects), "map_objects": len(maps[map_k])}
+        if loc is not None:
+            rot, trans, _ = error_of(M, map_k, rec_k, G, s, seq.poses_tum[0, :3])(loc.T_map_sequence, loc.scale)
+            row.update(rotation_deg=rot, translation_m=trans, matches=len(loc.matches),
+                       frame_ms=1e3 * float(np.percentile([r.seconds for r in mapper.records], 99)))
+        rows.append(row)
+        print(f"online, map {map_k} ← half {rec_k}: {row}")
+    print(json.dumps(rows, indent=1))
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps({"online": rows}, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
 
 
 def summary_of(seq, result) -> dict:
@@ -143,9 +199,13 @@ def main() -> None:
     ap.add_argument("--sequence", type=Path, default=FR2)
     ap.add_argument("--trials", type=int, default=10, help="transforms per direction")
     ap.add_argument("--sim3", action="store_true", help="random scale in [0.5, 2] too, localised with Sim(3)")
+    ap.add_argument("--refine-scale", action="store_true",
+                    help="with --sim3: the boxes refine the scale too (by default it stays the objects' layout's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--merge", action="store_true", help="merge the halves instead (see above)")
     ap.add_argument("--drift", action="store_true", help="drifted odometry instead (see above)")
+    ap.add_argument("--online", action="store_true",
+                    help="each half replayed through a LocalizingMapper holding the other's map instead")
     ap.add_argument("--rates", default="0:0,0.0005:0.00025,0.001:0.0005,0.002:0.001",
                     help="σ_t:σ_r (m:rad per frame) of --drift, comma-separated")
     ap.add_argument("--out", type=Path, default=None)
@@ -164,6 +224,8 @@ def main() -> None:
         maps[k] = run_sequence(h, settings).objects
         M[k] = trajectory_alignment(np.c_[h.timestamps, h.poses_tum], h.groundtruth_tum)
         print(f"map of half {k}: {len(maps[k])} objects ({time.perf_counter() - t0:.1f} s)")
+    if a.online:
+        return online_study(halves, maps, M, settings, a)
     rng = np.random.default_rng(a.seed)
     rows = []
     for map_k, rec_k in ((1, 2), (2, 1)):
@@ -174,36 +236,40 @@ def main() -> None:
             t0 = time.perf_counter()
             row = {"map": map_k, "recording": rec_k, "trial": trial, "scale_applied": s}
             try:
-                _, loc, doc = localize_sequence(seq, maps[map_k], settings, sim3=a.sim3)
+                _, loc, doc = localize_sequence(seq, maps[map_k], settings, sim3=a.sim3, refine_scale=a.refine_scale)
             except LocalizationError as e:
                 row.update(localised=False, reason=str(e), seconds=time.perf_counter() - t0)
                 rows.append(row)
                 print(f"map {map_k} ← half {rec_k}, trial {trial}: refused: {e}")
                 continue
-            # truth: recording frame → its ORB frame (G⁻¹, scale 1/s) → map's ORB frame (M_map⁻¹ M_rec)
-            Rg, tg = G[:3, :3], G[:3, 3]
-            Minv = np.linalg.inv(M[map_k]) @ M[rec_k]
-            R_true = Minv[:3, :3] @ Rg.T
-            t_true = Minv[:3, :3] @ (-Rg.T @ tg / s) + Minv[:3, 3]
-            R_est, t_est = loc.T_map_sequence[:3, :3], loc.T_map_sequence[:3, 3]
-            rot = float(np.degrees(Rotation.from_matrix(R_est.T @ R_true).magnitude()))
-            # the translation error where it matters: the recording's first camera
-            c0 = seq.poses_tum[0, :3]
-            trans = float(np.linalg.norm(loc.scale * R_est @ c0 + t_est - (R_true @ c0 / s + t_true)))
-            scale_err = float(loc.scale * s - 1.0)
+            errors = error_of(M, map_k, rec_k, G, s, seq.poses_tum[0, :3])
+            rot, trans, scale_err = errors(loc.T_map_sequence, loc.scale)
             row.update(localised=True, rotation_deg=rot, translation_m=trans, scale_error=scale_err,
                        matches=len(loc.matches), runner_up=loc.runner_up, center_rms=loc.rms,
                        agreement_iou=doc.get("agreement", {}).get("iou"), seconds=time.perf_counter() - t0)
+            if "from_objects" in doc:  # the transform of the objects alone, before the boxes refined it
+                o = doc["from_objects"]
+                row["objects_only"] = dict(zip(("rotation_deg", "translation_m", "scale_error"),
+                                               errors(o["T_map_sequence"], o["scale"])))
             rows.append(row)
+            before = row.get("objects_only")
             print(f"map {map_k} ← half {rec_k}, trial {trial}: {len(loc.matches)} matches (rival "
                   f"{loc.runner_up}), rotation error {rot:.2f}°, translation error {100 * trans:.1f} cm"
-                  + (f", scale error {100 * scale_err:+.2f} %" if a.sim3 else "") + f" ({row['seconds']:.1f} s)")
+                  + (f", scale error {100 * scale_err:+.2f} %" if a.sim3 else "")
+                  + (f" (objects alone: {before['rotation_deg']:.2f}°, {100 * before['translation_m']:.1f} cm"
+                     + (f", {100 * before['scale_error']:+.2f} %" if a.sim3 else "") + ")" if before else "")
+                  + f" ({row['seconds']:.1f} s)")
     ok = [r for r in rows if r["localised"]]
     summary = {"trials": len(rows), "localised": len(ok), "sim3": a.sim3}
     if ok:
         for key in ("rotation_deg", "translation_m", "scale_error"):
             v = np.abs([r[key] for r in ok])
             summary[key] = {"median": float(np.median(v)), "max": float(np.max(v))}
+        if all("objects_only" in r for r in ok):
+            summary["objects_only"] = {}
+            for key in ("rotation_deg", "translation_m", "scale_error"):
+                v = np.abs([r["objects_only"][key] for r in ok])
+                summary["objects_only"][key] = {"median": float(np.median(v)), "max": float(np.max(v))}
     print(json.dumps(summary, indent=1))
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -133,6 +133,26 @@ def _box_case(seed, cuboid, param):
 
 
 case("inverse_box")(lambda param: _box_case(1, False, param))
+
+
+@case("frame_box")
+def _frame_box(param):
+    """Box factors whose camera is given in a recording's frame, moved into the landmark's by
+    a random Sim3 (rotation, translation, scale 0.5-2): the same views as the box case."""
+    from spdslam.geometry import Sim3
+
+    base = _box_case(3, False, param)
+    rng = np.random.default_rng(31)
+    n = len(base.kind)
+    Rf = np.stack([random_rotation(rng) for _ in range(n)])
+    tf, sf = rng.normal(size=(n, 3)), np.exp(rng.uniform(np.log(0.5), np.log(2.0), n))
+    frames = jax.vmap(lambda R, t, s: Sim3(jaxlie.SO3.from_matrix(R), t, jnp.log(s)))(
+        jnp.asarray(Rf), jnp.asarray(tf), jnp.asarray(sf))
+    T = np.asarray(base.values[0].as_matrix())  # the cameras in the landmark's frame
+    T_rec = T.copy()  # the same cameras in the recording's: R_fᵀ R_c, R_fᵀ (t_c − t_f) / s
+    T_rec[:, :3, :3] = np.einsum("nji,njk->nik", Rf, T[:, :3, :3])
+    T_rec[:, :3, 3] = np.einsum("nji,nj->ni", Rf, T[:, :3, 3] - tf) / sf[:, None]
+    return Case((frames, base.values[1]), (_poses(T_rec), *base.args), base.kind)
 case("semi_inverse_box")(lambda param: _box_case(1, False, param))
 case("inverse_cuboid_box")(lambda param: _box_case(14, True, param))
 case("semi_inverse_cuboid_box")(lambda param: _box_case(14, True, param))
@@ -337,8 +357,13 @@ def test_masked_box_factor_jacobians(param, kind):
     boxes = jnp.asarray(_noisy_boxes(project_cuboid_box if cuboid else project_box, lmk, T, 17))
     keep = jnp.asarray(np.random.default_rng(18).integers(0, 2, size=(n, 4)).astype(float))
     poses = _poses(T)
-    check_jacobians(cls.residual, (poses, lmk), (boxes, _cams(n), keep), k)
-    masked = np.asarray(jax.vmap(cls.residual)(poses, lmk, boxes, _cams(n), keep))
-    full = np.asarray(jax.vmap(cls.residual)(poses, lmk, boxes, _cams(n)))
+    if kind == "frame_box":  # the camera is data, the frame (here the identity) the variable
+        frames = jax.vmap(lambda _: jaxlie.SE3.identity())(jnp.arange(n))
+        values, data = (frames, lmk), (poses, boxes, _cams(n))
+    else:
+        values, data = (poses, lmk), (boxes, _cams(n))
+    check_jacobians(cls.residual, values, (*data, keep), k)
+    masked = np.asarray(jax.vmap(cls.residual)(*values, *data, keep))
+    full = np.asarray(jax.vmap(cls.residual)(*values, *data))
     np.testing.assert_array_equal(masked[np.asarray(keep) == 0], 0.0)
     np.testing.assert_array_equal(masked[np.asarray(keep) == 1], full[np.asarray(keep) == 1])

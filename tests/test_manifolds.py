@@ -1,6 +1,6 @@
 """Manifold axioms for every optimisation variable type, through the registry.
 
-Parametrised over jaxlie.SE3, jaxlie.SO3, Ellipsoid (SPD × R³, including exact spheres and
+Parametrised over jaxlie.SE3, jaxlie.SO3, Sim3, Ellipsoid (SPD × R³, including exact spheres and
 spheroids), EllipsoidRTS, EllipsoidFull, and raw SPD matrices via spd.retract_vec/local_vec.
 """
 
@@ -19,6 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spdslam import Ellipsoid, EllipsoidFull, EllipsoidRTS, manifold, spd
+from spdslam.geometry import Sim3
 
 
 def _hat(w):
@@ -85,6 +86,16 @@ CASES = [
         make=lambda gen: jaxlie.SO3.from_matrix(gen.rotation()),
         arrays=lambda R: [R.as_matrix()],
         nearby=lambda gen, R: jaxlie.SO3.from_matrix(np.asarray(R.as_matrix()) @ _small_rotation(gen, 0.3)),
+    ),
+    Case(
+        name="Sim3",
+        dim=7,
+        make=lambda gen: Sim3(jaxlie.SO3.from_matrix(gen.rotation()), gen.rng.normal(size=3),
+                              np.float64(gen.rng.uniform(-1.0, 1.0))),
+        arrays=lambda S: [S.rotation.as_matrix(), S.translation, S.log_scale],
+        nearby=lambda gen, S: Sim3(jaxlie.SO3.from_matrix(np.asarray(S.rotation.as_matrix()) @ _small_rotation(gen, 0.3)),
+                                   np.asarray(S.translation) + gen.rng.normal(size=3) * 0.1,
+                                   np.float64(S.log_scale) + gen.rng.uniform(-0.2, 0.2)),
     ),
     _ellipsoid_case("general"),
     _ellipsoid_case("sphere"),

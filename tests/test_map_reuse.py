@@ -126,6 +126,66 @@ def test_moving_objects_and_poses_together_keeps_every_box():
                                    atol=1e-9)
 
 
+@pytest.mark.parametrize("mode", ["se3", "sim3", "sim3-scale"])
+def test_refinement_with_the_boxes_recovers_a_transform_started_off(mode):
+    """A room recorded without drift, its objects as the map; the recording moved by G (and
+    scaled by 1.6 under Sim(3)); localisation started 3° and 11 cm off (with ``refine_scale``
+    also 3 % off in scale; without, the scale is the start's and stays): the recording's
+    boxes against the map's objects bring it back to the truth, G⁻¹."""
+    from spdslam.mapping import Localization, refine_localization
+
+    sim3 = mode != "se3"
+    seq = make_room_sequence(2, frames=40, objects=5, drift=0.0)
+    objs = [MapObject(o.id, o.label, Ellipsoid.from_axes(o.cuboid.rotation, o.cuboid.center, o.cuboid.half_extents))
+            for o in seq.objects_gt]
+    G, s = _rigid(11), (1.6 if sim3 else 1.0)
+    rec = moved_sequence(seq, G, s)
+    rec_objs = [MapObject(100 + o.id, o.label, transform_ellipsoid(o.ellipsoid, G, s)) for o in objs]
+    R_true, t_true = G[:3, :3].T, -G[:3, :3].T @ G[:3, 3] / s  # x_map = (1/s) R_true x + t_true
+    E = Rotation.from_rotvec([0.03, -0.02, 0.04]).as_matrix()
+    T0 = np.eye(4)
+    T0[:3, :3], T0[:3, 3] = E @ R_true, E @ t_true + [0.08, -0.05, 0.06]
+    s0 = (1.03 if mode == "sim3-scale" else 1.0) / s
+    start = Localization(T0, s0, np.eye(7 if sim3 else 6), [(100 + o.id, o.id) for o in objs],
+                         np.zeros(len(objs)), 0, len(objs), sim3)
+    loc = refine_localization(rec, rec_objs, objs, start, refine_scale=mode == "sim3-scale")
+    angle = np.degrees(Rotation.from_matrix(loc.T_map_sequence[:3, :3].T @ R_true).magnitude())
+    assert angle < 0.3
+    assert np.linalg.norm(loc.T_map_sequence[:3, 3] - t_true) < 0.02
+    if mode == "sim3-scale":
+        assert abs(loc.scale * s - 1.0) < 0.005
+    else:
+        assert loc.scale == s0
+    assert loc.rms < 0.02 and loc.matches == start.matches
+    assert loc.covariance.shape == start.covariance.shape and np.all(np.linalg.eigvalsh(loc.covariance) > 0)
+    assert "refined with" in loc.notes[-1]
+    # a map without three of the matched objects leaves the transform as it was, and says so
+    kept = refine_localization(rec, rec_objs, objs[:2], start)
+    np.testing.assert_array_equal(kept.T_map_sequence, T0)
+    assert "not refined" in kept.notes[-1]
+
+
+def test_a_sim3_moves_a_camera_as_transform_poses_tum_does():
+    """geometry.Sim3.pose_of (the refinement's camera in the map) and transform_poses_tum
+    (the written trajectory) agree, and as_matrix/from_matrix round-trip."""
+    import jaxlie
+
+    from spdslam.geometry import Sim3
+
+    G, s = _rigid(4), 0.7
+    T_wc = look_at(np.array([3.0, 1.0, 1.0]), np.zeros(3))
+    q = np.asarray(T_wc.wxyz_xyz)
+    row = np.r_[0.0, q[4:], q[1:4], q[0]]
+    moved = transform_poses_tum(row[None], G, s)[0]
+    want = jaxlie.SE3(np.r_[moved[7], moved[4:7], moved[1:4]]).as_matrix()
+    S = Sim3.from_matrix(G, s)
+    np.testing.assert_allclose(np.asarray(S.pose_of(T_wc).as_matrix()), np.asarray(want), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(S.as_matrix()), G, atol=1e-12)
+    assert abs(float(S.scale) - s) < 1e-14
+    with pytest.raises(ValueError, match="scale > 0"):
+        Sim3.from_matrix(G, 0.0)
+
+
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
     """(a synthetic room as a folder, the same room moved by G as a second folder, G)."""
@@ -148,6 +208,7 @@ def test_cli_localize_writes_the_run_in_the_map_frame(room):
     T = np.asarray(doc["T_map_sequence"])
     np.testing.assert_allclose(T @ G, np.eye(4), atol=0.02)
     assert doc["scale"] == 1.0 and len(doc["matches"]) >= 3 and doc["agreement"]["pairs"] > 0
+    assert "from_objects" in doc and any(n.startswith("refined with") for n in doc["notes"])
     for name in ("map.json", "trajectory.txt", "map_top.png"):
         assert (out / name).exists()
     # the localised trajectory is the map run's, to the fit's accuracy
@@ -270,3 +331,4 @@ def test_a_joined_recording_moves_as_one_body_onto_the_objects_it_shares():
     assert np.median(after) < 0.5 * np.median(before), (np.median(before), np.median(after))
     R, t, _ = align_rigid(b, given)  # one body: the copy's shape is its input's
     assert np.max(np.linalg.norm(b @ R.T + t - given, axis=1)) < 0.005
+

@@ -347,3 +347,38 @@ def test_padding_follows_the_count_up_and_down(room):
     assert rows(200, 30)["inverse_box"] == 256  # down again
     assert [_padded_size(n) for n in (1, 9, 13, 17, 25, 384, 385)] == [8, 12, 16, 24, 32, 384, 512]
     assert _padded_sizes_above(128, 4) == [192, 256, 384, 512]
+
+
+def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
+    """The room's batch map without one of its objects as a saved map; the room recorded
+    again in a frame moved by G, replayed through ``LocalizingMapper``: it localises while the
+    frames come (the live map is then in the saved map's frame), and its result is the saved
+    map with the missing object added where the batch run put it, and the trajectory in the
+    saved map's frame. (Here, beside the other replays of this room: the same programs.)"""
+    from scipy.spatial.transform import Rotation
+
+    from spdslam.mapping import LocalizingMapper, moved_sequence
+
+    saved, left_out = batch.objects[1:], batch.objects[0]
+    G = np.eye(4)
+    G[:3, :3], G[:3, 3] = Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix(), [1.5, -2.0, 0.4]
+    rec = moved_sequence(room, G)
+    mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances")
+    with pytest.raises(ValueError, match="no objects"):
+        LocalizingMapper([], rec.camera)
+    assert mapper.localization is None and mapper.reason
+    live = None
+    for i in range(len(rec)):
+        mapper.add_frame(rec.timestamps[i], rec.poses_tum[i], detections=rec.detections_at(i))
+        if mapper.localization is not None and live is None:
+            live = mapper.current_map()
+    assert mapper.localized_at is not None and mapper.localized_at < len(rec)
+    assert {o.id for o in saved} <= set(live.objects)
+    result = mapper.finish()
+    np.testing.assert_allclose(mapper.localization.T_map_sequence @ G, np.eye(4), atol=0.03)
+    assert [o.id for o in result.objects[:len(saved)]] == [o.id for o in saved]
+    new = result.objects[len(saved):]
+    assert len(new) == 1 and new[0].label == left_out.label and new[0].id > max(o.id for o in saved)
+    assert np.linalg.norm(np.asarray(new[0].ellipsoid.center) - np.asarray(left_out.ellipsoid.center)) < 0.1
+    np.testing.assert_allclose(result.poses_tum[:, 1:4], batch.poses_tum[:, 1:4], atol=0.05)
+    assert any("started from a saved map" in n for n in result.notes)

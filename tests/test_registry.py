@@ -19,6 +19,7 @@ from spdslam.factors import (
     CustomFactor,
     EllipsoidMeasurementFactor,
     Factor,
+    FrameBoxFactor,
     GaussianNoise,
     Huber,
     InverseBoxFactor,
@@ -50,6 +51,7 @@ EXAMPLES = {
     "semi_inverse_box": lambda **n: SemiInverseBoxFactor(X(0), L(0), BOX, CAM, **n),
     "inverse_cuboid_box": lambda **n: InverseCuboidBoxFactor(X(0), L(0), BOX, CAM, **n),
     "semi_inverse_cuboid_box": lambda **n: SemiInverseCuboidBoxFactor(X(0), L(0), BOX, CAM, **n),
+    "frame_box": lambda **n: FrameBoxFactor("F", L(0), T, BOX, CAM, **n),
     "ellipsoid_measurement": lambda **n: EllipsoidMeasurementFactor(
         X(0), L(0), np.eye(3), [0.0, 0.0, 2.0], **n),
     "orientation": lambda **n: OrientationFactor(L(0), [0, 0, 1], **n),

@@ -336,6 +336,8 @@ def localize(
         "its own, as from a monocular front end)."),
     match_tolerance: float = typer.Option(0.15, help="Metres within which a matched object's centre must land "
         "in the map."),
+    refine: bool = typer.Option(True, help="Refine the transform found from the objects with the recording's "
+        "boxes against the map's objects."),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     option: list[str] | None = typer.Option(None, "--option", help="An option of the sequence format's reader, "
         "NAME=VALUE, repeatable (docs/formats.md)."),
@@ -345,7 +347,8 @@ def localize(
     """Put a new recording into a saved map's frame, from the objects alone.
 
     Maps the recording in its own frame (as spdslam run does), matches its objects to the
-    map's by label, size and layout, and writes the run moved into the map's frame (OUT/map.json,
+    map's by label, size and layout, refines the transform with the recording's boxes against
+    the map's objects, and writes the run moved into the map's frame (OUT/map.json,
     OUT/trajectory.txt, ...) with OUT/localization.json: T_map_sequence, scale, covariance,
     matches and the agreement of the boxes with the map's projected objects. Refuses, in one
     line and writing nothing, when fewer than three objects match or two transforms fit
@@ -373,7 +376,7 @@ def localize(
     seq = _load_sequence(sequence, options)
     try:
         moved, loc, doc = localize_sequence(seq, map_objects, settings, sim3=sim3, tolerance=match_tolerance,
-                                            progress=_progress)
+                                            refine=refine, progress=_progress)
     except LocalizationError as e:
         fail(f"{seq.name}: cannot localise against {map_path}: {e}")
     except ValueError as e:
@@ -415,6 +418,7 @@ def merge(
     sequence_b: Path | None = typer.Option(None, help="RUN_B's sequence (default: the one its map.json records)."),
     sim3: bool = typer.Option(False, "--sim3", help="Also estimate B's scale against A's."),
     match_tolerance: float = typer.Option(0.15, help="Metres within which a matched object's centre must land."),
+    refine: bool = typer.Option(True, help="Refine B's transform with B's boxes against A's objects."),
     method: str = typer.Option("multi-spd", help=_METHOD_HELP),
     overlay: bool = typer.Option(True, help="Write overlay/ frames when the sequences have images."),
     overwrite: bool = typer.Option(False, help="Replace a non-empty OUT."),
@@ -452,7 +456,7 @@ def merge(
     seq_a, seq_b = _load_sequence(path_a), _load_sequence(path_b)
     try:
         result, joined, loc, doc = merge_recordings(seq_a, objects_a, seq_b, objects_b, settings, sim3=sim3,
-                                                    tolerance=match_tolerance, progress=_progress)
+                                                    tolerance=match_tolerance, refine=refine, progress=_progress)
     except LocalizationError as e:
         fail(f"cannot merge {run_b} into {run_a}: {e}")
     except ValueError as e:

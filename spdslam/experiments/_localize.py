@@ -15,6 +15,7 @@ from ..mapping import (
     localize_objects,
     localized_result,
     moved_sequence,
+    refine_localization,
     transform_ellipsoid,
 )
 from ._batch import map_sequence
@@ -23,9 +24,12 @@ __all__ = ["localize_sequence", "merge_recordings"]
 
 
 def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, tolerance: float = 0.15,
-                      progress=None):
+                      refine: bool = True, refine_scale: bool = False, progress=None):
     """(the run of ``seq`` moved into the map's frame (a ``MapResult``), the
-    ``mapping.Localization``, localization.json's content). Raises
+    ``mapping.Localization``, localization.json's content). ``refine``: the transform
+    found from the objects refined with the recording's boxes (``mapping.refine_localization``;
+    the objects' transform is kept in localization.json's ``from_objects``; under Sim(3) the
+    scale too only with ``refine_scale``). Raises
     ``mapping.LocalizationError`` when the objects do not fix a unique transform (nothing is
     written: the caller writes afterwards) and ``ValueError`` when the run itself fails."""
     say = progress or (lambda message: None)
@@ -35,8 +39,16 @@ def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, toleran
     result, _ = map_sequence(seq, settings, progress=progress)
     say(f"localisation: {len(result.objects)} objects of the recording against {len(map_objects)} of the map")
     loc = localize_objects(result.objects, map_objects, sim3=sim3, tolerance=tolerance)
+    first = loc
+    if refine:
+        say("localisation: refining the transform with the recording's boxes")
+        loc = refine_localization(seq, result.objects, map_objects, loc, poses_tum=result.poses_tum,
+                                  refine_scale=refine_scale)
     moved = localized_result(result, loc)
     doc = loc.as_dict()
+    if refine:
+        doc["from_objects"] = {"T_map_sequence": first.T_map_sequence.tolist(), "scale": float(first.scale),
+                               "center_rms": first.rms}
     try:
         check = check_sequence(seq, objects=map_objects, poses_tum=moved.poses_tum)
         overall = check["sources"][0]["overall"]
@@ -60,9 +72,10 @@ def _partner(e, label: str, objects, tolerance: float):
 
 
 def merge_recordings(seq_a, objects_a, seq_b, objects_b, settings, *, sim3: bool = False,
-                     tolerance: float = 0.15, progress=None):
+                     tolerance: float = 0.15, refine: bool = True, progress=None):
     """One map of two recordings of one place: B's objects (its own map, B's frame)
-    localised against A's (``mapping.localize_objects``), B's sequence moved into A's frame
+    localised against A's (``mapping.localize_objects``, then refined with B's boxes against
+    A's objects unless ``refine`` is False), B's sequence moved into A's frame
     and appended to A's (``mapping.joined_sequence``), and the two mapped as one sequence,
     so that an object seen in both is one object estimated from both recordings' boxes.
     Returns (the ``MapResult``, the joined sequence it maps, the ``Localization``,
@@ -72,6 +85,9 @@ def merge_recordings(seq_a, objects_a, seq_b, objects_b, settings, *, sim3: bool
     say = progress or (lambda message: None)
     loc = localize_objects(objects_b, objects_a, sim3=sim3, tolerance=tolerance)
     say(f"merge: {len(loc.matches)} objects of B matched to A's (centre rms {loc.rms:.3f} m)")
+    if refine:
+        say("merge: refining the transform with B's boxes against A's objects")
+        loc = refine_localization(seq_b, objects_b, objects_a, loc)  # B's input poses: B's run is not at hand
     joined = joined_sequence(seq_a, moved_sequence(seq_b, loc.T_map_sequence, loc.scale))
     result, _ = map_sequence(joined, settings, progress=progress)
     in_a = [(o.id, o.label, o.ellipsoid) for o in objects_a]

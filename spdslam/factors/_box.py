@@ -24,6 +24,7 @@ from __future__ import annotations
 from typing import Any, Callable, ClassVar
 
 import jax.numpy as jnp
+import jaxlie
 import numpy as np
 
 from ..geometry import (
@@ -32,6 +33,7 @@ from ..geometry import (
     cuboid_half_axes,
     cuboid_in_front,
     dual_quadric,
+    frame_pose,
     in_front,
     project_box,
     project_cuboid_box,
@@ -45,7 +47,9 @@ __all__ = [
     "SemiInverseBoxFactor",
     "InverseCuboidBoxFactor",
     "SemiInverseCuboidBoxFactor",
+    "FrameBoxFactor",
     "inverse_box_residual",
+    "frame_box_residual",
     "semi_inverse_box_residual",
     "inverse_cuboid_box_residual",
     "semi_inverse_cuboid_box_residual",
@@ -78,6 +82,19 @@ def semi_inverse_box_residual(T_wc, landmark, box, camera: Camera, keep=None):
     planes = box_planes(box, T_wc, camera)
     Q = dual_quadric(landmark)
     return _masked(jnp.einsum("ki,ij,kj->k", planes, Q, planes), keep)
+
+
+def frame_box_residual(frame, landmark, T_wc, box, camera: Camera, keep=None):
+    """Inverse model with the camera in another frame: the box of the landmark seen from
+    ``geometry.frame_pose(frame, T_wc)`` minus the detected box, ∘ keep (px, 4). ``frame``
+    (``jaxlie.SE3`` or ``geometry.Sim3``) moves the recording's frame, where the camera pose
+    T_wc was given, into the landmark's."""
+    return inverse_box_residual(frame_pose(frame, T_wc), landmark, box, camera, keep)
+
+
+def frame_box_visible(frame, landmark, T_wc, box, camera: Camera, keep=None, min_depth: float = 1e-3):
+    """Validity of a frame box factor: the ellipsoid in front of the moved camera."""
+    return in_front(landmark, frame_pose(frame, T_wc), min_depth)
 
 
 def box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth: float = 1e-3):
@@ -211,3 +228,64 @@ class SemiInverseCuboidBoxFactor(_BoxFactor):
     residual = staticmethod(semi_inverse_cuboid_box_residual)
     valid = staticmethod(cuboid_box_visible)
     sigmas = (Sigma(0.01, "m per edge plane (≈ 2 px at 2.5 m, f = 500)"),)
+
+
+class FrameBoxFactor(Factor):
+    """A detected box of a recording whose frame is unknown: the camera pose T_wc is data
+    (the recording's odometry), the variables are the frame (``jaxlie.SE3``, or
+    ``geometry.Sim3`` when the recording's scale is unknown) that moves the recording into
+    the map, and a landmark of the map (``frame_box_residual``: the inverse box model).
+    ``spdslam.mapping.refine_localization`` fits the frame to a recording's boxes with it."""
+
+    kind = "frame_box"
+    residual = staticmethod(frame_box_residual)
+    valid: ClassVar[Callable[..., Any] | None] = staticmethod(frame_box_visible)
+    variables = ("frame", "landmark")
+    dim = 4
+    group = "box"
+    sigmas = (Sigma(2.0, "px per box edge"),)
+
+    def __init__(self, frame_key, landmark_key, T_wc, box, camera: Camera, *,
+                 truncation_margin: float | None = None, **noise):
+        box = np.asarray(box, dtype=float)
+        if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
+            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
+        if not isinstance(camera, Camera):
+            raise TypeError("camera must be a spdslam Camera")
+        pose = np.asarray(T_wc.wxyz_xyz if hasattr(T_wc, "wxyz_xyz") else T_wc, dtype=float)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"T_wc must be a jaxlie.SE3 (or its 7 numbers wxyz_xyz), got shape {pose.shape}")
+        args: tuple = (jaxlie.SE3(pose), box, camera)  # type: ignore[arg-type]  # numpy leaf
+        if truncation_margin is not None:
+            args = (*args, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
+        super().__init__((frame_key, landmark_key), args, **noise)
+
+    @classmethod
+    def many(cls, frame_key, landmark_keys, poses_wxyz_xyz, boxes, camera: Camera, *,
+             sigma: Any = None, robust: RobustKernel | None = None,
+             truncation_margin: float | None = None) -> FactorBatch:
+        """n boxes (n, 4) seen from the recording's poses (n, 7, jaxlie's wxyz_xyz) against
+        the landmarks ``landmark_keys`` (a list, or one key), all with one frame variable, as
+        one ``FactorBatch`` (the same factors as one by one)."""
+        boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+        poses = np.asarray(poses_wxyz_xyz, dtype=float).reshape(-1, 7)
+        n = len(boxes)
+        landmark_keys = list(landmark_keys) if isinstance(landmark_keys, (list, np.ndarray)) \
+            else [landmark_keys] * n
+        if len(poses) != n or len(landmark_keys) != n or n == 0:
+            raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(poses)} poses and "
+                             f"{len(landmark_keys)} landmark keys (at least one of each)")
+        bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
+        if bad.any() or not np.all(np.isfinite(poses)):
+            b = boxes[int(np.flatnonzero(bad)[0])] if bad.any() else None
+            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}"
+                             if b is not None else "the poses must be finite")
+        W = diagonal_sqrt_information(cls.default_sigma() if sigma is None else sigma, n, 4)
+        first = cls(None, None, poses[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
+                    truncation_margin=truncation_margin)
+        leaves, treedef, shapes = first.flat_args()
+        # the layout of the arguments' leaves: the pose (7,), the box, the camera's, the mask
+        stacked = [poses, boxes] + [np.broadcast_to(a, (n,) + a.shape) for a in leaves[2:]]
+        if truncation_margin is not None:
+            stacked[-1] = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
+        return FactorBatch(cls, ([frame_key] * n, landmark_keys), stacked, treedef, shapes, W, robust)

@@ -18,6 +18,7 @@ from ._graph import support_plane as support_plane
 from ._keyframes import KEYFRAME_MODES as KEYFRAME_MODES
 from ._keyframes import parse_keyframes as parse_keyframes
 from ._keyframes import select_keyframes as select_keyframes
+from ._localizing import LocalizingMapper as LocalizingMapper
 from ._methods import AUTO_BOX_KERNEL as AUTO_BOX_KERNEL
 from ._methods import BOX_MODELS as BOX_MODELS
 from ._methods import DEFAULT_MAPPING_SIGMAS as DEFAULT_MAPPING_SIGMAS
@@ -44,6 +45,7 @@ from ._reuse import joined_sequence as joined_sequence
 from ._reuse import localize_objects as localize_objects
 from ._reuse import localized_result as localized_result
 from ._reuse import moved_sequence as moved_sequence
+from ._reuse import refine_localization as refine_localization
 from ._reuse import transform_ellipsoid as transform_ellipsoid
 from ._reuse import transform_poses_tum as transform_poses_tum
 from ._run import ASSOCIATIONS as ASSOCIATIONS

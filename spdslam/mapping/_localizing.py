@@ -1,0 +1,146 @@
+"""An online mapper that starts from a saved map: localise first, then extend it.
+
+``LocalizingMapper`` is an ``OnlineMapper`` (frames added one at a time, mapped in the
+odometry's frame as always) that also holds a saved map's objects. Whenever the online map
+has gained an object since the last try (and has at least three), its objects are matched to
+the saved map's (``localize_objects``); from the first success on, ``current_map`` is the
+saved map extended: the saved objects as they were, the recording's objects that match none
+of them added with new ids, and the poses, all in the saved map's frame. ``finish`` maps the
+recording (``OnlineMapper.finish``), localises again with every object, refines the transform
+with the recording's boxes (``refine_localization``) and returns the extended map as a
+``MapResult`` in the saved map's frame. An object seen again keeps the saved map's estimate:
+re-estimating it from both recordings' boxes needs both recordings (``spdslam merge``).
+docs/map-reuse.md.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ..io import MapObject
+from ._online import OnlineMap, OnlineMapper
+from ._reuse import (
+    Localization,
+    LocalizationError,
+    localize_objects,
+    localized_result,
+    refine_localization,
+    transform_ellipsoid,
+    transform_poses_tum,
+)
+
+__all__ = ["LocalizingMapper"]
+
+
+class LocalizingMapper(OnlineMapper):
+    """``OnlineMapper`` that starts from ``map_objects`` (``io.MapObject`` s of a saved map,
+    e.g. ``io.read_map(RUN)[1]``): module docstring. ``sim3``: also estimate the recording's
+    scale; ``tolerance``: metres within which a matched centre must land
+    (``localize_objects``); the other arguments are ``OnlineMapper``'s.
+
+    ``localization`` is None until the objects fix a transform (``reason`` says why not
+    yet); ``localized_at`` is the frame count then, and ``localize_seconds`` the time spent
+    trying, in the caller's thread."""
+
+    def __init__(self, map_objects, camera, priors=None, method="multi-spd", *, sim3: bool = False,
+                 tolerance: float = 0.15, **settings):
+        super().__init__(camera, priors, method, **settings)
+        self.map_objects = list(map_objects)
+        if not self.map_objects:
+            raise ValueError("a saved map to start from has no objects")
+        ids = [int(o.id) for o in self.map_objects]
+        if len(set(ids)) != len(ids):
+            raise ValueError("the saved map's object ids are not unique")
+        self.sim3, self.tolerance = bool(sim3), float(tolerance)
+        self.localization: Localization | None = None
+        self.localized_at: int | None = None
+        self.reason = "no objects mapped yet"
+        self.localize_seconds = 0.0
+        self._tried_with = 0
+        self._first_new_id = max(ids) + 1
+
+    def add_frame(self, timestamp, pose=None, *, odometry=None, detections=(), ellipsoids=()):
+        """``OnlineMapper.add_frame``, then a try at localising when the map gained objects."""
+        rec = super().add_frame(timestamp, pose, odometry=odometry, detections=detections,
+                                ellipsoids=ellipsoids)
+        if self.localization is None:
+            objects = super().current_map().objects
+            if len(objects) >= 3 and len(objects) > self._tried_with:
+                self._try(self._as_map_objects(objects))
+                if self.localization is not None:
+                    self.localized_at = len(self)
+        return rec
+
+    @staticmethod
+    def _as_map_objects(objects: dict) -> list:
+        return [MapObject(int(k), label, e) for k, (label, e) in sorted(objects.items())]
+
+    def _try(self, objects: list) -> None:
+        t0 = time.perf_counter()
+        self._tried_with = len(objects)
+        try:
+            self.localization = localize_objects(objects, self.map_objects, sim3=self.sim3,
+                                                 tolerance=self.tolerance)
+        except LocalizationError as e:
+            self.reason = str(e)
+        self.localize_seconds += time.perf_counter() - t0
+
+    def _new_objects(self, objects: list, loc: Localization) -> list:
+        """The recording's objects (moved into the map's frame) that are none of the saved
+        map's: not matched, and no saved object of their label within the tolerance."""
+        matched = {int(a) for a, _ in loc.matches}
+        saved = [(o.label, np.asarray(o.ellipsoid.center, float)) for o in self.map_objects]
+        out = []
+        for o in objects:
+            if int(o.id) in matched:
+                continue
+            e = transform_ellipsoid(o.ellipsoid, loc.T_map_sequence, loc.scale)
+            c = np.asarray(e.center, float)
+            if any(label == o.label and np.linalg.norm(c - sc) <= self.tolerance for label, sc in saved):
+                continue
+            out.append(replace(o, id=self._first_new_id + int(o.id), ellipsoid=e))
+        return out
+
+    def current_map(self, covariances: bool = False) -> OnlineMap:
+        """Before localisation: ``OnlineMapper.current_map`` (the recording's frame). After:
+        the saved map extended by the recording's new objects, with the poses, in the saved
+        map's frame (ids of new objects: the recording's id plus one more than the saved
+        map's largest; covariances: of the new objects, in their chart before the move)."""
+        snap = super().current_map(covariances)
+        loc = self.localization
+        if loc is None:
+            return snap
+        new = self._new_objects(self._as_map_objects(snap.objects), loc)
+        objects = {int(o.id): (o.label, o.ellipsoid) for o in self.map_objects}
+        objects.update({int(o.id): (o.label, o.ellipsoid) for o in new})
+        poses = transform_poses_tum(snap.poses_tum, loc.T_map_sequence, loc.scale) if len(snap.poses_tum) \
+            else snap.poses_tum
+        cov = {self._first_new_id + k: c for k, c in snap.covariances.items()
+               if self._first_new_id + k in objects}
+        return OnlineMap(objects, poses, cov, frames=snap.frames)
+
+    def finish(self, final_batch=None, max_iterations=None, tolerance=None, progress=None):
+        """The extended map as a ``MapResult`` in the saved map's frame (module docstring);
+        when the objects never fixed a transform, the recording's own ``MapResult`` in its
+        frame, with a note that says why (``localization`` stays None)."""
+        say = progress or (lambda message: None)
+        result = super().finish(final_batch, max_iterations, tolerance, progress)
+        self._try(result.objects)
+        loc = self.localization
+        if loc is None:
+            return replace(result, notes=[*result.notes, f"not localised against the saved map: {self.reason}"])
+        say(f"localised against the saved map from {len(loc.matches)} objects; refining with the boxes")
+        loc = self.localization = refine_localization(self.sequence(), result.objects, self.map_objects, loc,
+                                                      poses_tum=result.poses_tum)
+        moved = localized_result(result, loc)
+        new = self._new_objects(result.objects, loc)
+        new_ids = {int(o.id) for o in new}
+        first = [replace(o, id=self._first_new_id + int(o.id)) for o in moved.initial_objects
+                 if self._first_new_id + int(o.id) in new_ids]
+        note = (f"started from a saved map of {len(self.map_objects)} objects: {len(loc.matches)} seen again "
+                f"(kept as saved), {len(new)} new")
+        return replace(moved, objects=[*self.map_objects, *new], initial_objects=[*self.map_objects, *first],
+                       notes=[*moved.notes, note])
