@@ -361,7 +361,8 @@ def _paired_detections(seq, ellipsoids, labels, poses_tum, min_iou: float = 0.3)
 
 def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
                         poses_tum=None, min_iou: float = 0.3, rounds: int = REFINE_ROUNDS,
-                        refine_scale: bool = False) -> Localization:
+                        refine_scale: bool = False, center_sigma: float = REFINE_CENTER_SIGMA,
+                        shape_sigma: float = REFINE_SHAPE_SIGMA) -> Localization:
     """``loc`` refined with the recording's boxes against the matched map objects (module
     docstring, step 5): the recording ``seq`` (its detections), its objects ``seq_objects``
     (for the centre residuals) and the map's; ``poses_tum`` the recording's camera poses, one
@@ -371,7 +372,8 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     when fewer than three objects have a paired box. Under Sim(3) the scale stays the one
     of the objects' layout unless ``refine_scale`` (a ``geometry.Sim3`` frame then): on
     fr2_desk the boxes pull it about 1 % off where the layout is within 0.8 %
-    (docs/map-reuse.md); its variance and the rest of the covariance are then kept apart."""
+    (docs/map-reuse.md); its variance and the rest of the covariance are then kept apart.
+    ``center_sigma`` (m) and ``shape_sigma``: the floors of the σ that hold the map's objects."""
     import jaxlie
 
     from ..factors import DEFAULT_TRUNCATION_MARGIN, FrameBoxFactor, LandmarkPriorFactor
@@ -423,8 +425,8 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
         for oid in seen:
             o = by_id[oid]
             u = o.uncertainty or {}
-            sc = max(float(u.get("center_sigma_max", 0.0) or 0.0), REFINE_CENTER_SIGMA)
-            sr = max(2.0 * float(np.max(u.get("log_radius_sigma", [0.0]))), REFINE_SHAPE_SIGMA)
+            sc = max(float(u.get("center_sigma_max", 0.0) or 0.0), center_sigma)
+            sr = max(2.0 * float(np.max(u.get("log_radius_sigma", [0.0]))), shape_sigma)
             if not (np.isfinite(sc) and np.isfinite(sr)):
                 sc, sr = max(sc, 1.0) if np.isfinite(sc) else 1.0, 1.0
             graph.add(LandmarkPriorFactor(L(oid), o.ellipsoid, sigma=np.r_[np.full(6, sr), np.full(3, sc)]))
