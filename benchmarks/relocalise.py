@@ -10,6 +10,8 @@ Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` tran
 ``--merge``: instead, the halves merged (``experiments.merge_recordings``; half 2 moved by
 the first ``--trials`` transforms) and evaluated against fr2_desk's ground truth beside the
 whole sequence's run: mean IoU, and duplicates of a matched ground-truth object.
+``--floors C:S,…``: instead, trial 0 both ways refined with each pair of floors (centre m,
+shape) of the priors that hold the map's objects (``mapping.refine_localization``).
 ``--online``: instead, each half replayed frame by frame through a ``LocalizingMapper``
 holding the other half's map: when it localised, and the final transform's error.
 ``--drift``: instead, fr2_desk's odometry with added drift (each frame step composed with
@@ -22,7 +24,8 @@ input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the
 frame maps to the map's by M_map⁻¹ M_rec G⁻¹. Prints a row per trial and a summary, and
 writes the figures as JSON with --out.
 
-    python3 benchmarks/relocalise.py [--trials 10] [--sim3 [--refine-scale]] [--merge | --drift | --online] [--out FILE]
+    python3 benchmarks/relocalise.py [--trials 10] [--sim3 [--refine-scale]]
+        [--merge | --drift | --online | --floors C:S,…] [--out FILE]
 """
 
 from __future__ import annotations
@@ -43,7 +46,9 @@ from spdslam.mapping import (
     LocalizationError,
     LocalizingMapper,
     RunSettings,
+    localize_objects,
     moved_sequence,
+    refine_localization,
     run_sequence,
     transform_ellipsoid,
 )
@@ -126,6 +131,35 @@ def online_study(halves, maps, M, settings, a) -> None:
         print(f"wrote {a.out}")
 
 
+def floors_study(halves, maps, M, settings, a) -> None:
+    """Trial 0 both ways, the objects' transform refined with the map's objects held by
+    priors with the floors of ``--floors`` (centre m : shape), one row per floor pair."""
+    rows = []
+    for map_k, rec_k in ((1, 2), (2, 1)):
+        rec = halves[rec_k]
+        G, s = transform_of(rec, np.random.default_rng(a.seed), 0, False)
+        seq = moved_sequence(rec, G, s)
+        result = run_sequence(seq, settings)
+        loc = localize_objects(result.objects, maps[map_k])
+        errors = error_of(M, map_k, rec_k, G, s, seq.poses_tum[0, :3])
+        rot, trans, _ = errors(loc.T_map_sequence, loc.scale)
+        rows.append({"map": map_k, "recording": rec_k, "floors": None, "rotation_deg": rot, "translation_m": trans})
+        print(f"map {map_k} ← half {rec_k}, the objects alone: {rot:.2f}°, {100 * trans:.1f} cm")
+        for item in a.floors.split(","):
+            fc, fs = (float(x) for x in item.split(":"))
+            ref = refine_localization(seq, result.objects, maps[map_k], loc, poses_tum=result.poses_tum,
+                                      center_sigma=fc, shape_sigma=fs)
+            rot, trans, _ = errors(ref.T_map_sequence, ref.scale)
+            rows.append({"map": map_k, "recording": rec_k, "floors": [fc, fs], "rotation_deg": rot,
+                         "translation_m": trans, "note": ref.notes[-1]})
+            print(f"map {map_k} ← half {rec_k}, floors {fc} m : {fs}: {rot:.2f}°, {100 * trans:.1f} cm; "
+                  f"{ref.notes[-1]}")
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps({"floors": rows}, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
+
+
 def summary_of(seq, result) -> dict:
     m = evaluate_run(result.as_dict(), result.objects, result.initial_objects, result.poses_tum, seq)
     s = m["summary"]
@@ -204,6 +238,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--merge", action="store_true", help="merge the halves instead (see above)")
     ap.add_argument("--drift", action="store_true", help="drifted odometry instead (see above)")
+    ap.add_argument("--floors", default=None,
+                    help="centre:shape floor pairs of the priors that hold the map's objects, comma-separated: "
+                         "trial 0 refined with each instead")
     ap.add_argument("--online", action="store_true",
                     help="each half replayed through a LocalizingMapper holding the other's map instead")
     ap.add_argument("--rates", default="0:0,0.0005:0.00025,0.001:0.0005,0.002:0.001",
@@ -226,6 +263,8 @@ def main() -> None:
         print(f"map of half {k}: {len(maps[k])} objects ({time.perf_counter() - t0:.1f} s)")
     if a.online:
         return online_study(halves, maps, M, settings, a)
+    if a.floors:
+        return floors_study(halves, maps, M, settings, a)
     rng = np.random.default_rng(a.seed)
     rows = []
     for map_k, rec_k in ((1, 2), (2, 1)):
