@@ -20,6 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..geometry import as_ellipsoid
 from ..io import MapObject
 from ._online import OnlineMap, OnlineMapper
 from ._reuse import (
@@ -67,8 +68,12 @@ class LocalizingMapper(OnlineMapper):
         rec = super().add_frame(timestamp, pose, odometry=odometry, detections=detections,
                                 ellipsoids=ellipsoids)
         if self.localization is None:
-            objects = super().current_map().objects
+            # the objects now (in the background: the last map published; the worker changes
+            # ``landmarks`` meanwhile), only when there are more than at the last try
+            objects = self._published.objects if self.background else self.landmarks
             if len(objects) >= 3 and len(objects) > self._tried_with:
+                if not self.background:
+                    objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(objects.items())}
                 self._try(self._as_map_objects(objects))
                 if self.localization is not None:
                     self.localized_at = len(self)
