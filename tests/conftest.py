@@ -418,3 +418,90 @@ def pytest_xdist_auto_num_workers(config):
     except AttributeError:  # not on Linux
         cores = os.cpu_count() or 1
     return max(1, min(cores, MAX_TEST_PROCESSES))
+
+
+# --- a detector's output folder (issue 38), as the tools write it ---------------------------
+
+
+def _calibration(camera, dist, dialect: str) -> str:
+    """A calibration file's text in a dialect: "opencv", "ros" (camera_info) or "kalibr";
+    ``dist`` radial-tangential (5) or a ``geometry.Equidistant`` lens (ROS and Kalibr)."""
+    from spdslam.geometry import Equidistant
+
+    fx, fy, cx, cy, w, h = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
+    d = [float(v) for v in dist]
+    if isinstance(dist, Equidistant):
+        if dialect == "ros":
+            return (f"image_width: {int(w)}\nimage_height: {int(h)}\ncamera_name: fisheye\n"
+                    f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: [{fx!r}, 0, {cx!r}, 0, {fy!r}, {cy!r}, 0, 0, 1]\n"
+                    f"distortion_model: equidistant\ndistortion_coefficients:\n  rows: 1\n  cols: 4\n  data: {d!r}\n")
+        assert dialect == "kalibr", dialect
+        return (f"cam0:\n  camera_model: pinhole\n  intrinsics: [{fx!r}, {fy!r}, {cx!r}, {cy!r}]\n"
+                f"  distortion_model: equidistant\n  distortion_coeffs: {d!r}\n  resolution: [{int(w)}, {int(h)}]\n")
+    if dialect == "opencv":
+        return "%YAML:1.0\n" + "".join(f"Camera.{k}: {v!r}\n" for k, v in zip(
+            ("fx", "fy", "cx", "cy", "width", "height", "k1", "k2", "p1", "p2", "k3"), [fx, fy, cx, cy, w, h, *d]))
+    if dialect == "ros":
+        return (f"image_width: {int(w)}\nimage_height: {int(h)}\ncamera_name: rgb\n"
+                f"camera_matrix:\n  rows: 3\n  cols: 3\n  data: [{fx!r}, 0, {cx!r}, 0, {fy!r}, {cy!r}, 0, 0, 1]\n"
+                f"distortion_model: plumb_bob\ndistortion_coefficients:\n  rows: 1\n  cols: 5\n  data: {d!r}\n")
+    assert dialect == "kalibr" and d[4] == 0.0  # radtan has no k3
+    return (f"cam0:\n  camera_model: pinhole\n  intrinsics: [{fx!r}, {fy!r}, {cx!r}, {cy!r}]\n"
+            f"  distortion_model: radtan\n  distortion_coeffs: {d[:4]!r}\n  resolution: [{int(w)}, {int(h)}]\n"
+            f"  rostopic: /cam0/image_raw\n")
+
+
+def write_detector_folder(seq, dest, *, dist=None, boxes=None, detector: str = "yolo",
+                          calibration: str = "ros", times: str = "rgb"):
+    """``seq`` as a detector's output folder (``boxes``: the boxes to write, default the
+    sequence's; the measured, distorted ones when ``dist`` is given). Labels outside COCO's
+    80 get their own names: data.yaml for YOLO, categories for COCO. Returns ``dest``."""
+    import json
+
+    from spdslam.io import COCO80, COCO_IDS
+
+    dist = np.zeros(5) if dist is None else dist
+    dest.mkdir(parents=True)
+    coco = all(d.label in COCO80 for d in seq.detections)
+    classes = list(COCO80) if coco else sorted({d.label for d in seq.detections})
+    cam = seq.camera
+    (dest / "camera.yaml").write_text(_calibration(cam, dist, calibration))
+    rows = np.c_[seq.timestamps, seq.poses_tum]
+    (dest / "trajectory.txt").write_text("".join(" ".join(repr(float(v)) for v in r) + "\n" for r in rows))
+    boxes = np.stack([d.box for d in seq.detections]) if boxes is None else np.asarray(boxes)
+    stamps = sorted({d.timestamp for d in seq.detections})
+    names = {t: f"img_{i:05d}" for i, t in enumerate(stamps)}
+    if times == "rgb":
+        (dest / "rgb.txt").write_text("# timestamp filename\n"
+                                      + "".join(f"{t!r} rgb/{n}.png\n" for t, n in names.items()))
+    elif times == "euroc":
+        (dest / "mav0" / "cam0").mkdir(parents=True)
+        (dest / "mav0" / "cam0" / "data.csv").write_text(
+            "#timestamp [ns],filename\n" + "".join(f"{round(t * 1e9)},{n}.png\n" for t, n in names.items()))
+    else:
+        names = {t: repr(t) for t in stamps}
+    if detector == "yolo":
+        (dest / "labels").mkdir()
+        if not coco:  # Ultralytics' names, as {id: name}
+            (dest / "data.yaml").write_text("names:\n" + "".join(f"  {i}: {n}\n" for i, n in enumerate(classes)))
+        lines: dict = {t: [] for t in stamps}
+        for d, b in zip(seq.detections, boxes):
+            cx, cy = float(b[0] + b[2]) / 2 / cam.width, float(b[1] + b[3]) / 2 / cam.height
+            w, h = float(b[2] - b[0]) / cam.width, float(b[3] - b[1]) / cam.height
+            lines[d.timestamp].append(f"{classes.index(d.label)} {cx!r} {cy!r} {w!r} {h!r} {float(d.score)!r}\n")
+        for t, text in lines.items():
+            (dest / "labels" / f"{names[t]}.txt").write_text("".join(text))
+    else:
+        ids = {t: i + 1 for i, t in enumerate(stamps)}
+        images = [{"id": ids[t], "file_name": f"{names[t]}.png", "width": int(cam.width), "height": int(cam.height)}
+                  for t in stamps]
+        category = {n: COCO_IDS[i] for i, n in enumerate(COCO80)} if coco else {n: i + 1 for i, n in enumerate(classes)}
+        results = [{"image_id": ids[d.timestamp], "category_id": category[d.label],
+                    "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])], "score": d.score}
+                   for d, b in zip(seq.detections, boxes)]
+        (dest / "coco_results.json").write_text(json.dumps(results))
+        doc: dict = {"images": images}
+        if not coco:
+            doc["categories"] = [{"id": k, "name": n} for n, k in category.items()]
+        (dest / "coco_images.json").write_text(json.dumps(doc))
+    return dest

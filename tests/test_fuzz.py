@@ -134,11 +134,39 @@ def valid_oaslam(tmp_path_factory) -> Path:
     return folder
 
 
+#: The files of a detector's output folder (``import_detector_folder``): YOLO labels beside a
+#: ROS camera_info, COCO results beside a Kalibr camchain.
+YOLO_FILES = ("camera.yaml", "trajectory.txt", "rgb.txt", "labels/img_00000.txt", "data.yaml")
+COCO_FILES = ("camera.yaml", "trajectory.txt", "coco_results.json", "coco_images.json")
+LAYOUT_FILES = {"canonical": FILES, "oaslam": OASLAM_FILES, "yolo": YOLO_FILES, "coco": COCO_FILES}
+
+
+@pytest.fixture(scope="module")
+def folders(valid, valid_oaslam, tmp_path_factory) -> dict:
+    """{layout: a valid folder of it}: the canonical and OA-SLAM ones, and the canonical
+    sequence written as a detector's output folder both ways."""
+    from conftest import write_detector_folder
+
+    seq = read_sequence(valid)
+    base = tmp_path_factory.mktemp("fuzz")
+    out = {"canonical": valid, "oaslam": valid_oaslam,
+           "yolo": write_detector_folder(seq, base / "yolo", detector="yolo", calibration="ros"),
+           "coco": write_detector_folder(seq, base / "coco", detector="coco", calibration="kalibr")}
+    from spdslam.io import COCO80
+
+    if not (out["yolo"] / "data.yaml").exists():  # Ultralytics' names, as a list
+        (out["yolo"] / "data.yaml").write_text("names: [" + ", ".join(COCO80) + "]\n", encoding="utf-8")
+    for layout in ("yolo", "coco"):
+        assert all((out[layout] / f).is_file() for f in LAYOUT_FILES[layout]), layout
+        read_sequence(out[layout])  # valid before it is corrupted
+    return out
+
+
 def corpus(n_seeds: int = 3) -> list[tuple[str, str, str, int]]:
-    """(layout, file, mutation, seed): every mutation of every file of both layouts (the
-    canonical folder and the OA-SLAM one), ``n_seeds`` seeds each."""
-    return ([("canonical", f, m, s) for f in FILES for m in MUTATIONS for s in range(n_seeds)]
-            + [("oaslam", f, m, s) for f in OASLAM_FILES for m in MUTATIONS for s in range(n_seeds)])
+    """(layout, file, mutation, seed): every mutation of every file of every layout
+    (``LAYOUT_FILES``), ``n_seeds`` seeds each."""
+    return [(layout, f, m, s) for layout, files in LAYOUT_FILES.items() for f in files
+            for m in MUTATIONS for s in range(n_seeds)]
 
 
 def check_read(folder: Path) -> str:
@@ -159,26 +187,25 @@ def check_read(folder: Path) -> str:
 
 
 def _corrupted(valid: Path, tmp: Path, fname: str, kind: str, seed: int) -> Path:
-    folder = tmp / f"{valid.name}-{fname}-{kind}-{seed}"
+    folder = tmp / f"{valid.name}-{fname.replace('/', '_')}-{kind}-{seed}"
     shutil.copytree(valid, folder)
     p = folder / fname
     p.write_bytes(mutate(p.read_bytes(), kind, random.Random(f"{fname}{kind}{seed}")))
     return folder
 
 
-def test_corpus_has_at_least_150_cases_per_layout():
+def test_corpus_has_at_least_140_cases_per_layout():
     layouts = [c[0] for c in corpus()]
-    assert layouts.count("canonical") >= 150 and layouts.count("oaslam") >= 150
+    assert all(layouts.count(layout) >= 140 for layout in LAYOUT_FILES)
 
 
-def test_every_corrupted_file_parses_or_gives_the_one_line_error(valid, valid_oaslam, tmp_path):
+def test_every_corrupted_file_parses_or_gives_the_one_line_error(folders, tmp_path):
     outcomes = {}
     for layout, fname, kind, seed in corpus():
-        src = valid if layout == "canonical" else valid_oaslam
-        folder = _corrupted(src, tmp_path, fname, kind, seed)
+        folder = _corrupted(folders[layout], tmp_path, fname, kind, seed)
         outcomes[(layout, fname, kind, seed)] = check_read(folder)
         shutil.rmtree(folder)
-    for layout in ("canonical", "oaslam"):
+    for layout in LAYOUT_FILES:
         mine = {k: v for k, v in outcomes.items() if k[0] == layout}
         errors = sum(v == "error" for v in mine.values())
         # the corruptions bite: most are errors, and the harmless ones (a BOM, CRLF) parse
@@ -201,26 +228,26 @@ def _fuzz(valid: Path, tmp: Path, fname: str, kinds: list, seed: int) -> None:
     check_read(folder)
 
 
-_CASES = st.sampled_from([("canonical", f) for f in FILES] + [("oaslam", f) for f in OASLAM_FILES])
+_CASES = st.sampled_from([(layout, f) for layout, files in LAYOUT_FILES.items() for f in files])
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(case=_CASES, kinds=st.lists(st.sampled_from(MUTATIONS), min_size=1, max_size=3),
        seed=st.integers(0, 2**32 - 1))
-def test_random_corruptions(valid, valid_oaslam, tmp_path, case, kinds, seed):
-    _fuzz(valid if case[0] == "canonical" else valid_oaslam, tmp_path, case[1], kinds, seed)
+def test_random_corruptions(folders, tmp_path, case, kinds, seed):
+    _fuzz(folders[case[0]], tmp_path, case[1], kinds, seed)
 
 
 @pytest.mark.slow
 @settings(max_examples=2000, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(case=_CASES, kinds=st.lists(st.sampled_from(MUTATIONS), min_size=1, max_size=5),
        seed=st.integers(0, 2**32 - 1))
-def test_random_corruptions_long(valid, valid_oaslam, tmp_path, case, kinds, seed):
-    _fuzz(valid if case[0] == "canonical" else valid_oaslam, tmp_path, case[1], kinds, seed)
+def test_random_corruptions_long(folders, tmp_path, case, kinds, seed):
+    _fuzz(folders[case[0]], tmp_path, case[1], kinds, seed)
 
 
-def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(valid, valid_oaslam, tmp_path):
-    """``spdslam run`` (and ``spdslam import`` for the OA-SLAM layout) on each corrupted
+def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(folders, tmp_path):
+    """``spdslam run`` (and ``spdslam import`` for the other layouts) on each corrupted
     folder that the readers refuse: exit 2, one line ``spdslam: error: …`` on stderr, no
     traceback, no output folder, the input untouched."""
     from conftest import cli_runner
@@ -230,17 +257,17 @@ def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(
     runner = cli_runner()
     refused = 0
     for layout, fname, kind, seed in corpus():
-        folder = _corrupted(valid if layout == "canonical" else valid_oaslam, tmp_path, fname, kind, seed)
+        folder = _corrupted(folders[layout], tmp_path, fname, kind, seed)
         try:
             read_sequence(folder)
             shutil.rmtree(folder)
             continue  # parses: mapping it is the other tests' work
         except SequenceFormatError:
             pass
-        before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+        before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
         out = tmp_path / "out"
         commands = [["run", str(folder), "--out", str(out)]]
-        if layout == "oaslam":  # the importer of real recordings reads the same files
+        if layout != "canonical":  # the importer reads the same files
             commands.append(["import", str(folder), str(out)])
         for args in commands:
             res = runner.invoke(cli.app, args)
@@ -248,11 +275,11 @@ def test_the_cli_gives_one_line_and_writes_nothing_for_every_refused_corruption(
             lines = res.stderr.splitlines()
             assert len(lines) == 1 and lines[0].startswith("spdslam: error: "), res.stderr
             assert not out.exists()
-        assert {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()} == before
+        assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
         shutil.rmtree(folder)
         refused += 1
     print(f"spdslam run: {refused} refused corruptions, each one line and exit 2, nothing written")
-    assert refused >= 150, refused
+    assert refused >= 300, refused
 
 
 def test_evaluate_on_every_corrupted_ground_truth(valid, valid_oaslam, tmp_path):

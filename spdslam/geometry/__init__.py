@@ -18,6 +18,7 @@ from ._align import align_rigid as align_rigid
 from ._arrays import array_namespace as array_namespace
 from ._boxes import box_iou as box_iou
 from ._camera import Camera as Camera
+from ._camera import Equidistant as Equidistant
 from ._camera import box_lines as box_lines
 from ._camera import box_planes as box_planes
 from ._camera import camera_inside as camera_inside

@@ -32,6 +32,7 @@ would cost more than the arithmetic.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +45,7 @@ from .se3 import as_pose, camera_axes, world_to_camera
 
 __all__ = [
     "Camera",
+    "Equidistant",
     "projection_matrix",
     "project_dual_quadric",
     "conic_box",
@@ -296,15 +298,57 @@ def truncation_mask(box, camera: Camera, margin):
 # --- lens distortion ---------------------------------------------------------------------
 
 
+class Equidistant(NamedTuple):
+    """The equidistant (fisheye, Kannala–Brandt) lens of OpenCV's ``fisheye`` module, Kalibr's
+    ``equidistant`` and ROS's ``equidistant``: a ray at angle θ from the optical axis is
+    imaged at normalised radius θ_d = θ (1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸), in the ray's
+    direction. Given where a distortion is (``undistort_points``, ``distort_points``,
+    ``undistort_boxes``) in place of the radial-tangential (k1, k2, p1, p2, k3)."""
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+
+
+def _theta_d(theta, k):
+    t2 = theta * theta
+    return theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def _undistort_equidistant(flat, camera: Camera, k, iterations: int):
+    """Normalised pinhole (x, y) of distorted pixels (n, 2): θ from θ_d by Newton's method
+    (from θ = θ_d), then r = tan θ. Rays at 90° or more (a fisheye sees them; a pinhole
+    image cannot hold them) come out not finite."""
+    xd = (flat[:, 0] - camera.cx) / camera.fx
+    yd = (flat[:, 1] - camera.cy) / camera.fy
+    rd = np.hypot(xd, yd)
+    theta = rd.copy()
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for _ in range(iterations):
+            t2 = theta * theta
+            f = _theta_d(theta, k) - rd
+            df = 1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])))
+            theta = theta - f / df
+        ok = (theta >= 0) & (theta < np.pi / 2) & np.isfinite(theta)
+        scale = np.where(rd > 1e-15, np.tan(np.where(ok, theta, np.nan)) / np.where(rd > 1e-15, rd, 1.0), 1.0)
+    return xd * scale, yd * scale
+
+
 def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
-    """Pinhole pixels (…, 2) of pixels ``uv`` measured through OpenCV's radial-tangential
-    model, ``distortion`` = (k1, k2, p1, p2, k3): x_d = x·(1 + k1r² + k2r⁴ + k3r⁶) +
-    (2p1xy + p2(r² + 2x²), p1(r² + 2y²) + 2p2xy) on normalised coordinates, inverted by
-    fixed-point iteration (as OpenCV's ``undistortPoints``). Where the iteration diverges
-    (far outside the image, or extreme coefficients) the result is not finite, silently: the
-    callers refuse such boxes with their line. NumPy."""
-    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    """Pinhole pixels (…, 2) of pixels ``uv`` measured through a lens. ``distortion`` =
+    (k1, k2, p1, p2, k3): OpenCV's radial-tangential model, x_d = x·(1 + k1r² + k2r⁴ + k3r⁶)
+    + (2p1xy + p2(r² + 2x²), p1(r² + 2y²) + 2p2xy) on normalised coordinates, inverted by
+    fixed-point iteration (as OpenCV's ``undistortPoints``); or an ``Equidistant`` fisheye
+    lens, inverted by Newton's method on θ. Where the iteration diverges (far outside the
+    image, extreme coefficients, a fisheye ray at 90° or more) the result is not finite,
+    silently: the callers refuse such boxes with their line. NumPy."""
     uv = np.asarray(uv, dtype=float)
+    if isinstance(distortion, Equidistant):
+        flat = uv.reshape(-1, 2)
+        x, y = _undistort_equidistant(flat, camera, [float(v) for v in distortion], iterations)
+        return np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], axis=-1).reshape(uv.shape)
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
     flat = uv.reshape(-1, 2)
     out = np.empty_like(flat)
     # in chunks that stay in cache across the iterations (the same arithmetic per point)
@@ -331,9 +375,19 @@ _UNDISTORT_CHUNK = 16384
 
 def distort_points(uv, camera: Camera, distortion):
     """The forward model of ``undistort_points``: pixels (…, 2) of a pinhole camera →
-    pixels measured through the radial-tangential distortion (k1, k2, p1, p2, k3). NumPy."""
-    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
+    pixels measured through the radial-tangential distortion (k1, k2, p1, p2, k3), or
+    through an ``Equidistant`` fisheye lens. NumPy."""
     uv = np.asarray(uv, dtype=float)
+    if isinstance(distortion, Equidistant):
+        x = (uv[..., 0] - camera.cx) / camera.fx
+        y = (uv[..., 1] - camera.cy) / camera.fy
+        r = np.hypot(x, y)
+        theta = np.arctan(r)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(r > 1e-15, _theta_d(theta, [float(v) for v in distortion]) / np.where(r > 1e-15, r, 1.0),
+                             1.0)
+        return np.stack([camera.fx * x * scale + camera.cx, camera.fy * y * scale + camera.cy], axis=-1)
+    k1, k2, p1, p2, k3 = (float(v) for v in distortion)
     x = (uv[..., 0] - camera.cx) / camera.fx
     y = (uv[..., 1] - camera.cy) / camera.fy
     r2 = x * x + y * y

@@ -1,5 +1,6 @@
 """Files: the sequence model and its formats (one ``SequenceFormat`` class per input layout:
-the canonical folder, fr3_cabinet, OA-SLAM, ROS 2 bags; ``read_sequence`` finds a path's
+the canonical folder, fr3_cabinet, OA-SLAM, a detector's output folder (YOLO labels or COCO
+results), ROS 2 bags; ``read_sequence`` finds a path's
 format in the registry), g2o/TORO pose graphs and ``map.json``.
 
 Every malformed file gives a one-line ``file:line: expected …, got …`` error
@@ -12,6 +13,10 @@ from ._classes import CLASS_SOURCES as CLASS_SOURCES
 from ._classes import ClassPrior as ClassPrior
 from ._classes import builtin_class_prior as builtin_class_prior
 from ._classes import class_prior as class_prior
+from ._detector import COCO_IDS as COCO_IDS
+from ._detector import DetectorFolder as DetectorFolder
+from ._detector import import_detector_folder as import_detector_folder
+from ._detector import read_camera_calibration as read_camera_calibration
 from ._formats import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
 from ._formats import FORMATS as FORMATS
 from ._formats import SequenceFormat as SequenceFormat

@@ -258,8 +258,14 @@ class CanonicalFolder(SequenceFormat):
 
     @classmethod
     def claims(cls, path: Path) -> bool:
-        return path.is_dir() and any(present(path / f) for f in
-                                     ("camera.yaml", "trajectory.txt", "detections.txt"))
+        # a camera.yaml and trajectory.txt beside a detector's output (labels/, COCO results)
+        # are the detector folder's
+        if not path.is_dir():
+            return False
+        if present(path / "detections.txt"):
+            return True
+        return any(present(path / f) for f in ("camera.yaml", "trajectory.txt")) and not (
+            (path / "labels").is_dir() or present(path / "coco_results.json"))
 
     @classmethod
     def read(cls, path: Path, **options) -> Sequence:

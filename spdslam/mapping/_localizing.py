@@ -43,8 +43,9 @@ class LocalizingMapper(OnlineMapper):
     (``localize_objects``); the other arguments are ``OnlineMapper``'s.
 
     ``localization`` is None until the objects fix a transform (``reason`` says why not
-    yet); ``localized_at`` is the frame count then, and ``localize_seconds`` the time spent
-    trying, in the caller's thread."""
+    yet); ``localized_at`` is the frame count then and ``first_localization`` that first
+    transform (``finish`` replaces ``localization`` with one from every object, refined);
+    ``localize_seconds`` is the time spent trying, in the caller's thread."""
 
     def __init__(self, map_objects, camera, priors=None, method="multi-spd", *, sim3: bool = False,
                  tolerance: float = 0.15, **settings):
@@ -58,6 +59,7 @@ class LocalizingMapper(OnlineMapper):
         self.sim3, self.tolerance = bool(sim3), float(tolerance)
         self.localization: Localization | None = None
         self.localized_at: int | None = None
+        self.first_localization: Localization | None = None
         self.reason = "no objects mapped yet"
         self.localize_seconds = 0.0
         self._tried_with = 0
@@ -76,7 +78,7 @@ class LocalizingMapper(OnlineMapper):
                     objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(objects.items())}
                 self._try(self._as_map_objects(objects))
                 if self.localization is not None:
-                    self.localized_at = len(self)
+                    self.localized_at, self.first_localization = len(self), self.localization
         return rec
 
     @staticmethod
