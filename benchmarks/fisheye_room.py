@@ -50,10 +50,10 @@ def fisheye_boxes(seq, lens: Equidistant, n: int = 128) -> np.ndarray:
     box noise. False detections (instance < 0) keep their pinhole box, distorted as a box."""
     gt = {o.id: Ellipsoid.from_axes(o.cuboid.rotation, o.cuboid.center, o.cuboid.half_extents)
           for o in seq.objects_gt}
-    poses = from_tum(np.asarray(seq.groundtruth_tum)[:, 1:])
+    rows = np.asarray(seq.groundtruth_tum)[:, 1:]
     out = []
     for d in seq.detections:
-        T = poses[d.frame] if len(np.asarray(seq.groundtruth_tum)) == len(seq) else None
+        T = from_tum(rows[d.frame]) if len(rows) == len(seq) else None
         if d.instance is None or d.instance < 0 or d.instance not in gt or T is None:
             pts = distort_points(np.array([[d.box[0], d.box[1]], [d.box[2], d.box[1]],
                                            [d.box[0], d.box[3]], [d.box[2], d.box[3]]]), seq.camera, lens)

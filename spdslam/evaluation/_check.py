@@ -37,6 +37,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry import (
     Ellipsoid,
+    Equidistant,
     box_iou,
     distort_points,
     dual_quadric,
@@ -265,6 +266,7 @@ def _source(seq, ref: CheckReference, offsets, min_iou, max_gap, raw=None, disto
         exact = _distorted_boxes(P, c, rows, seq.camera, distortion)
         good = np.all(np.isfinite(exact), axis=1)
         out["distortion"] = {
+            "model": "equidistant" if isinstance(distortion, Equidistant) else "radial-tangential",
             "coefficients": [float(v) for v in distortion],
             "undistorted_vs_pinhole": _box_stats(boxes[d][good], proj[slot[d], k][good])["iou"],
             "measured_vs_pinhole": _box_stats(raw_boxes[good], proj[slot[d], k][good])["iou"],

@@ -60,9 +60,10 @@ __all__ = ["Localization", "LocalizationError", "localize_objects", "refine_loca
 #: Reweighted refits of the matched centres (Cauchy, scale ``tolerance``/3).
 IRLS_ITERATIONS = 5
 #: Floors of the σ that hold a map object in ``refine_localization``: centre (m), and the
-#: SPD block of its chart (≈ twice the relative change of a radius).
-REFINE_CENTER_SIGMA = 0.001
-REFINE_SHAPE_SIGMA = 0.002
+#: SPD block of its chart (≈ twice the relative change of a radius). Only a guard against a
+#: zero σ: the marginals themselves hold best (docs/map-reuse.md, ``--floors``).
+REFINE_CENTER_SIGMA = 1e-4
+REFINE_SHAPE_SIGMA = 1e-4
 #: Pairings and solves of ``refine_localization``.
 REFINE_ROUNDS = 2
 #: The key of the frame variable in ``refine_localization``'s graph.
