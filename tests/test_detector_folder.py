@@ -235,3 +235,54 @@ def test_a_fisheye_calibration_reads_as_an_equidistant_lens(tmp_path, dialect):
     back = np.stack([b.box for b in read_sequence(folder).detections])
     assert np.all(back[:, :2] <= pin[:, :2] + 0.02) and np.all(back[:, 2:] >= pin[:, 2:] - 0.02)
     assert np.abs(back - pin).max() < 0.05 * max(cam.width, cam.height)
+
+
+def test_check_compares_fisheye_boxes_through_the_lens(tmp_path):
+    """A room seen through an equidistant lens (boxes of the distorted outlines, no noise, no
+    drift): ``check_sequence`` names the lens model, the measured boxes agree with the
+    objects' outlines pushed through the lens, and the undistorted boxes with the pinhole
+    projection better than the measured ones do."""
+    from spdslam import Camera, Ellipsoid, project_dual_quadric
+    from spdslam.evaluation import check_sequence, conic_ellipses, ellipses_points
+    from spdslam.geometry import Equidistant, distort_points, dual_quadric
+    from spdslam.geometry.se3 import from_tum
+    from spdslam.io import MapObject, read_measured_boxes
+
+    cam, k = Camera(300.0, 300.0, 320.0, 240.0, 640.0, 480.0), Equidistant(-0.05, 0.01, -0.002, 0.0003)
+    seq = make_room_sequence(1, frames=16, objects=2, camera=cam, drift=0.0, box_noise_px=0.0)
+    gt = {o.id: Ellipsoid.from_axes(o.cuboid.rotation, o.cuboid.center, o.cuboid.half_extents) for o in seq.objects_gt}
+    fish = []
+    for d in seq.detections:
+        T = from_tum(seq.poses_tum[d.frame])
+        c, S, _ = conic_ellipses(np.asarray(project_dual_quadric(dual_quadric(gt[d.instance]), T, cam)))
+        p = distort_points(ellipses_points(c, S, 256), cam, k)
+        fish.append(np.r_[p.min(axis=0), p.max(axis=0)])
+    folder = write_detector_folder(seq, tmp_path / "fish", dist=k, boxes=np.array(fish))
+    raw, dist = read_measured_boxes(folder)
+    assert dist == k
+    objects = [MapObject(i, o.label, gt[o.id]) for i, o in enumerate(seq.objects_gt)]
+    report = check_sequence(read_sequence(folder), objects=objects, raw=raw, distortion=dist)
+    dd = report["sources"][0]["distortion"]
+    assert dd["model"] == "equidistant" and dd["coefficients"] == list(k) and dd["pairs"] > 0
+    assert dd["measured_vs_distorted"] > 0.99
+    # the undistorted box is the box of the undistorted box outline, which the fisheye's
+    # corners stretch (0.93 here, f = 300 px): better than the measured box, not exact
+    assert dd["undistorted_vs_pinhole"] > 0.9 and dd["undistorted_vs_pinhole"] > dd["measured_vs_pinhole"] + 0.02, dd
+
+
+def test_a_label_without_a_class_prior_is_kept_and_said_once(tmp_path):
+    """A detector's class the class table does not know ("gizmo", from data.yaml) is mapped
+    under its own name, without a size prior, and the run's notes say so once."""
+    from dataclasses import replace
+
+    from spdslam.mapping import run_sequence
+
+    seq = make_room_sequence(0, frames=30, objects=2)
+    first = seq.detections[0].label
+    seq = replace(seq, detections=[replace(d, label="gizmo") if d.label == first else d for d in seq.detections])
+    back = read_sequence(write_detector_folder(seq, tmp_path / "yolo"))
+    assert "gizmo" in {d.label for d in back.detections}
+    r = run_sequence(back, "multi-spd", associate="auto")
+    said = [n for n in r.notes if "without a class prior" in n]
+    assert len(said) == 1 and "gizmo" in said[0]
+    assert any(o.label == "gizmo" for o in r.objects)

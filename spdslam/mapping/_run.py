@@ -482,6 +482,9 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
     ctx = as_context(ctx)
     seq = ctx.seq
     init, failed, notes = initialize_objects(ctx, association.tracks, method, min_views)
+    unknown = sorted({tr.label for tr in association.tracks if ctx.class_prior(tr.label) is None})
+    if unknown:  # said once per run, whatever the format that read them
+        notes.append(f"labels without a class prior, mapped without a size or shape prior: {', '.join(unknown)}")
     measured = measured_objects(ctx)
     rare = drop_rarely_detected(ctx, association.tracks, init, keep=measured)
     failed.update(rare)
