@@ -373,6 +373,8 @@ def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
         if mapper.localization is not None and live is None:
             live = mapper.current_map()
     assert mapper.localized_at is not None and mapper.localized_at < len(rec)
+    assert len(mapper.first_localization.matches) >= 4  # ONLINE_MIN_MATCHES, confirmed
+    np.testing.assert_allclose(mapper.first_localization.T_map_sequence @ G, np.eye(4), atol=0.1)
     assert {o.id for o in saved} <= set(live.objects)
     result = mapper.finish()
     np.testing.assert_allclose(mapper.localization.T_map_sequence @ G, np.eye(4), atol=0.03)

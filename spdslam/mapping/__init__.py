@@ -18,6 +18,7 @@ from ._graph import support_plane as support_plane
 from ._keyframes import KEYFRAME_MODES as KEYFRAME_MODES
 from ._keyframes import parse_keyframes as parse_keyframes
 from ._keyframes import select_keyframes as select_keyframes
+from ._localizing import ONLINE_MIN_MATCHES as ONLINE_MIN_MATCHES
 from ._localizing import LocalizingMapper as LocalizingMapper
 from ._methods import AUTO_BOX_KERNEL as AUTO_BOX_KERNEL
 from ._methods import BOX_MODELS as BOX_MODELS

@@ -3,9 +3,12 @@
 ``LocalizingMapper`` is an ``OnlineMapper`` (frames added one at a time, mapped in the
 odometry's frame as always) that also holds a saved map's objects. Whenever the online map
 has gained an object since the last try (and has at least three), its objects are matched to
-the saved map's (``localize_objects``); from the first success on, ``current_map`` is the
-saved map extended: the saved objects as they were, the recording's objects that match none
-of them added with new ids, and the poses, all in the saved map's frame. ``finish`` maps the
+the saved map's (``localize_objects``); a transform from at least ``ONLINE_MIN_MATCHES``
+objects that the next try (with more objects, or ``CONFIRM_FRAMES`` frames later) confirms
+is taken, and later tries that agree with it replace it.
+From then on ``current_map`` is the saved map extended: the saved objects as they were, the
+recording's objects that match none of them added with new ids, and the poses, all in the
+saved map's frame. ``finish`` maps the
 recording (``OnlineMapper.finish``), localises again with every object, refines the transform
 with the recording's boxes (``refine_localization``) and returns the extended map as a
 ``MapResult`` in the saved map's frame. An object seen again keeps the saved map's estimate:
@@ -33,7 +36,15 @@ from ._reuse import (
     transform_poses_tum,
 )
 
-__all__ = ["LocalizingMapper"]
+__all__ = ["LocalizingMapper", "ONLINE_MIN_MATCHES"]
+
+#: The matched objects a ``LocalizingMapper`` needs before it takes a transform (and then
+#: only once the next try confirms it): on fr2_desk a transform from the first three objects,
+#: three frames in, was 26° and 75° off (docs/map-reuse.md).
+ONLINE_MIN_MATCHES = 4
+#: Frames after which a transform awaiting confirmation is tried again, even if no object
+#: was added meanwhile (the objects' estimates have moved on).
+CONFIRM_FRAMES = 10
 
 
 class LocalizingMapper(OnlineMapper):
@@ -43,12 +54,16 @@ class LocalizingMapper(OnlineMapper):
     (``localize_objects``); the other arguments are ``OnlineMapper``'s.
 
     ``localization`` is None until the objects fix a transform (``reason`` says why not
-    yet); ``localized_at`` is the frame count then and ``first_localization`` that first
-    transform (``finish`` replaces ``localization`` with one from every object, refined);
-    ``localize_seconds`` is the time spent trying, in the caller's thread."""
+    yet): one from at least ``min_matches`` matched objects that the next try (when an object
+    is added, or ``CONFIRM_FRAMES`` frames later) confirms (puts the recording's objects
+    within the tolerance of where it did);
+    ``localized_at`` is the frame count then and ``first_localization`` that transform. Each
+    later try that agrees replaces ``localization``, and ``finish`` replaces it with one from
+    every object, refined. ``localize_seconds`` is the time spent trying, in the caller's
+    thread."""
 
     def __init__(self, map_objects, camera, priors=None, method="multi-spd", *, sim3: bool = False,
-                 tolerance: float = 0.15, **settings):
+                 tolerance: float = 0.15, min_matches: int = ONLINE_MIN_MATCHES, **settings):
         super().__init__(camera, priors, method, **settings)
         self.map_objects = list(map_objects)
         if not self.map_objects:
@@ -61,39 +76,64 @@ class LocalizingMapper(OnlineMapper):
         self.localized_at: int | None = None
         self.first_localization: Localization | None = None
         self.reason = "no objects mapped yet"
+        self.min_matches = int(min_matches)
+        self._candidate: Localization | None = None
+        self._candidate_at = 0
         self.localize_seconds = 0.0
         self._tried_with = 0
         self._first_new_id = max(ids) + 1
 
     def add_frame(self, timestamp, pose=None, *, odometry=None, detections=(), ellipsoids=()):
-        """``OnlineMapper.add_frame``, then a try at localising when the map gained objects."""
+        """``OnlineMapper.add_frame``, then a try at localising when the map gained objects
+        (module docstring)."""
         rec = super().add_frame(timestamp, pose, odometry=odometry, detections=detections,
                                 ellipsoids=ellipsoids)
-        if self.localization is None:
-            # the objects now (in the background: the last map published; the worker changes
-            # ``landmarks`` meanwhile), only when there are more than at the last try
-            objects = self._published.objects if self.background else self.landmarks
-            if len(objects) >= 3 and len(objects) > self._tried_with:
-                if not self.background:
-                    objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(objects.items())}
-                self._try(self._as_map_objects(objects))
-                if self.localization is not None:
-                    self.localized_at, self.first_localization = len(self), self.localization
+        # the objects now (in the background: the last map published; the worker changes
+        # ``landmarks`` meanwhile), only when there are more than at the last try
+        objects = self._published.objects if self.background else self.landmarks
+        waiting = self._candidate is not None and self.localization is None \
+            and len(self) - self._candidate_at >= CONFIRM_FRAMES  # a candidate: try again later too
+        if len(objects) < 3 or (len(objects) <= self._tried_with and not waiting):
+            return rec
+        if not self.background:
+            objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(objects.items())}
+        mine = self._as_map_objects(objects)
+        found = self._try(mine)
+        if found is None:
+            return rec
+        if self.localization is not None:  # a later transform from more objects, if it agrees
+            if self._agree(self.localization, found, mine):
+                self.localization = found
+        elif len(found.matches) < self.min_matches:
+            self.reason = f"{len(found.matches)} objects matched: waiting for {self.min_matches}"
+        elif self._candidate is not None and self._agree(self._candidate, found, mine):
+            self.localization = self.first_localization = found
+            self.localized_at = len(self)
+        else:
+            self._candidate, self._candidate_at = found, len(self)
+            self.reason = f"a transform from {len(found.matches)} objects, to be confirmed by the next try"
         return rec
 
     @staticmethod
     def _as_map_objects(objects: dict) -> list:
         return [MapObject(int(k), label, e) for k, (label, e) in sorted(objects.items())]
 
-    def _try(self, objects: list) -> None:
+    def _try(self, objects: list) -> Localization | None:
         t0 = time.perf_counter()
         self._tried_with = len(objects)
         try:
-            self.localization = localize_objects(objects, self.map_objects, sim3=self.sim3,
-                                                 tolerance=self.tolerance)
+            return localize_objects(objects, self.map_objects, sim3=self.sim3, tolerance=self.tolerance)
         except LocalizationError as e:
             self.reason = str(e)
-        self.localize_seconds += time.perf_counter() - t0
+            return None
+        finally:
+            self.localize_seconds += time.perf_counter() - t0
+
+    def _agree(self, a: Localization, b: Localization, objects: list) -> bool:
+        """Whether two transforms put the recording's objects in the same places: median
+        displacement of their centres within the tolerance."""
+        c = np.array([np.asarray(o.ellipsoid.center, float) for o in objects])
+        return bool(np.median(np.linalg.norm(a.apply(c) - b.apply(c), axis=1)) <= self.tolerance)
 
     def _new_objects(self, objects: list, loc: Localization) -> list:
         """The recording's objects (moved into the map's frame) that are none of the saved
@@ -135,8 +175,8 @@ class LocalizingMapper(OnlineMapper):
         frame, with a note that says why (``localization`` stays None)."""
         say = progress or (lambda message: None)
         result = super().finish(final_batch, max_iterations, tolerance, progress)
-        self._try(result.objects)
-        loc = self.localization
+        found = self._try(result.objects)  # every object: the surest transform there is
+        loc = self.localization = found or self.localization
         if loc is None:
             return replace(result, notes=[*result.notes, f"not localised against the saved map: {self.reason}"])
         say(f"localised against the saved map from {len(loc.matches)} objects; refining with the boxes")
