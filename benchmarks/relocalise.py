@@ -79,6 +79,14 @@ def transform_of(rec, rng, trial: int, sim3: bool):
     return G, s
 
 
+def write_out(a, doc) -> None:
+    """``doc`` as JSON to ``--out``, when given."""
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {a.out}")
+
+
 def error_of(M, map_k: int, rec_k: int, G, s: float, c0):
     """(T, scale) ↦ (rotation error °, translation error m at the point c0 of the recording's
     frame, scale error) against the truth: the recording's frame → its ORB frame (G⁻¹, scale
@@ -130,10 +138,7 @@ def online_study(halves, maps, M, settings, a) -> None:
         rows.append(row)
         print(f"online, map {map_k} ← half {rec_k}: {row}")
     print(json.dumps(rows, indent=1))
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"online": rows}, indent=1) + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
+    write_out(a, {"online": rows})
 
 
 def floors_study(halves, maps, M, settings, a) -> None:
@@ -159,10 +164,7 @@ def floors_study(halves, maps, M, settings, a) -> None:
                          "translation_m": trans, "note": ref.notes[-1]})
             print(f"map {map_k} ← half {rec_k}, floors {fc} m : {fs}: {rot:.2f}°, {100 * trans:.1f} cm; "
                   f"{ref.notes[-1]}")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"floors": rows}, indent=1) + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
+    write_out(a, {"floors": rows})
 
 
 def summary_of(seq, result) -> dict:
@@ -201,10 +203,7 @@ def drift_study(fr2, settings, a) -> None:
         rows.append(row)
         print(f"drift {st} m, {sr} rad per frame: {row}")
     print(json.dumps(rows, indent=1))
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"drift": rows}, indent=1) + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
+    write_out(a, {"drift": rows})
 
 
 def merge_study(fr2, halves, settings, a) -> None:
@@ -227,10 +226,7 @@ def merge_study(fr2, halves, settings, a) -> None:
         print(f"merge, trial {trial}: {row}")
     out = {"whole": whole, "merges": rows}
     print(json.dumps(out, indent=1))
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
+    write_out(a, out)
 
 
 def main() -> None:
@@ -315,10 +311,7 @@ def main() -> None:
                 v = np.abs([r["objects_only"][key] for r in ok])
                 summary["objects_only"][key] = {"median": float(np.median(v)), "max": float(np.max(v))}
     print(json.dumps(summary, indent=1))
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"summary": summary, "trials": rows}, indent=1) + "\n", encoding="utf-8")
-        print(f"wrote {a.out}")
+    write_out(a, {"summary": summary, "trials": rows})
 
 
 if __name__ == "__main__":

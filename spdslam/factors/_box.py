@@ -130,6 +130,21 @@ def cuboid_box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth
     return cuboid_in_front(landmark, T_wc, min_depth)
 
 
+def _box_data(box, camera: Camera, truncation_margin: float | None) -> tuple:
+    """A box factor's data, checked: (box, camera) and, with a ``truncation_margin`` (px), the
+    box's truncation mask."""
+    box = np.asarray(box, dtype=float)
+    if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
+        raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
+    if not isinstance(camera, Camera):
+        raise TypeError("camera must be a spdslam Camera")
+    if truncation_margin is None:
+        return (box, camera)
+    if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
+        raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
+    return (box, camera, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
+
+
 class _BoxFactor(Factor):
     """A detected box [u_min, v_min, u_max, v_max] (px) of a landmark seen from a pose.
 
@@ -144,17 +159,7 @@ class _BoxFactor(Factor):
 
     def __init__(self, pose_key, landmark_key, box, camera: Camera, *,
                  truncation_margin: float | None = None, **noise):
-        box = np.asarray(box, dtype=float)
-        if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
-            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
-        if not isinstance(camera, Camera):
-            raise TypeError("camera must be a spdslam Camera")
-        args: tuple = (box, camera)
-        if truncation_margin is not None:
-            if not (np.isfinite(truncation_margin) and truncation_margin >= 0):
-                raise ValueError(f"truncation_margin must be finite and ≥ 0 px, got {truncation_margin!r}")
-            args = (box, camera, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
-        super().__init__((pose_key, landmark_key), args, **noise)
+        super().__init__((pose_key, landmark_key), _box_data(box, camera, truncation_margin), **noise)
 
     @classmethod
     def many(cls, pose_keys, landmark_keys, boxes, camera: Camera, *, sigma: Any = None,
@@ -243,22 +248,17 @@ class FrameBoxFactor(Factor):
     variables = ("frame", "landmark")
     dim = 4
     group = "box"
-    sigmas = (Sigma(2.0, "px per box edge"),)
+    # the inverse box model's noise, under its name: one σ for one measurement model
+    sigmas = (Sigma(2.0, "px per box edge", name="inverse_box"),)
 
     def __init__(self, frame_key, landmark_key, T_wc, box, camera: Camera, *,
                  truncation_margin: float | None = None, **noise):
-        box = np.asarray(box, dtype=float)
-        if box.shape != (4,) or not np.all(np.isfinite(box)) or box[2] < box[0] or box[3] < box[1]:
-            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {box.tolist()}")
-        if not isinstance(camera, Camera):
-            raise TypeError("camera must be a spdslam Camera")
         pose = np.asarray(T_wc.wxyz_xyz if hasattr(T_wc, "wxyz_xyz") else T_wc, dtype=float)
         if pose.shape != (7,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"T_wc must be a jaxlie.SE3 (or its 7 numbers wxyz_xyz), got shape {pose.shape}")
-        args: tuple = (jaxlie.SE3(pose), box, camera)  # type: ignore[arg-type]  # numpy leaf
-        if truncation_margin is not None:
-            args = (*args, np.asarray(truncation_mask(box, camera, float(truncation_margin))))
-        super().__init__((frame_key, landmark_key), args, **noise)
+        pose_leaf = jaxlie.SE3(pose)  # type: ignore[arg-type]  # numpy leaf
+        super().__init__((frame_key, landmark_key), (pose_leaf, *_box_data(box, camera, truncation_margin)),
+                         **noise)
 
     @classmethod
     def many(cls, frame_key, landmark_keys, poses_wxyz_xyz, boxes, camera: Camera, *,
