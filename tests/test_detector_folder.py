@@ -286,3 +286,32 @@ def test_a_label_without_a_class_prior_is_kept_and_said_once(tmp_path):
     said = [n for n in r.notes if "without a class prior" in n]
     assert len(said) == 1 and "gizmo" in said[0]
     assert any(o.label == "gizmo" for o in r.objects)
+
+
+DATA = Path(__file__).resolve().parent / "data" / "detector"
+
+
+def test_the_tools_own_files_read_as_documented():
+    """Files as the tools write them (tests/data/detector: a ROS camera_info with its
+    rectification and projection matrices, a two-camera Kalibr camchain with the extrinsics,
+    a Kalibr fisheye camchain, an Ultralytics data.yaml with paths): the fields spdslam needs,
+    the others ignored."""
+    from spdslam.geometry import Equidistant
+    from spdslam.io import read_class_names, read_yolo_labels
+
+    cam, d = read_camera_calibration(DATA / "camera_info.yaml")
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (517.306408, 516.469215, 318.64304,
+                                                                      255.313989, 640.0, 480.0)
+    np.testing.assert_array_equal(d, [0.262383, -0.953104, -0.005358, 0.002628, 1.163314])
+    cam, d = read_camera_calibration(DATA / "camchain.yaml")  # cam0 of the chain
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) == (458.654, 457.296, 367.215, 248.375, 752.0, 480.0)
+    np.testing.assert_array_equal(d, [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0])
+    cam, d = read_camera_calibration(DATA / "camchain_fisheye.yaml")
+    assert isinstance(d, Equidistant) and d.k1 == -0.013721808247486035 and cam.width == 640.0
+    names = read_class_names(DATA / "yolo")
+    assert names == ("chair", "tv_monitor")
+    cam = read_camera_calibration(DATA / "camera_info.yaml")[0]
+    rows = read_yolo_labels(DATA / "yolo", cam, names, None, 0.5)
+    assert len(rows) == 1 and rows[0][0] == 1305031453.359684 and rows[0][2] == "chair" and rows[0][3] == 0.91
+    np.testing.assert_allclose(rows[0][1], [(0.5125 - 0.084375) * 640, (0.604167 - 0.1458335) * 480,
+                                            (0.5125 + 0.084375) * 640, (0.604167 + 0.1458335) * 480], atol=1e-9)

@@ -17,6 +17,10 @@ from ._detector import COCO_IDS as COCO_IDS
 from ._detector import DetectorFolder as DetectorFolder
 from ._detector import import_detector_folder as import_detector_folder
 from ._detector import read_camera_calibration as read_camera_calibration
+from ._detector import read_class_names as read_class_names
+from ._detector import read_coco_results as read_coco_results
+from ._detector import read_image_times as read_image_times
+from ._detector import read_yolo_labels as read_yolo_labels
 from ._formats import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
 from ._formats import FORMATS as FORMATS
 from ._formats import SequenceFormat as SequenceFormat

@@ -58,7 +58,7 @@ from ._parse import (
 from ._readers import read_priors
 from ._sequence import Detection, Priors, Sequence
 
-__all__ = ["DetectorFolder", "COCO_IDS", "read_camera_calibration", "read_yolo_labels",
+__all__ = ["DetectorFolder", "COCO_IDS", "read_camera_calibration", "read_class_names", "read_yolo_labels",
            "read_coco_results", "read_image_times", "import_detector_folder"]
 
 #: COCO's category ids (1–90, with gaps) of the 80 classes, in ``COCO80``'s order.
