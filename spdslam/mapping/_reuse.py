@@ -372,8 +372,8 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     with the refined transform, its covariance and a note; ``loc`` unchanged (with a note)
     when fewer than three objects have a paired box. Under Sim(3) the scale stays the one
     of the objects' layout unless ``refine_scale`` (a ``geometry.Sim3`` frame then): on
-    fr2_desk the boxes pull it about 1 % off where the layout is within 0.8 %
-    (docs/map-reuse.md); its variance and the rest of the covariance are then kept apart.
+    fr2_desk the boxes fix it no better than the layout does (docs/map-reuse.md); its
+    variance and the rest of the covariance are then kept apart.
     ``center_sigma`` (m) and ``shape_sigma``: the floors of the σ that hold the map's objects."""
     import jaxlie
 
