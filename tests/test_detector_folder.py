@@ -23,6 +23,7 @@ from spdslam.io import (
 from spdslam.synthetic import make_room_sequence
 
 FR2 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tum_fr2_desk"
+DATA = Path(__file__).resolve().parent / "data" / "detector"
 
 
 def assert_same_sequence(a, b, atol=1e-9, time_atol=0.0):
@@ -163,12 +164,23 @@ def test_calibration_dialects_agree(tmp_path):
         read_camera_calibration(bad)
 
 
-def test_import_and_run_read_a_detector_folder(yolo_room, tmp_path):
-    seq, folder = yolo_room
+def test_import_and_run_read_a_detector_folder(tmp_path):
+    """``spdslam import`` writes the canonical folder of the same sequence; ``spdslam run``
+    maps the folder directly; a detector's class the class table does not know ("gizmo", from
+    data.yaml) is mapped under its own name without a size prior, and the run says so once."""
+    from dataclasses import replace
+
+    seq = make_room_sequence(0, frames=30, objects=2)
+    first = seq.detections[0].label
+    seq = replace(seq, detections=[replace(d, label="gizmo") if d.label == first else d for d in seq.detections])
+    folder = write_detector_folder(seq, tmp_path / "yolo")
     assert_cli_ok(cli_invoke("import", folder, tmp_path / "canon"))
     assert_same_sequence(seq, read_sequence(tmp_path / "canon"))
     assert_cli_ok(cli_invoke("run", folder, "--out", tmp_path / "run"))
-    assert (tmp_path / "run" / "map.json").is_file()
+    doc = json.loads((tmp_path / "run" / "map.json").read_text())
+    said = [n for n in doc["notes"] if "without a class prior" in n]
+    assert len(said) == 1 and "gizmo" in said[0]
+    assert any(o["label"] == "gizmo" for o in doc["objects"])
 
 
 def _fisheye_forward(uv, cam, k):
@@ -268,27 +280,6 @@ def test_check_compares_fisheye_boxes_through_the_lens(tmp_path):
     # the undistorted box is the box of the undistorted box outline, which the fisheye's
     # corners stretch (0.93 here, f = 300 px): better than the measured box, not exact
     assert dd["undistorted_vs_pinhole"] > 0.9 and dd["undistorted_vs_pinhole"] > dd["measured_vs_pinhole"] + 0.02, dd
-
-
-def test_a_label_without_a_class_prior_is_kept_and_said_once(tmp_path):
-    """A detector's class the class table does not know ("gizmo", from data.yaml) is mapped
-    under its own name, without a size prior, and the run's notes say so once."""
-    from dataclasses import replace
-
-    from spdslam.mapping import run_sequence
-
-    seq = make_room_sequence(0, frames=30, objects=2)
-    first = seq.detections[0].label
-    seq = replace(seq, detections=[replace(d, label="gizmo") if d.label == first else d for d in seq.detections])
-    back = read_sequence(write_detector_folder(seq, tmp_path / "yolo"))
-    assert "gizmo" in {d.label for d in back.detections}
-    r = run_sequence(back, "multi-spd", associate="auto")
-    said = [n for n in r.notes if "without a class prior" in n]
-    assert len(said) == 1 and "gizmo" in said[0]
-    assert any(o.label == "gizmo" for o in r.objects)
-
-
-DATA = Path(__file__).resolve().parent / "data" / "detector"
 
 
 def test_the_tools_own_files_read_as_documented():

@@ -27,7 +27,7 @@ from spdslam.io import _formats
 from spdslam.synthetic import make_room_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
-BUILTIN = ("canonical", "oaslam", "fr3_cabinet", "rosbag2")
+BUILTIN = ("canonical", "oaslam", "detector", "fr3_cabinet", "rosbag2")
 
 
 @pytest.fixture

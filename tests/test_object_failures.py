@@ -133,6 +133,7 @@ def test_a_failure_of_the_whole_problem_names_its_step(monkeypatch):
     assert isinstance(info.value, ValueError)  # the CLI's one-line error
 
 
+@pytest.mark.slow  # a real-data study (40 s); tests above check one failing object alone on rooms
 @pytest.mark.skipif(not FR2.is_dir(), reason="../shared/data/tum_fr2_desk is not on this machine")
 def test_quadric_slam_on_the_middle_third_of_fr2_desk_maps_the_others():
     """The real case: one object's optimised P is singular (its smallest scale at 0) and

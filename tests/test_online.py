@@ -310,6 +310,7 @@ def test_run_online_cli_refuses_what_it_cannot_do(tmp_path, room, args, message)
     assert not out.exists()
 
 
+@pytest.mark.slow  # compiles every program size two doublings ahead (60-80 s): a study of compile-ahead
 def test_warmup_compiles_ahead_and_leaves_the_mapper_unchanged():
     """``OnlineMapper.warmup`` replays another sequence through a twin mapper: the mapper
     itself has no frames afterwards, and the twin's factor kinds have programs for the
@@ -384,3 +385,12 @@ def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
     assert np.linalg.norm(np.asarray(new[0].ellipsoid.center) - np.asarray(left_out.ellipsoid.center)) < 0.1
     np.testing.assert_allclose(result.poses_tum[:, 1:4], batch.poses_tum[:, 1:4], atol=0.05)
     assert any("started from a saved map" in n for n in result.notes)
+
+
+def test_run_online_takes_a_run_settings(room):
+    """``run_online`` with a ``RunSettings``: its ``max_iterations`` bounds the final batch
+    (tests/test_settings.py checks the settings themselves)."""
+    from spdslam.mapping import RunSettings
+
+    result, records = run_online(room, RunSettings.of("multi-spd", associate="instances", max_iterations=3))
+    assert len(records) == len(room) and result.iterations <= 3

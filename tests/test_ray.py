@@ -98,6 +98,7 @@ def room(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow  # maps on Ray workers (35 s); the tests above run the engine's tasks in the default suite
 def test_batch_on_ray_writes_the_maps_of_the_local_batch(engine, room, tmp_path):
     m = room / "m.yaml"
     m.write_text("""\
@@ -125,6 +126,7 @@ jobs:
             assert (local / job / f).read_bytes() == (on_ray / job / f).read_bytes(), (job, f)
 
 
+@pytest.mark.slow  # maps on Ray workers (35 s)
 def test_compare_on_ray_writes_the_local_table(engine, room, tmp_path):
     import shutil
 

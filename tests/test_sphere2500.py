@@ -77,6 +77,8 @@ def test_sphere2500_first_500_poses_matches_gtsam():
     assert res.linear_solver in ("cholmod", "cvxopt", "scipy")  # 3000 tangent dims: sparse
 
 
+@pytest.mark.slow  # the first 500 poses run in the default suite
 def test_sphere2500_matches_gtsam():
-    """The whole graph (2500 poses, 4949 edges): the spec test, run in CI (about 30-60 s)."""
+    """The whole graph (2500 poses, 4949 edges), on demand (about 30-60 s): the first 500
+    poses, above, are the default suite's."""
     compare(None)

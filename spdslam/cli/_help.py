@@ -97,6 +97,7 @@ FACTS: dict[str, Any] = {
     "formats": (
         "a canonical sequence folder (camera.yaml, trajectory.txt, detections.txt)",
         "an OA-SLAM-style folder (a detections*.json, beside a camera YAML and TUM trajectories)",
+        "a detector's output folder (labels/*.txt (YOLO) or coco_results.json, beside camera.yaml and trajectory.txt)",
         "a TUM fr3_cabinet-style folder (bbox/ and truth_objects.txt)",
         "a ROS 2 bag (a folder with metadata.yaml, or a .mcap or .db3 file)",
     ),
