@@ -130,6 +130,16 @@ def cuboid_box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth
     return cuboid_in_front(landmark, T_wc, min_depth)
 
 
+def _check_boxes(boxes: np.ndarray, camera: Camera) -> None:
+    """``_box_data``'s checks of n boxes (n, 4) at once (``many``)."""
+    bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
+    if bad.any():
+        b = boxes[int(np.flatnonzero(bad)[0])]
+        raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}")
+    if not isinstance(camera, Camera):
+        raise TypeError("camera must be a spdslam Camera")
+
+
 def _box_data(box, camera: Camera, truncation_margin: float | None) -> tuple:
     """A box factor's data, checked: (box, camera) and, with a ``truncation_margin`` (px), the
     box's truncation mask."""
@@ -176,12 +186,7 @@ class _BoxFactor(Factor):
         if len(pose_keys) != n or len(landmark_keys) != n:
             raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(pose_keys)} pose keys and "
                              f"{len(landmark_keys)} landmark keys")
-        bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
-        if bad.any():
-            b = boxes[int(np.flatnonzero(bad)[0])]
-            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}")
-        if not isinstance(camera, Camera):
-            raise TypeError("camera must be a spdslam Camera")
+        _check_boxes(boxes, camera)
         W = diagonal_sqrt_information(cls.default_sigma() if sigma is None else sigma, n, 4)
         # the solver's layout of the first factor's arguments (Factor.flat_args): box,
         # camera (the same for all), truncation mask
@@ -275,11 +280,9 @@ class FrameBoxFactor(Factor):
         if len(poses) != n or len(landmark_keys) != n or n == 0:
             raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(poses)} poses and "
                              f"{len(landmark_keys)} landmark keys (at least one of each)")
-        bad = ~(np.all(np.isfinite(boxes), axis=1) & (boxes[:, 2] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 1]))
-        if bad.any() or not np.all(np.isfinite(poses)):
-            b = boxes[int(np.flatnonzero(bad)[0])] if bad.any() else None
-            raise ValueError(f"box must be finite [u_min, v_min, u_max, v_max], got {b.tolist()}"
-                             if b is not None else "the poses must be finite")
+        _check_boxes(boxes, camera)
+        if not np.all(np.isfinite(poses)):
+            raise ValueError("the poses must be finite")
         W = diagonal_sqrt_information(cls.default_sigma() if sigma is None else sigma, n, 4)
         first = cls(None, None, poses[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
                     truncation_margin=truncation_margin)
