@@ -15,6 +15,7 @@ Fixtures
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import zlib
 
 # SPDSLAM_TEST_XLA_FAST=1 compiles the tests' XLA programs with the backend optimisation off
@@ -505,3 +506,24 @@ def write_detector_folder(seq, dest, *, dist=None, boxes=None, detector: str = "
             doc["categories"] = [{"id": k, "name": n} for n, k in category.items()]
         (dest / "coco_images.json").write_text(json.dumps(doc))
     return dest
+
+
+def write_truth_run(seq, folder) -> Path:
+    """A run folder (map.json, trajectory.txt) as ``spdslam run`` writes one, with the
+    sequence's ground-truth objects as the map (each cuboid's inscribed ellipsoid) and its
+    input poses as the trajectory: for tests of what reads a run, without mapping one."""
+    from spdslam.io import MapObject, map_document, write_map
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    objects = [MapObject(o.id, o.label, Ellipsoid.from_axes(o.cuboid.rotation, o.cuboid.center,
+                                                            o.cuboid.half_extents))
+               for o in seq.objects_gt or ()]
+    doc = map_document(method="multi-spd", parameterization="spd", iterations=0, final_cost=0.0,
+                       initial_cost=0.0, converged=True, reason="written from the ground truth",
+                       settings={}, objects=objects, failed={}, notes=[], association={},
+                       cost_by_factor={})
+    write_map(folder / "map.json", doc)
+    rows = np.column_stack([seq.timestamps, seq.poses_tum])
+    np.savetxt(folder / "trajectory.txt", rows, fmt="%.9f")
+    return folder

@@ -204,6 +204,7 @@ def test_fr3_cabinet_association():
     assert s["precision"] >= 0.95 and s["recall"] >= 0.95, s
 
 
+@pytest.mark.slow  # a real-data target study (-m slow); the default suite maps fr3_cabinet in test_mapping.py
 @pytest.mark.skipif(not FR3.is_dir(), reason=f"fr3_cabinet data not found at {FR3}")
 def test_fr3_cabinet_map_from_automatic_tracks():
     """TARGET: the multi-spd map from automatic tracks has the IoU of the manual one (±0.02)."""

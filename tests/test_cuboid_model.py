@@ -269,6 +269,7 @@ def test_build_graph_uses_the_cuboid_factors_for_cuboid_classes():
             k.replace("inverse", "semi_inverse") for k in kinds}
 
 
+@pytest.mark.slow  # a real-data target study (-m slow); the default suite maps fr3_cabinet in test_mapping.py
 @pytest.mark.skipif(not FR3.is_dir(), reason=f"fr3_cabinet data not found at {FR3}")
 def test_fr3_cabinet_cuboid_model_target():
     """Issue 5's target: with the cuboid silhouette model, IoU ≥ 0.80 and orientation

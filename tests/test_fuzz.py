@@ -286,15 +286,15 @@ def test_evaluate_on_every_corrupted_ground_truth(valid, valid_oaslam, tmp_path)
     """``spdslam evaluate`` of a good map against each corrupted ground-truth file of the
     corpus (``groundtruth.txt``, ``objects_gt.txt``; both layouts): strict JSON metrics and
     exit 0, or one line and exit 2 with the run's files untouched — never a traceback."""
-    from conftest import cli_runner
+    from conftest import cli_runner, write_truth_run
 
     from spdslam import cli
 
     runner = cli_runner()
     bases = {}
-    for layout, src in (("canonical", valid), ("oaslam", valid_oaslam)):
-        bases[layout] = tmp_path / f"map-{layout}"
-        res = runner.invoke(cli.app, ["run", str(src), "--out", str(bases[layout])])
+    for layout, src in (("canonical", valid), ("oaslam", valid_oaslam)):  # a good map of each
+        bases[layout] = write_truth_run(read_sequence(src), tmp_path / f"map-{layout}")
+        res = runner.invoke(cli.app, ["evaluate", str(bases[layout]), str(src)])
         assert res.exit_code == 0, res.output
     counts = {"evaluated": 0, "refused": 0}
     for layout, fname, kind, seed in corpus():
