@@ -17,7 +17,10 @@ holding the other half's map: when it localised, and the final transform's error
 ``--drift``: instead, fr2_desk's odometry with added drift (each frame step composed with
 Exp(n), n ~ N(0, diag(σ_t² I₃, σ_r² I₃)), seeded, at the rates of ``--rates``), mapped with
 the per-pose bound off (``trajectory_absolute_sigma: .inf``): ATE and mean IoU of the input
-and of the run.
+and of the run, for each drift correction of ``--drift-intervals`` (seconds between its knots,
+``RunSettings.drift_interval``; 0: none); then the same for the synthetic demo rooms (seeds
+0-2, 120 frames at 10 Hz, 4 objects, each odometry drift of ``--room-drifts``: σ metres and
+σ/2 radians per step) and the intervals of ``--room-intervals``.
 
 The answer is compared with the motion capture's relation of the two halves: each half's
 input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
@@ -42,6 +45,7 @@ from scipy.spatial.transform import Rotation
 from spdslam.evaluation import evaluate_run, trajectory_alignment
 from spdslam.experiments import localize_sequence, merge_recordings
 from spdslam.io import read_sequence
+from spdslam.synthetic import make_room_sequence
 from spdslam.mapping import (
     LocalizationError,
     LocalizingMapper,
@@ -197,13 +201,26 @@ def drift_study(fr2, settings, a) -> None:
     for item in a.rates.split(","):
         st, sr = (float(x) for x in item.split(":"))
         seq = drifted(fr2, st, sr, a.seed)
-        t0 = time.perf_counter()
-        r = run_sequence(seq, settings)
-        row = {"sigma_t": st, "sigma_r": sr, **summary_of(seq, r), "seconds": time.perf_counter() - t0}
-        rows.append(row)
-        print(f"drift {st} m, {sr} rad per frame: {row}")
-    print(json.dumps(rows, indent=1))
-    write_out(a, {"drift": rows})
+        for interval in (float(x) for x in a.drift_intervals.split(",")):
+            t0 = time.perf_counter()
+            r = run_sequence(seq, settings.replace(drift_interval=interval))
+            row = {"sigma_t": st, "sigma_r": sr, "drift_interval": interval, **summary_of(seq, r),
+                   "seconds": time.perf_counter() - t0}
+            rows.append(row)
+            print(f"drift {st} m, {sr} rad per frame, knots {interval:g} s apart: {row}")
+    rooms = []
+    for drift in (float(x) for x in a.room_drifts.split(",") if x):
+        for seed in range(3):
+            room = make_room_sequence(seed, frames=120, objects=4, drift=drift)
+            for interval in (float(x) for x in a.room_intervals.split(",")):
+                r = run_sequence(room, settings.replace(drift_interval=interval))
+                m = summary_of(room, r)
+                row = {"seed": seed, "drift": drift, "drift_interval": interval, "ate_input_mm": m["ate_input_mm"],
+                       "ate_mm": m["ate_mm"], "mean_iou": m["mean_iou"], "duplicates": m["duplicates"]}
+                rooms.append(row)
+                print(f"room {seed}, drift {drift} per step, knots {interval:g} s apart: {row}")
+    print(json.dumps({"drift": rows, "rooms": rooms}, indent=1))
+    write_out(a, {"drift": rows, "rooms": rooms})
 
 
 def merge_study(fr2, halves, settings, a) -> None:
@@ -246,6 +263,12 @@ def main() -> None:
                     help="each half replayed through a LocalizingMapper holding the other's map instead")
     ap.add_argument("--rates", default="0:0,0.0005:0.00025,0.001:0.0005,0.002:0.001",
                     help="σ_t:σ_r (m:rad per frame) of --drift, comma-separated")
+    ap.add_argument("--drift-intervals", default="0,15",
+                    help="with --drift: seconds between the knots of the drift correction, comma-separated (0: none)")
+    ap.add_argument("--room-drifts", default="0.005,0.01",
+                    help="with --drift: the demo rooms' odometry drifts (m per step), comma-separated ('' : none)")
+    ap.add_argument("--room-intervals", default="0,1,3,6,12",
+                    help="with --drift: the rooms' knot intervals (s), comma-separated")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)

@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 import spdslam  # noqa: F401  (enables float64)
 from spdslam import Camera, project_box
 from spdslam.factors import factor_types, robust_groups
-from spdslam.geometry import project_cuboid_box
+from spdslam.geometry import interpolated_frame, project_cuboid_box
 
 N = 210
 H = 1e-6
@@ -153,6 +153,29 @@ def _frame_box(param):
     T_rec[:, :3, :3] = np.einsum("nji,njk->nik", Rf, T[:, :3, :3])
     T_rec[:, :3, 3] = np.einsum("nji,nj->ni", Rf, T[:, :3, 3] - tf) / sf[:, None]
     return Case((frames, base.values[1]), (_poses(T_rec), *base.args), base.kind)
+@case("drift_box", params=("spd",))
+def _drift_box(param):
+    """Box factors seen from a drifting odometry: the views of the box case given in a frame
+    that the correction K(t), interpolated between two random knots (rotations up to ~0.3
+    rad, translations ~0.2 m) with a random weight, puts back, so the Jacobians are taken
+    with respect to both knots at general points (w = 0 and 1 included). The landmark enters
+    as in the inverse box case, checked there for every parameterisation: SPD here."""
+    base = _box_case(5, False, param)
+    rng = np.random.default_rng(51)
+    n = len(base.kind)
+
+    def knots():
+        return jax.vmap(lambda w, v: jaxlie.SE3.exp(jnp.concatenate([v, w])))(
+            jnp.asarray(rng.normal(scale=0.15, size=(n, 3))), jnp.asarray(rng.normal(scale=0.2, size=(n, 3))))
+
+    Ka, Kb = knots(), knots()
+    w = rng.uniform(0.0, 1.0, n)
+    w[:2] = (0.0, 1.0)
+    K = jax.vmap(interpolated_frame)(Ka, Kb, jnp.asarray(w))
+    T_odo = jax.vmap(lambda k, T: k.inverse() @ T)(K, base.values[0])  # the cameras, drifted
+    return Case((Ka, Kb, base.values[1]), (T_odo, jnp.asarray(w), *base.args), base.kind)
+
+
 case("semi_inverse_box")(lambda param: _box_case(1, False, param))
 case("inverse_cuboid_box")(lambda param: _box_case(14, True, param))
 case("semi_inverse_cuboid_box")(lambda param: _box_case(14, True, param))
@@ -362,6 +385,9 @@ def test_masked_box_factor_jacobians(param, kind):
     if kind == "frame_box":  # the camera is data, the frame (here the identity) the variable
         frames = jax.vmap(lambda _: jaxlie.SE3.identity())(jnp.arange(n))
         values, data = (frames, lmk), (poses, boxes, _cams(n))
+    elif kind == "drift_box":  # the camera is data, the knots (here the identity) the variables
+        knots = jax.vmap(lambda _: jaxlie.SE3.identity())(jnp.arange(n))
+        values, data = (knots, knots, lmk), (poses, jnp.full(n, 0.5), boxes, _cams(n))
     else:
         values, data = (poses, lmk), (boxes, _cams(n))
     if param == "spd":

@@ -17,6 +17,7 @@ from spdslam.factors import (
     ClassicOrientationFactor,
     ClassicShapeFactor,
     CustomFactor,
+    DriftBoxFactor,
     EllipsoidMeasurementFactor,
     Factor,
     FrameBoxFactor,
@@ -52,6 +53,7 @@ EXAMPLES = {
     "inverse_cuboid_box": lambda **n: InverseCuboidBoxFactor(X(0), L(0), BOX, CAM, **n),
     "semi_inverse_cuboid_box": lambda **n: SemiInverseCuboidBoxFactor(X(0), L(0), BOX, CAM, **n),
     "frame_box": lambda **n: FrameBoxFactor("F", L(0), T, BOX, CAM, **n),
+    "drift_box": lambda **n: DriftBoxFactor("K0", "K1", L(0), T, 0.25, BOX, CAM, **n),
     "ellipsoid_measurement": lambda **n: EllipsoidMeasurementFactor(
         X(0), L(0), np.eye(3), [0.0, 0.0, 2.0], **n),
     "orientation": lambda **n: OrientationFactor(L(0), [0, 0, 1], **n),

@@ -92,6 +92,12 @@ FACTS: dict[str, Any] = {
             "replay a recording at its own rate: each frame is added when its time since the first frame has passed, "
             "as a camera delivers it",
         ),
+        "drift_interval": (
+            0.0,
+            "seconds between the knots of a drift correction of a trajectory without a bound on each pose "
+            "(trajectory_absolute_sigma: .inf), fitted to the boxes before the joint optimisation (docs/map-reuse.md); "
+            "0: none",
+        ),
     },
     "format_entry_points": "spdslam.formats",
     "formats": (

@@ -21,6 +21,7 @@ from ._base import robust_weighting as robust_weighting
 from ._base import sqrt_information as sqrt_information
 from ._base import tangent_jacobians as tangent_jacobians
 from ._box import DEFAULT_TRUNCATION_MARGIN as DEFAULT_TRUNCATION_MARGIN
+from ._box import DriftBoxFactor as DriftBoxFactor
 from ._box import FrameBoxFactor as FrameBoxFactor
 from ._box import InverseBoxFactor as InverseBoxFactor
 from ._box import InverseCuboidBoxFactor as InverseCuboidBoxFactor
@@ -28,6 +29,7 @@ from ._box import SemiInverseBoxFactor as SemiInverseBoxFactor
 from ._box import SemiInverseCuboidBoxFactor as SemiInverseCuboidBoxFactor
 from ._box import box_visible as box_visible
 from ._box import cuboid_box_visible as cuboid_box_visible
+from ._box import drift_box_residual as drift_box_residual
 from ._box import frame_box_residual as frame_box_residual
 from ._box import inverse_box_residual as inverse_box_residual
 from ._box import inverse_cuboid_box_residual as inverse_cuboid_box_residual

@@ -35,6 +35,7 @@ from ..geometry import (
     dual_quadric,
     frame_pose,
     in_front,
+    interpolated_frame,
     project_box,
     project_cuboid_box,
     truncation_mask,
@@ -48,8 +49,10 @@ __all__ = [
     "InverseCuboidBoxFactor",
     "SemiInverseCuboidBoxFactor",
     "FrameBoxFactor",
+    "DriftBoxFactor",
     "inverse_box_residual",
     "frame_box_residual",
+    "drift_box_residual",
     "semi_inverse_box_residual",
     "inverse_cuboid_box_residual",
     "semi_inverse_cuboid_box_residual",
@@ -95,6 +98,20 @@ def frame_box_residual(frame, landmark, T_wc, box, camera: Camera, keep=None):
 def frame_box_visible(frame, landmark, T_wc, box, camera: Camera, keep=None, min_depth: float = 1e-3):
     """Validity of a frame box factor: the ellipsoid in front of the moved camera."""
     return in_front(landmark, frame_pose(frame, T_wc), min_depth)
+
+
+def drift_box_residual(knot_a, knot_b, landmark, T_wc, weight, box, camera: Camera, keep=None):
+    """Inverse model with a drifting odometry: the box of the landmark seen from the pose
+    K(t) T_wc, where T_wc is the odometry's pose at time t and K(t) =
+    ``geometry.interpolated_frame(knot_a, knot_b, weight)`` its drift correction between the
+    knots around t, minus the detected box, ∘ keep (px, 4)."""
+    return inverse_box_residual(interpolated_frame(knot_a, knot_b, weight) @ T_wc, landmark, box, camera, keep)
+
+
+def drift_box_visible(knot_a, knot_b, landmark, T_wc, weight, box, camera: Camera, keep=None,
+                      min_depth: float = 1e-3):
+    """Validity of a drift box factor: the ellipsoid in front of the corrected camera."""
+    return in_front(landmark, interpolated_frame(knot_a, knot_b, weight) @ T_wc, min_depth)
 
 
 def box_visible(T_wc, landmark, box, camera: Camera, keep=None, min_depth: float = 1e-3):
@@ -292,3 +309,66 @@ class FrameBoxFactor(Factor):
         if truncation_margin is not None:
             stacked[-1] = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
         return FactorBatch(cls, ([frame_key] * n, landmark_keys), stacked, treedef, shapes, W, robust)
+
+
+class DriftBoxFactor(Factor):
+    """A detected box seen from a drifting odometry: the camera pose T_wc at time t is data,
+    its correction K(t) is interpolated between two knot variables (``jaxlie.SE3``) with
+    the weight w = (t − t_a)/(t_b − t_a) (data), and the landmark is the third variable
+    (``drift_box_residual``: the inverse box model). ``spdslam.mapping.correct_drift`` fits
+    the knots of a recording's drift to its boxes with it."""
+
+    kind = "drift_box"
+    residual = staticmethod(drift_box_residual)
+    valid: ClassVar[Callable[..., Any] | None] = staticmethod(drift_box_visible)
+    variables = ("knot", "knot", "landmark")
+    dim = 4
+    group = "box"
+    # the inverse box model's noise, under its name: one σ for one measurement model
+    sigmas = (Sigma(2.0, "px per box edge", name="inverse_box"),)
+
+    def __init__(self, knot_a, knot_b, landmark_key, T_wc, weight: float, box, camera: Camera, *,
+                 truncation_margin: float | None = None, **noise):
+        pose = np.asarray(T_wc.wxyz_xyz if hasattr(T_wc, "wxyz_xyz") else T_wc, dtype=float)
+        if pose.shape != (7,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"T_wc must be a jaxlie.SE3 (or its 7 numbers wxyz_xyz), got shape {pose.shape}")
+        w = float(weight)
+        if not 0.0 <= w <= 1.0:
+            raise ValueError(f"weight must be in [0, 1], got {weight!r}")
+        pose_leaf = jaxlie.SE3(pose)  # type: ignore[arg-type]  # numpy leaf
+        super().__init__((knot_a, knot_b, landmark_key),
+                         (pose_leaf, np.float64(w), *_box_data(box, camera, truncation_margin)), **noise)
+
+    @classmethod
+    def many(cls, knot_a_keys, knot_b_keys, landmark_keys, poses_wxyz_xyz, weights, boxes, camera: Camera, *,
+             sigma: Any = None, robust: RobustKernel | None = None,
+             truncation_margin: float | None = None) -> FactorBatch:
+        """n boxes (n, 4) seen from the odometry's poses (n, 7, jaxlie's wxyz_xyz) between the
+        knots ``knot_a_keys`` and ``knot_b_keys`` with the weights (n,), against the landmarks
+        ``landmark_keys`` (a list, or one key), as one ``FactorBatch`` (the same factors as
+        one by one)."""
+        boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+        poses = np.asarray(poses_wxyz_xyz, dtype=float).reshape(-1, 7)
+        weights = np.asarray(weights, dtype=float).reshape(-1)
+        n = len(boxes)
+        landmark_keys = list(landmark_keys) if isinstance(landmark_keys, (list, np.ndarray)) \
+            else [landmark_keys] * n
+        knot_a_keys, knot_b_keys = list(knot_a_keys), list(knot_b_keys)
+        if n == 0 or {len(poses), len(weights), len(landmark_keys), len(knot_a_keys), len(knot_b_keys)} != {n}:
+            raise ValueError(f"{cls.__name__}.many: {n} boxes, {len(poses)} poses, {len(weights)} weights, "
+                             f"{len(knot_a_keys)} and {len(knot_b_keys)} knot keys and {len(landmark_keys)} "
+                             "landmark keys (the same number, at least one)")
+        _check_boxes(boxes, camera)
+        if not np.all(np.isfinite(poses)):
+            raise ValueError("the poses must be finite")
+        if not np.all((weights >= 0.0) & (weights <= 1.0)):
+            raise ValueError("the weights must be in [0, 1]")
+        W = diagonal_sqrt_information(cls.default_sigma() if sigma is None else sigma, n, 4)
+        first = cls(None, None, None, poses[0], weights[0], boxes[0], camera, sqrt_info=W[0], robust=robust,
+                    truncation_margin=truncation_margin)
+        leaves, treedef, shapes = first.flat_args()
+        # the layout of the arguments' leaves: the pose (7,), the weight, the box, the camera's, the mask
+        stacked = [poses, weights, boxes] + [np.broadcast_to(a, (n,) + a.shape) for a in leaves[3:]]
+        if truncation_margin is not None:
+            stacked[-1] = np.asarray(truncation_mask(boxes, camera, float(truncation_margin)))
+        return FactorBatch(cls, (knot_a_keys, knot_b_keys, landmark_keys), stacked, treedef, shapes, W, robust)

@@ -57,3 +57,4 @@ from ._ellipsoid import dual_quadric_of as dual_quadric_of
 from ._ellipsoid import sorted_axes as sorted_axes
 from ._sim3 import Sim3 as Sim3
 from ._sim3 import frame_pose as frame_pose
+from ._sim3 import interpolated_frame as interpolated_frame

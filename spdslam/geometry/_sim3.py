@@ -21,7 +21,7 @@ import numpy as np
 
 from . import manifold
 
-__all__ = ["Sim3"]
+__all__ = ["Sim3", "interpolated_frame"]
 
 
 @dataclass(frozen=True)
@@ -78,3 +78,9 @@ def frame_pose(frame, T_wc: jaxlie.SE3) -> jaxlie.SE3:
     if isinstance(frame, Sim3):
         return frame.pose_of(T_wc)
     return frame @ T_wc
+
+
+def interpolated_frame(frame_a: jaxlie.SE3, frame_b: jaxlie.SE3, weight) -> jaxlie.SE3:
+    """The rigid frame a fraction ``weight`` ∈ [0, 1] of the way from ``frame_a`` to
+    ``frame_b`` along the geodesic: K_a Exp(w Log(K_a⁻¹ K_b)) (K_a at w = 0, K_b at w = 1)."""
+    return frame_a @ jaxlie.SE3.exp(weight * (frame_a.inverse() @ frame_b).log())

@@ -5,6 +5,9 @@ the run (associate → initialise → build the graph → solve). Imports ``geom
 
 from ._context import SequenceContext as SequenceContext
 from ._context import object_shape as object_shape
+from ._drift import DriftCorrection as DriftCorrection
+from ._drift import correct_drift as correct_drift
+from ._drift import drift_knots as drift_knots
 from ._graph import BOX_FACTORS as BOX_FACTORS
 from ._graph import OBJECT_FACTORS as OBJECT_FACTORS
 from ._graph import ObjectFactorRule as ObjectFactorRule

@@ -55,7 +55,8 @@ from ..geometry.se3 import to_tum
 from ..io import MapObject, Sequence, class_prior, map_document, without_class_table
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
-from ._graph import build_graph, measured_objects, support_plane, trajectory_noise_note
+from ._drift import correct_drift
+from ._graph import build_graph, mapping_sigmas, measured_objects, support_plane, trajectory_noise_note
 from ._keyframes import parse_keyframes, select_keyframes
 from ._methods import Method
 from ._settings import Associate, PlaneSource, RunSettings, SettingsError, as_settings, default_association
@@ -698,6 +699,26 @@ def run_sequence(
     say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
     landmarks = {k: as_landmark(e, method) for k, e in front.ellipsoids.items()}
+    if not hold_trajectory and run.drift_interval > 0 and landmarks:
+        with step("drift correction"):
+            s = mapping_sigmas(ctx, sigmas)
+            drift = None
+            if np.isinf(s["absolute_translation"]) and np.isinf(s["absolute_rotation"]):
+                say(f"drift correction: knots about {run.drift_interval:g} s apart")
+                drift = correct_drift(ctx, front.tracks, landmarks, method, s, run.drift_interval, front.planes,
+                                      max_iterations, tolerance)
+            else:
+                front.notes.append("no drift correction: the trajectory has a bound on each pose "
+                                   "(trajectory_absolute_sigma)")
+        if drift is not None:
+            rows = np.asarray(drift.wxyz_xyz)
+            seq = dataclasses.replace(seq, poses_tum=np.c_[rows[:, 4:], rows[:, 1:4], rows[:, :1]])
+            ctx = SequenceContext.of(seq)
+            sigmas = {**sigmas, "absolute_translation": float(drift.bound[0]),
+                      "absolute_rotation": float(drift.bound[3])}
+            landmarks.update(drift.landmarks)
+            front.notes.append(drift.note())
+            say(front.notes[-1])
     values = Values()
     for i, T in enumerate(ctx.poses):
         values[X(i)] = T

@@ -195,6 +195,10 @@ class RunSettings:
         "objects) or optimised (from the objects optimised without planes)"))
     hold_trajectory: bool = field(default=False, metadata=_help(
         "hold the poses at their input values (objects only, no odometry)"))
+    drift_interval: float = field(default=0.0, metadata=_help(
+        "seconds between the knots of a drift correction of a trajectory without a bound on each "
+        "pose (trajectory_absolute_sigma: .inf), fitted to the boxes before the joint "
+        "optimisation (docs/map-reuse.md); 0: none"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
     class_table: bool = field(default=True, metadata=_help(
@@ -224,6 +228,10 @@ class RunSettings:
         tol = self.tolerance
         if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (math.isfinite(tol) and tol >= 0):
             raise SettingsError("tolerance", f"expected a finite number ≥ 0, got {tol!r}")
+        di = self.drift_interval
+        if isinstance(di, bool) or not isinstance(di, (int, float)) or not (math.isfinite(di) and di >= 0):
+            raise SettingsError("drift_interval", f"expected a finite number of seconds ≥ 0, got {di!r}")
+        object.__setattr__(self, "drift_interval", float(di))
         try:
             object.__setattr__(self, "keyframes", parse_keyframes(self.keyframes))
         except ValueError as e:
