@@ -108,6 +108,32 @@ def test_align_rigid_collinear_destination_raises(rng):
         align_rigid(src, dst)
 
 
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_align_rigid_many_is_align_rigid_of_each(rng, with_scale):
+    """Triples and sextuples, general, reflected, collinear (either side) and coincident:
+    the same transform as one by one, and ok False exactly where ``align_rigid`` raises."""
+    from spdslam.geometry import align_rigid_many
+
+    for n in (3, 6):
+        src, dst = rng.normal(size=(200, n, 3)), rng.normal(size=(200, n, 3))
+        dst[1] = src[1] * [1.0, 1.0, -1.0]  # a reflection of its source
+        src[2] = np.outer(rng.normal(size=n), [1.0, 2.0, 0.5])  # collinear
+        dst[3] = np.outer(rng.normal(size=n), [0.0, 0.0, 1.0])
+        src[4] = 0.0  # coincident
+        R, t, s, ok = align_rigid_many(src, dst, with_scale)
+        for i in range(len(src)):
+            try:
+                R1, t1, s1 = align_rigid(src[i], dst[i], with_scale=with_scale)
+            except ValueError:
+                assert not ok[i], i
+                continue
+            assert ok[i], i
+            np.testing.assert_allclose(R[i], R1, atol=1e-12)
+            np.testing.assert_allclose(t[i], t1, atol=1e-12)
+            assert s[i] == pytest.approx(s1, abs=1e-12)
+        assert not ok[[2, 3, 4]].any() and ok.sum() == len(src) - 3
+
+
 # --- associate_timestamps -------------------------------------------------------------------
 
 

@@ -15,6 +15,7 @@ from . import matfun as matfun
 from . import se3 as se3
 from . import spd as spd
 from ._align import align_rigid as align_rigid
+from ._align import align_rigid_many as align_rigid_many
 from ._arrays import array_namespace as array_namespace
 from ._boxes import box_iou as box_iou
 from ._camera import Camera as Camera

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["align_rigid"]
+__all__ = ["align_rigid", "align_rigid_many"]
 
 #: Relative singular-value threshold below which a point set counts as collinear.
 _RANK_TOL = 1e-9
@@ -70,3 +70,29 @@ def align_rigid(src, dst, with_scale: bool = False, weights=None):
     s = float(D @ S / (np.sum(X * X) / n)) if with_scale else 1.0
     t = mu_y - s * R @ mu_x
     return R, t, s
+
+
+def align_rigid_many(src, dst, with_scale: bool = False):
+    """``align_rigid`` of h point sets at once, unweighted: ``src``, ``dst`` (h, N, 3), N ≥ 3,
+    finite. Returns (R (h, 3, 3), t (h, 3), s (h,), ok (h,)): ok is False where
+    ``align_rigid`` raises for a degenerate configuration (R, t, s there are not used)."""
+    X, Y = np.asarray(src, dtype=float), np.asarray(dst, dtype=float)
+    if X.ndim != 3 or X.shape != Y.shape or X.shape[1] < 3 or X.shape[2] != 3:
+        raise ValueError(f"src and dst must be (h, N ≥ 3, 3) of one shape, got {X.shape} and {Y.shape}")
+    n = X.shape[1]
+    mu_x, mu_y = X.mean(axis=1), Y.mean(axis=1)
+    X, Y = X - mu_x[:, None], Y - mu_y[:, None]
+    scale = np.maximum.reduce([np.abs(X).max(axis=(1, 2)), np.abs(Y).max(axis=(1, 2)),
+                               np.abs(mu_x).max(axis=1), np.abs(mu_y).max(axis=1), np.full(len(X), 1e-300)])
+    ok = np.ones(len(X), bool)
+    for Z in (X, Y):
+        sv = np.linalg.svd(Z, compute_uv=False)
+        ok &= sv[:, 1] > _RANK_TOL * np.maximum(sv[:, 0], scale)
+    U, D, Vt = np.linalg.svd(np.einsum("hni,hnj->hij", Y, X) / n)
+    ok &= D[:, 1] > _RANK_TOL * D[:, 0]
+    S = np.ones((len(X), 3))
+    S[np.linalg.det(U) * np.linalg.det(Vt) < 0, 2] = -1.0
+    R = np.einsum("hij,hj,hjk->hik", U, S, Vt)
+    s = np.einsum("hi,hi->h", D, S) / (np.sum(X * X, axis=(1, 2)) / n) if with_scale else np.ones(len(X))
+    t = mu_y - s[:, None] * np.einsum("hij,hj->hi", R, mu_x)
+    return R, t, s, ok

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Ellipsoid, align_rigid, in_front, project_box
+from ..geometry import Ellipsoid, align_rigid, align_rigid_many, in_front, project_box
 from ..solver import Symbol
 
 __all__ = ["Localization", "LocalizationError", "localize_objects", "refine_localization", "transform_ellipsoid",
@@ -181,23 +181,86 @@ def _fit(src, dst, sim3, weights=None):
 
 
 def _assign(cand, cs, cm, R, t, s, tol):
-    """One-to-one matches (candidate indices) within ``tol`` after the transform."""
+    """One-to-one matches (candidate indices, ascending) within ``tol`` after the transform:
+    the assignment of least total distance among the candidate pairs within it."""
     from scipy.optimize import linear_sum_assignment
 
     d = np.linalg.norm(s * cs[cand[:, 0]] @ R.T + t - cm[cand[:, 1]], axis=1)
-    ok = d <= tol
-    if not ok.any():
+    idx = np.flatnonzero(d <= tol)
+    if not idx.size:
         return np.zeros(0, int)
-    si = np.unique(cand[ok, 0])
-    mj = np.unique(cand[ok, 1])
+    si, a = np.unique(cand[idx, 0], return_inverse=True)
+    mj, b = np.unique(cand[idx, 1], return_inverse=True)
     cost = np.full((len(si), len(mj)), 1e6)
-    for c in np.flatnonzero(ok):
-        a, b = np.searchsorted(si, cand[c, 0]), np.searchsorted(mj, cand[c, 1])
-        cost[a, b] = min(cost[a, b], d[c])
+    np.minimum.at(cost, (a, b), d[idx])
     r, c = linear_sum_assignment(cost)
     keep = cost[r, c] < 1e6
-    pairs = {(si[a], mj[b]) for a, b in zip(r[keep], c[keep])}
-    return np.array([q for q in range(len(cand)) if ok[q] and (cand[q, 0], cand[q, 1]) in pairs], int)
+    chosen = np.zeros(cost.shape, bool)
+    chosen[r[keep], c[keep]] = True
+    return idx[chosen[a, b]]
+
+
+#: Hypotheses × candidate pairs per block of ``_hypotheses``' distances (bounds its memory).
+_BLOCK = 1 << 20
+
+
+class _Hypotheses:
+    """The transforms of the triples that put at least three objects in place, as a sequence
+    of (matches, R, t, s, inliers) from the most matches down (ties in the triples' order),
+    the inliers of each made when it is read (``_assign``'s one-to-one matches)."""
+
+    def __init__(self, cand, cs, cm, R, t, s, near, tol):
+        self.cand, self.cs, self.cm, self.tol = cand, cs, cm, tol
+        self.R, self.t, self.s, self.near = R, t, s, near
+        n = near.sum(axis=1)
+        # without two candidates of one object among the near ones, the one-to-one matches are
+        # all of them; else (neighbours of one label) the assignment decides
+        one_seq = np.zeros((len(cand), cand[:, 0].max() + 1))
+        one_seq[np.arange(len(cand)), cand[:, 0]] = 1.0
+        one_map = np.zeros((len(cand), cand[:, 1].max() + 1))
+        one_map[np.arange(len(cand)), cand[:, 1]] = 1.0
+        self.clash = ((near @ one_seq).max(axis=1) > 1) | ((near @ one_map).max(axis=1) > 1)
+        self._inliers: dict = {}
+        count = n.copy()
+        for h in np.flatnonzero(self.clash & (n >= 3)):
+            count[h] = len(self._inliers_of(h))
+        keep = np.flatnonzero(count >= 3)
+        self.order = keep[np.argsort(-count[keep], kind="stable")]
+        self.count = count
+
+    def _inliers_of(self, h: int) -> np.ndarray:
+        if h not in self._inliers:
+            self._inliers[h] = _assign(self.cand, self.cs, self.cm, self.R[h], self.t[h], self.s[h], self.tol) \
+                if self.clash[h] else np.flatnonzero(self.near[h])
+        return self._inliers[h]
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def __getitem__(self, i: int):
+        h = int(self.order[i])
+        return int(self.count[h]), self.R[h], self.t[h], float(self.s[h]), self._inliers_of(h)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
+def _hypotheses(cand, cs, cm, triples, sim3: bool, tol: float) -> _Hypotheses:
+    """Each triple's transform (``geometry.align_rigid_many``; none where its centres are
+    degenerate, or under Sim(3) its scale is outside (0.05, 20)) and the candidate pairs it
+    puts within ``tol`` of each other, in array operations (``_Hypotheses``)."""
+    R, t, s, ok = (np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool)) if not len(triples) \
+        else align_rigid_many(cs[cand[triples, 0]], cm[cand[triples, 1]], with_scale=sim3)
+    if sim3:
+        ok &= (0.05 < s) & (s < 20.0)
+    R, t, s = R[ok], t[ok], s[ok]
+    a, b = cs[cand[:, 0]], cm[cand[:, 1]]
+    near = np.zeros((len(R), len(cand)), bool)
+    step = max(1, _BLOCK // max(len(cand), 1))
+    for i in range(0, len(R), step):
+        moved = s[i:i + step, None, None] * np.einsum("hij,kj->hki", R[i:i + step], a) + t[i:i + step, None]
+        near[i:i + step] = np.linalg.norm(moved - b, axis=-1) <= tol
+    return _Hypotheses(cand, cs, cm, R, t, s, near, tol)
 
 
 def _angle_deg(Ra, Rb) -> float:
@@ -241,22 +304,11 @@ def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance:
             f"fewer than three usable matches: {usable} recording object(s) share a label and "
             f"a size with a map object ({len(seq[0])} in the recording, {len(mp[0])} in the map)")
     triples = _triples(cand, cs, cm, sim3, tolerance, max_triples)
-    hyps = []
-    for tri in triples:
-        fit = _fit(cs[cand[tri, 0]], cm[cand[tri, 1]], sim3)
-        if fit is None:
-            continue
-        R, t, s = fit
-        if sim3 and not (0.05 < s < 20.0):
-            continue
-        inl = _assign(cand, cs, cm, R, t, s, tolerance)
-        if len(inl) >= 3:
-            hyps.append((len(inl), R, t, s, inl))
+    hyps = _hypotheses(cand, cs, cm, triples, sim3, tolerance)
     if not hyps:
         raise LocalizationError(
             f"fewer than three usable matches: no three of the {len(cand)} candidate pairs "
             f"agree on a transform within {tolerance} m")
-    hyps.sort(key=lambda h: -h[0])
     _, R, t, s, inl = hyps[0]
     for _ in range(2):  # refit on the inliers, then match again
         fit = _fit(cs[cand[inl, 0]], cm[cand[inl, 1]], sim3)
@@ -271,11 +323,12 @@ def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance:
     # the best rival: a transform that pairs at least two objects differently and puts the
     # matched objects elsewhere (median displacement over 2·tolerance); a nearby transform
     # that swaps two neighbouring objects of one label is the same answer
-    best = {tuple(p) for p in cand[inl]}
+    best = np.zeros(len(cand), bool)  # candidate pairs are distinct: a pair is its index
+    best[inl] = True
     mine = cs[cand[inl, 0]]
     runner_up, apart = 0, 0.0
     for n, R2, t2, s2, inl2 in hyps:
-        differs = sum(tuple(p) not in best for p in cand[inl2]) >= 2
+        differs = np.count_nonzero(~best[inl2]) >= 2
         moved = np.median(np.linalg.norm(s * mine @ R.T + t - (s2 * mine @ R2.T + t2), axis=1))
         if differs and moved > 2.0 * tolerance:
             runner_up, apart = n, _angle_deg(R, R2)
