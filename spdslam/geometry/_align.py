@@ -93,6 +93,7 @@ def align_rigid_many(src, dst, with_scale: bool = False):
     S = np.ones((len(X), 3))
     S[np.linalg.det(U) * np.linalg.det(Vt) < 0, 2] = -1.0
     R = np.einsum("hij,hj,hjk->hik", U, S, Vt)
-    s = np.einsum("hi,hi->h", D, S) / (np.sum(X * X, axis=(1, 2)) / n) if with_scale else np.ones(len(X))
+    var = np.sum(X * X, axis=(1, 2)) / n  # 0 only where the source coincides (not ok)
+    s = np.einsum("hi,hi->h", D, S) / np.where(var > 0, var, 1.0) if with_scale else np.ones(len(X))
     t = mu_y - s[:, None] * np.einsum("hij,hj->hi", R, mu_x)
     return R, t, s, ok
