@@ -28,7 +28,7 @@ import numpy as np
 
 from ..factors import BetweenFactor, DriftBoxFactor, PriorFactor
 from ..geometry import interpolated_frame
-from ..solver import LevenbergMarquardt, NonlinearFactorGraph, Symbol, Values
+from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Symbol, Values
 from ._context import SequenceContext, object_shape
 from ._graph import object_factors, with_robust_by_type
 from ._methods import Method, robust_kernel
@@ -98,7 +98,7 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
         boxes = np.asarray(tr.boxes, dtype=float).reshape(-1, 4)
         size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
         sigma = s["inverse_box"] + s["inverse_box_relative"] * size
-        factors.append(DriftBoxFactor.many([K(a) for a in j[f]], [K(a + 1) for a in j[f]], Symbol("l", tr.id),
+        factors.append(DriftBoxFactor.many([K(a) for a in j[f]], [K(a + 1) for a in j[f]], L(tr.id),
                                            ctx.wxyz_xyz[f], w[f], boxes, ctx.camera, sigma=sigma, robust=robust,
                                            truncation_margin=method.margin))
         factors += object_factors(ctx, tr, landmarks[tr.id], method, "inverse", s, robust, planes, boxes=False)
@@ -118,7 +118,7 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
     for i in range(m + 1):
         values[K(i)] = jaxlie.SE3.identity()
     for k, lm in used.items():
-        values[Symbol("l", k)] = lm
+        values[L(k)] = lm
     graph = NonlinearFactorGraph(with_robust_by_type(factors, method))
     res = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance).optimize(graph, values)
     knots = [res.values[K(i)] for i in range(m + 1)]
@@ -128,4 +128,4 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
     n = float(np.median(steps))
     bound = np.r_[np.full(3, st), np.full(3, sr)] * np.sqrt(max(n, 1.0) / 4.0)
     return DriftCorrection(np.asarray(corrected.wxyz_xyz), knot_times, knots,
-                           {k: res.values[Symbol("l", k)] for k in used}, bound, n, res)
+                           {k: res.values[L(k)] for k in used}, bound, n, res)
