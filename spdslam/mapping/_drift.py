@@ -28,9 +28,10 @@ import numpy as np
 
 from ..factors import BetweenFactor, DriftBoxFactor, PriorFactor
 from ..geometry import interpolated_frame
+from ..geometry.se3 import to_tum
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Symbol, Values
 from ._context import SequenceContext, object_shape
-from ._graph import object_factors, with_robust_by_type
+from ._graph import inverse_box_sigma, object_factors, with_robust_by_type
 from ._methods import Method, robust_kernel
 
 __all__ = ["DriftCorrection", "correct_drift", "drift_knots"]
@@ -56,11 +57,11 @@ def drift_knots(timestamps, interval: float) -> tuple[np.ndarray, np.ndarray, np
 
 @dataclass(frozen=True)
 class DriftCorrection:
-    """``correct_drift``'s answer: the corrected poses (F, 7, jaxlie's wxyz_xyz), the knots'
-    times and frames (``jaxlie.SE3`` each), the objects {id: landmark} it ended at, the bound
+    """``correct_drift``'s answer: the corrected poses (F, 7 TUM fields tx ty tz qx qy qz qw),
+    the knots' times and frames (``jaxlie.SE3`` each), the objects {id: landmark} it ended at, the bound
     σ (6,) (v m, ω rad) left on each pose, the frame steps per interval and the LM result."""
 
-    wxyz_xyz: np.ndarray
+    poses_tum: np.ndarray
     knot_times: np.ndarray
     knots: list
     landmarks: dict
@@ -70,8 +71,7 @@ class DriftCorrection:
 
     def note(self) -> str:
         """One line for the run's notes: what the correction did."""
-        K = np.stack([np.asarray(k.wxyz_xyz) for k in self.knots])
-        moved = np.linalg.norm(K[:, 4:], axis=1).max()
+        moved = max(float(np.linalg.norm(np.asarray(k.translation()))) for k in self.knots)
         turned = np.degrees(np.max([np.linalg.norm(np.asarray(k.rotation().log())) for k in self.knots]))
         gap = float(np.median(np.diff(self.knot_times)))
         return (f"drift corrected on {len(self.knots)} knots {gap:.3g} s apart (most: {1e3 * moved:.3g} mm, "
@@ -96,8 +96,7 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
             continue
         f = np.asarray(tr.frames, dtype=int)
         boxes = np.asarray(tr.boxes, dtype=float).reshape(-1, 4)
-        size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
-        sigma = s["inverse_box"] + s["inverse_box_relative"] * size
+        sigma = inverse_box_sigma(boxes, s)
         factors.append(DriftBoxFactor.many([K(a) for a in j[f]], [K(a + 1) for a in j[f]], L(tr.id),
                                            ctx.wxyz_xyz[f], w[f], boxes, ctx.camera, sigma=sigma, robust=robust,
                                            truncation_margin=method.margin))
@@ -122,10 +121,10 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
     graph = NonlinearFactorGraph(with_robust_by_type(factors, method))
     res = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance).optimize(graph, values)
     knots = [res.values[K(i)] for i in range(m + 1)]
-    Ka = jaxlie.SE3(np.stack([np.asarray(k.wxyz_xyz) for k in knots])[j])  # type: ignore[arg-type]
-    Kb = jaxlie.SE3(np.stack([np.asarray(k.wxyz_xyz) for k in knots])[j + 1])  # type: ignore[arg-type]
+    K_all = np.stack([np.asarray(k.wxyz_xyz) for k in knots])
+    Ka, Kb = jaxlie.SE3(K_all[j]), jaxlie.SE3(K_all[j + 1])  # type: ignore[arg-type]
     corrected = interpolated_frame(Ka, Kb, w[:, None]) @ jaxlie.SE3(ctx.wxyz_xyz)  # type: ignore[arg-type]
     n = float(np.median(steps))
     bound = np.r_[np.full(3, st), np.full(3, sr)] * np.sqrt(max(n, 1.0) / 4.0)
-    return DriftCorrection(np.asarray(corrected.wxyz_xyz), knot_times, knots,
+    return DriftCorrection(to_tum(corrected), knot_times, knots,
                            {k: res.values[L(k)] for k in used}, bound, n, res)

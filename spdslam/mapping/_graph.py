@@ -315,16 +315,22 @@ OBJECT_FACTORS: dict[str, ObjectFactorRule] = {r.name: r for r in (
 FEW_BOXES = 4
 
 
+def inverse_box_sigma(boxes, s: dict, kind: str = "inverse_box") -> np.ndarray:
+    """σ (n, 4) of the edges of n boxes (n, 4) under an inverse box model's noise ``kind``:
+    s[kind] px plus s[kind + "_relative"] of the box's width (u edges) or height (v edges)."""
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
+    return np.broadcast_to(np.asarray(s[kind], dtype=float), (len(boxes), 4)) + s[kind + "_relative"] * size
+
+
 def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: dict,
                  robust) -> list:
     """The box factor of each of the track's detections (module docstring)."""
     shape = object_shape(method, ctx.priors, track.label)
     box_factor = BOX_FACTORS[box_model, shape]
     boxes = np.asarray(track.boxes, dtype=float).reshape(-1, 4)
-    sigma = np.broadcast_to(np.asarray(s[box_factor.kind], dtype=float), (len(boxes), 4))
-    if box_model == "inverse":
-        size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
-        sigma = sigma + s[box_factor.kind + "_relative"] * size
+    sigma = inverse_box_sigma(boxes, s, box_factor.kind) if box_model == "inverse" \
+        else np.broadcast_to(np.asarray(s[box_factor.kind], dtype=float), (len(boxes), 4))
     if len(boxes) <= FEW_BOXES:  # the online mapper's new views: plain factors are quicker to make
         return [box_factor(X(f), L(track.id), b, ctx.camera, sigma=sg, robust=robust,
                            truncation_margin=method.margin) for f, b, sg in zip(track.frames, boxes, sigma)]

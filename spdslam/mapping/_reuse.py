@@ -52,6 +52,7 @@ import numpy as np
 
 from ..geometry import Ellipsoid, align_rigid, align_rigid_many, in_front, project_box
 from ..solver import Symbol
+from ._graph import inverse_box_sigma
 
 __all__ = ["Localization", "LocalizationError", "localize_objects", "refine_localization", "transform_ellipsoid",
            "transform_poses_tum", "localized_result", "moved_sequence", "joined_sequence"]
@@ -451,8 +452,7 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     scaled = loc.sim3 and not refine_scale  # the recording pre-scaled, a rigid frame refined
     s0 = float(loc.scale) if scaled else 1.0
     wxyz_xyz = np.c_[q[:, 6], q[:, 3:6], s0 * q[:, :3]][frames]
-    size = np.c_[boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]][:, [0, 1, 0, 1]]
-    sigma = DEFAULT_MAPPING_SIGMAS["inverse_box"] + DEFAULT_MAPPING_SIGMAS["inverse_box_relative"] * size
+    sigma = inverse_box_sigma(boxes, DEFAULT_MAPPING_SIGMAS)
     robust = robust_kernel(*AUTO_BOX_KERNEL)
     frame: Any = Sim3.from_matrix(loc.T_map_sequence, loc.scale) if loc.sim3 and not scaled \
         else jaxlie.SE3.from_matrix(loc.T_map_sequence)

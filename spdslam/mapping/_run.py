@@ -711,8 +711,7 @@ def run_sequence(
                 front.notes.append("no drift correction: the trajectory has a bound on each pose "
                                    "(trajectory_absolute_sigma)")
         if drift is not None:
-            rows = np.asarray(drift.wxyz_xyz)
-            seq = dataclasses.replace(seq, poses_tum=np.c_[rows[:, 4:], rows[:, 1:4], rows[:, :1]])
+            seq = dataclasses.replace(seq, poses_tum=drift.poses_tum)
             ctx = SequenceContext.of(seq)
             sigmas = {**sigmas, "absolute_translation": float(drift.bound[0]),
                       "absolute_rotation": float(drift.bound[3])}
