@@ -9,7 +9,10 @@ from the objects, then refined with the recording's boxes; both answers are scor
 Both ways (map = half 1, recording = half 2, and the reverse), ``--trials`` transforms each.
 ``--merge``: instead, the halves merged (``experiments.merge_recordings``; half 2 moved by
 the first ``--trials`` transforms) and evaluated against fr2_desk's ground truth beside the
-whole sequence's run: mean IoU, and duplicates of a matched ground-truth object.
+whole sequence's run: mean IoU, and duplicates of a matched ground-truth object; and two
+controls with half 2 at its own poses (the whole run's frame, no localisation): the halves
+joined as one sequence (the whole run again), and half 2 a segment as a merge makes it (no
+odometry across the cut, half 2 held as one body and placed by the objects).
 ``--floors C:S,…``: instead, trial 0 both ways refined with each pair of floors (centre m,
 shape) of the priors that hold the map's objects (``mapping.refine_localization``).
 ``--online``: instead, each half replayed frame by frame through a ``LocalizingMapper``
@@ -45,17 +48,18 @@ from scipy.spatial.transform import Rotation
 from spdslam.evaluation import evaluate_run, trajectory_alignment
 from spdslam.experiments import localize_sequence, merge_recordings
 from spdslam.io import read_sequence
-from spdslam.synthetic import make_room_sequence
 from spdslam.mapping import (
     LocalizationError,
     LocalizingMapper,
     RunSettings,
+    joined_sequence,
     localize_objects,
     moved_sequence,
     refine_localization,
     run_sequence,
     transform_ellipsoid,
 )
+from spdslam.synthetic import make_room_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 FR2 = ROOT / "../shared/data/tum_fr2_desk"
@@ -228,6 +232,12 @@ def merge_study(fr2, halves, settings, a) -> None:
     t0 = time.perf_counter()
     whole = summary_of(fr2, run_sequence(fr2, settings))
     print(f"whole sequence: {whole} ({time.perf_counter() - t0:.1f} s)")
+    controls = {}  # half 2 at its own poses (the whole run's frame): which part of the merge costs
+    for name, segments in (("one_sequence", False), ("half_2_a_segment", True)):
+        joined = joined_sequence(halves[1], halves[2])
+        joined = joined if segments else dataclasses.replace(joined, segments=())
+        controls[name] = summary_of(joined, run_sequence(joined, settings))
+        print(f"halves joined at their own poses, {name.replace('_', ' ')}: {controls[name]}")
     map_a = run_sequence(halves[1], settings).objects
     map_b = run_sequence(halves[2], settings).objects
     rows = []
@@ -241,7 +251,7 @@ def merge_study(fr2, halves, settings, a) -> None:
                "only_b": doc["only_b"], "new": doc["new"], "seconds": time.perf_counter() - t0}
         rows.append(row)
         print(f"merge, trial {trial}: {row}")
-    out = {"whole": whole, "merges": rows}
+    out = {"whole": whole, "controls": controls, "merges": rows}
     print(json.dumps(out, indent=1))
     write_out(a, out)
 
