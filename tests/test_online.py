@@ -350,20 +350,27 @@ def test_padding_follows_the_count_up_and_down(room):
     assert _padded_sizes_above(128, 4) == [192, 256, 384, 512]
 
 
+def _saved_map_and_recording(room, batch):
+    """The room's batch map without its first object (the saved map), that object, and the
+    room recorded again in a frame moved by G: (saved, left out, G, recording)."""
+    from scipy.spatial.transform import Rotation
+
+    from spdslam.mapping import moved_sequence
+
+    G = np.eye(4)
+    G[:3, :3], G[:3, 3] = Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix(), [1.5, -2.0, 0.4]
+    return batch.objects[1:], batch.objects[0], G, moved_sequence(room, G)
+
+
 def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
     """The room's batch map without one of its objects as a saved map; the room recorded
     again in a frame moved by G, replayed through ``LocalizingMapper``: it localises while the
     frames come (the live map is then in the saved map's frame), and its result is the saved
     map with the missing object added where the batch run put it, and the trajectory in the
     saved map's frame. (Here, beside the other replays of this room: the same programs.)"""
-    from scipy.spatial.transform import Rotation
+    from spdslam.mapping import LocalizingMapper
 
-    from spdslam.mapping import LocalizingMapper, moved_sequence
-
-    saved, left_out = batch.objects[1:], batch.objects[0]
-    G = np.eye(4)
-    G[:3, :3], G[:3, 3] = Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix(), [1.5, -2.0, 0.4]
-    rec = moved_sequence(room, G)
+    saved, left_out, G, rec = _saved_map_and_recording(room, batch)
     mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances")
     with pytest.raises(ValueError, match="no objects"):
         LocalizingMapper([], rec.camera)
@@ -385,6 +392,35 @@ def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
     assert np.linalg.norm(np.asarray(new[0].ellipsoid.center) - np.asarray(left_out.ellipsoid.center)) < 0.1
     np.testing.assert_allclose(result.poses_tum[:, 1:4], batch.poses_tum[:, 1:4], atol=0.05)
     assert any("started from a saved map" in n for n in result.notes)
+
+
+def test_a_localizing_mapper_in_the_background_tries_in_the_worker(room, batch):
+    """In the background every try runs in the worker's thread, on the maps it publishes (no
+    ``add_frame`` waits for one), and the mapper localises and extends the saved map as the
+    one in line does."""
+    from spdslam.mapping import LocalizingMapper
+
+    saved, left_out, G, rec = _saved_map_and_recording(room, batch)
+    mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances",
+                              background=True)
+    threads, tried = [], mapper._try
+
+    def recorded(objects):
+        threads.append(threading.current_thread().name)
+        return tried(objects)
+
+    mapper._try = recorded
+    for i in range(len(rec)):  # a camera the worker keeps up with: each optimisation ends in time
+        mapper.add_frame(rec.timestamps[i], rec.poses_tum[i], detections=rec.detections_at(i))
+        mapper.wait()
+    assert len(threads) >= 2 and set(threads) == {"spdslam-online"}
+    assert mapper.localized_at is not None and len(mapper.first_localization.matches) >= 4
+    np.testing.assert_allclose(mapper.first_localization.T_map_sequence @ G, np.eye(4), atol=0.1)
+    assert {o.id for o in saved} <= set(mapper.current_map().objects)  # in the saved map's frame
+    result = mapper.finish()
+    np.testing.assert_allclose(mapper.localization.T_map_sequence @ G, np.eye(4), atol=0.03)
+    new = result.objects[len(saved):]
+    assert len(new) == 1 and new[0].label == left_out.label
 
 
 def test_run_online_takes_a_run_settings(room):

@@ -59,8 +59,9 @@ class LocalizingMapper(OnlineMapper):
     within the tolerance of where it did);
     ``localized_at`` is the frame count then and ``first_localization`` that transform. Each
     later try that agrees replaces ``localization``, and ``finish`` replaces it with one from
-    every object, refined. ``localize_seconds`` is the time spent trying, in the caller's
-    thread."""
+    every object, refined. ``localize_seconds`` is the time spent trying: in the caller's
+    thread, or in the background (``background=True``) in the worker's, on each map it
+    publishes (``localized_at`` then counts the frames that map used)."""
 
     def __init__(self, map_objects, camera, priors=None, method="multi-spd", *, sim3: bool = False,
                  tolerance: float = 0.15, min_matches: int = ONLINE_MIN_MATCHES, **settings):
@@ -85,22 +86,36 @@ class LocalizingMapper(OnlineMapper):
 
     def add_frame(self, timestamp, pose=None, *, odometry=None, detections=(), ellipsoids=()):
         """``OnlineMapper.add_frame``, then a try at localising when the map gained objects
-        (module docstring)."""
+        (module docstring); in the background the worker tries instead, on each map it
+        publishes, so that a try never holds up a frame."""
         rec = super().add_frame(timestamp, pose, odometry=odometry, detections=detections,
                                 ellipsoids=ellipsoids)
-        # the objects now (in the background: the last map published; the worker changes
-        # ``landmarks`` meanwhile), only when there are more than at the last try
-        objects = self._published.objects if self.background else self.landmarks
+        if not self.background and self._due(len(self.landmarks), len(self)):
+            self._step({k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())},
+                       len(self))
+        return rec
+
+    def _publish(self, n: int, figures) -> None:
+        """``OnlineMapper._publish``; in the background (the worker's thread), then a try
+        at localising on the map just published, of frames 0 … n − 1."""
+        super()._publish(n, figures)
+        if self.background and self._due(len(self._published.objects), n):
+            self._step(self._published.objects, n)
+
+    def _due(self, count: int, frames: int) -> bool:
+        """Whether to try: at least three objects, and more than at the last try, or a
+        transform awaiting confirmation for ``CONFIRM_FRAMES`` frames."""
         waiting = self._candidate is not None and self.localization is None \
-            and len(self) - self._candidate_at >= CONFIRM_FRAMES  # a candidate: try again later too
-        if len(objects) < 3 or (len(objects) <= self._tried_with and not waiting):
-            return rec
-        if not self.background:
-            objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(objects.items())}
+            and frames - self._candidate_at >= CONFIRM_FRAMES
+        return count >= 3 and (count > self._tried_with or waiting)
+
+    def _step(self, objects: dict, frames: int) -> None:
+        """One try with ``objects`` ({id: (label, ellipsoid)}, the recording's frame) after
+        ``frames`` frames, and what it decides (class docstring)."""
         mine = self._as_map_objects(objects)
         found = self._try(mine)
         if found is None:
-            return rec
+            return
         if self.localization is not None:  # a later transform from more objects, if it agrees
             if self._agree(self.localization, found, mine):
                 self.localization = found
@@ -108,11 +123,10 @@ class LocalizingMapper(OnlineMapper):
             self.reason = f"{len(found.matches)} objects matched: waiting for {self.min_matches}"
         elif self._candidate is not None and self._agree(self._candidate, found, mine):
             self.localization = self.first_localization = found
-            self.localized_at = len(self)
+            self.localized_at = frames
         else:
-            self._candidate, self._candidate_at = found, len(self)
+            self._candidate, self._candidate_at = found, frames
             self.reason = f"a transform from {len(found.matches)} objects, to be confirmed by the next try"
-        return rec
 
     @staticmethod
     def _as_map_objects(objects: dict) -> list:
