@@ -59,7 +59,8 @@ def drift_knots(timestamps, interval: float) -> tuple[np.ndarray, np.ndarray, np
 class DriftCorrection:
     """``correct_drift``'s answer: the corrected poses (F, 7 TUM fields tx ty tz qx qy qz qw),
     the knots' times and frames (``jaxlie.SE3`` each), the objects {id: landmark} it ended at, the bound
-    σ (6,) (v m, ω rad) left on each pose, the frame steps per interval and the LM result."""
+    σ (6,) (v m, ω rad) left on each pose, the frame steps per interval, the LM result, and
+    how far the correction moved each camera centre (F,) (m)."""
 
     poses_tum: np.ndarray
     knot_times: np.ndarray
@@ -68,15 +69,17 @@ class DriftCorrection:
     bound: np.ndarray
     steps_per_interval: float
     result: object
+    camera_shift: np.ndarray
 
     def note(self) -> str:
         """One line for the run's notes: what the correction did."""
-        moved = max(float(np.linalg.norm(np.asarray(k.translation()))) for k in self.knots)
+        shift = 1e3 * np.asarray(self.camera_shift, dtype=float)
         turned = np.degrees(np.max([np.linalg.norm(np.asarray(k.rotation().log())) for k in self.knots]))
         gap = float(np.median(np.diff(self.knot_times)))
-        return (f"drift corrected on {len(self.knots)} knots {gap:.3g} s apart (most: {1e3 * moved:.3g} mm, "
-                f"{turned:.3g}°); each pose then within {1e3 * self.bound[0]:.3g} mm and "
-                f"{1e3 * self.bound[3]:.3g} mrad of its corrected value")
+        return (f"drift corrected on {len(self.knots)} knots {gap:.3g} s apart (cameras moved by "
+                f"{np.median(shift):.3g} mm median, {np.max(shift):.3g} mm most; knots turned {turned:.3g}° most); "
+                f"each pose then within {1e3 * self.bound[0]:.3g} mm and {1e3 * self.bound[3]:.3g} mrad "
+                "of its corrected value")
 
 
 def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method, s: dict, interval: float,
@@ -126,5 +129,6 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
     corrected = interpolated_frame(Ka, Kb, w[:, None]) @ jaxlie.SE3(ctx.wxyz_xyz)  # type: ignore[arg-type]
     n = float(np.median(steps))
     bound = np.r_[np.full(3, st), np.full(3, sr)] * np.sqrt(max(n, 1.0) / 4.0)
+    shift = np.linalg.norm(np.asarray(corrected.translation()) - ctx.wxyz_xyz[:, 4:], axis=1)
     return DriftCorrection(to_tum(corrected), knot_times, knots,
-                           {k: res.values[L(k)] for k in used}, bound, n, res)
+                           {k: res.values[L(k)] for k in used}, bound, n, res, shift)
