@@ -882,7 +882,8 @@ class OnlineMapper:
         solved = Optimised(values=values, graph=graph, result=res, iterations=res.iterations,
                            initial_cost=res.initial_cost)
         return map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
-                          failed, notes, record, priors=seq.priors)
+                          failed, notes, record, priors=seq.priors,
+                          given_poses=absolute_sigma(self._sigmas) is None)
 
 
 class _Unchanged:

@@ -56,7 +56,7 @@ from ..io import MapObject, Sequence, class_prior, map_document, without_class_t
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
 from ._drift import correct_drift
-from ._graph import build_graph, mapping_sigmas, measured_objects, support_plane, trajectory_noise_note
+from ._graph import absolute_sigma, build_graph, mapping_sigmas, measured_objects, support_plane, trajectory_noise_note
 from ._keyframes import parse_keyframes, select_keyframes
 from ._methods import Method
 from ._settings import Associate, PlaneSource, RunSettings, SettingsError, as_settings, default_association
@@ -259,7 +259,8 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
 
 
 #: An object is poorly observed when the marginal standard deviation of its centre along
-#: some direction exceeds this (m) …
+#: some direction exceeds this (m; given the cameras where the trajectory has no bound on
+#: each pose: ``map_result``) …
 MAX_CENTER_SIGMA = 0.1
 #: … or that of one of its log-radii exceeds this (log 2: the radius is not known to within
 #: a factor of 2).
@@ -771,9 +772,10 @@ def run_sequence(
             landmarks = optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
 
     say("uncertainty: marginal covariances of the objects")
+    walk = not hold_trajectory and absolute_sigma(mapping_sigmas(ctx, sigmas)) is None
     with step("result"):
         return map_result(method, solve, labels, front.ellipsoids, seq.timestamps, front.failed,
-                          front.notes, association.record, priors=ctx.priors)
+                          front.notes, association.record, priors=ctx.priors, given_poses=walk)
 
 
 @dataclass
@@ -798,15 +800,22 @@ class Optimised:
 
 
 def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, timestamps,
-               failed: dict, notes: list, association: dict, priors=None) -> MapResult:
+               failed: dict, notes: list, association: dict, priors=None, given_poses: bool = False) -> MapResult:
     """The ``MapResult`` of a run's optimisations ``solved``: the objects L(id) of ``labels``
     {id: label} in its values with their uncertainty (``mapped_uncertainty``), each checked
     (``object_quality``) and those that fail it moved to ``failed``; the poses X(0…) as TUM
-    rows with ``timestamps``; ``initial`` {id: Ellipsoid} the front end's objects."""
+    rows with ``timestamps``; ``initial`` {id: Ellipsoid} the front end's objects.
+    ``given_poses`` (a trajectory without a bound on each pose): the check reads each object's
+    uncertainty given the cameras (every pose held), as the marginal then holds the
+    odometry's random walk since the first pose, which grows with the time from it whatever
+    the boxes fix; the objects keep their marginal uncertainty."""
     graph, values, res, fixed = solved.graph, solved.values, solved.result, solved.fixed
     ids = sorted(k for k in labels if L(k) in values)
     with step("uncertainty"):
         spread = mapped_uncertainty(graph, values, ids, fixed, res)
+        judged = spread
+        if given_poses and ids:
+            judged = mapped_uncertainty(graph, values, ids, [X(i) for i in range(len(timestamps))])
     objects = [MapObject(k, labels[k], as_ellipsoid(values[L(k)]), spread.get(k)) for k in ids]
     first = [MapObject(k, labels[k], initial[k]) for k in sorted(initial)]
     rows = np.stack([to_tum(values[X(i)]) for i in range(len(timestamps))])
@@ -814,7 +823,7 @@ def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, t
     failed = dict(failed)
     kept = []
     for o in objects:  # reported, not mapped: an object whose extent the data do not fix
-        why = object_quality(o, class_prior(priors, o.label))
+        why = object_quality(dataclasses.replace(o, uncertainty=judged.get(o.id)), class_prior(priors, o.label))
         if why:
             failed[o.id] = why
         else:
