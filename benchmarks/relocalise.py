@@ -23,9 +23,10 @@ the recording's own times.
 Exp(n), n ~ N(0, diag(σ_t² I₃, σ_r² I₃)), seeded, at the rates of ``--rates``), mapped with
 the per-pose bound off (``trajectory_absolute_sigma: .inf``): ATE and mean IoU of the input
 and of the run, for each drift correction of ``--drift-intervals`` (seconds between its knots,
-``RunSettings.drift_interval``; 0: none); then the same for the synthetic demo rooms (seeds
-0-2, 120 frames at 10 Hz, 4 objects, each odometry drift of ``--room-drifts``: σ metres and
-σ/2 radians per step) and the intervals of ``--room-intervals``.
+``RunSettings.drift_interval``; 0: none; ``--rates ""``: none of fr2_desk); then the same for
+the synthetic demo rooms (seeds 0-2, ``--room-frames`` at 10 Hz, default 120, ``--room-objects``,
+default 4, each odometry drift of ``--room-drifts``: σ metres and σ/2 radians per step; with
+``--room-association auto`` their instance ids removed) and the intervals of ``--room-intervals``.
 
 The answer is compared with the motion capture's relation of the two halves: each half's
 input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
@@ -212,7 +213,7 @@ def drifted(seq, sigma_t: float, sigma_r: float, seed: int):
 
 def drift_study(fr2, settings, a) -> None:
     rows = []
-    for item in a.rates.split(","):
+    for item in (x for x in a.rates.split(",") if x):
         st, sr = (float(x) for x in item.split(":"))
         seq = drifted(fr2, st, sr, a.seed)
         for interval in (float(x) for x in a.drift_intervals.split(",")):
@@ -225,12 +226,18 @@ def drift_study(fr2, settings, a) -> None:
     rooms = []
     for drift in (float(x) for x in a.room_drifts.split(",") if x):
         for seed in range(3):
-            room = make_room_sequence(seed, frames=120, objects=4, drift=drift)
+            room = make_room_sequence(seed, frames=a.room_frames, objects=a.room_objects, drift=drift)
+            run = settings
+            if a.room_association == "auto":  # the detections without their instance ids
+                room = dataclasses.replace(room, detections=[dataclasses.replace(d, instance=None)
+                                                             for d in room.detections])
+                run = settings.replace(associate="auto")
             for interval in (float(x) for x in a.room_intervals.split(",")):
-                r = run_sequence(room, settings.replace(drift_interval=interval))
+                r = run_sequence(room, run.replace(drift_interval=interval))
                 m = summary_of(room, r)
                 row = {"seed": seed, "drift": drift, "drift_interval": interval, "ate_input_mm": m["ate_input_mm"],
-                       "ate_mm": m["ate_mm"], "mean_iou": m["mean_iou"], "duplicates": m["duplicates"]}
+                       "ate_mm": m["ate_mm"], "mean_iou": m["mean_iou"], "duplicates": m["duplicates"],
+                       "objects": m["objects"], "objects_gt": len(room.objects_gt), "association": a.room_association}
                 rooms.append(row)
                 print(f"room {seed}, drift {drift} per step, knots {interval:g} s apart: {row}")
     print(json.dumps({"drift": rows, "rooms": rooms}, indent=1))
@@ -292,6 +299,10 @@ def main() -> None:
                     help="with --drift: the demo rooms' odometry drifts (m per step), comma-separated ('' : none)")
     ap.add_argument("--room-intervals", default="0,1,3,6,12",
                     help="with --drift: the rooms' knot intervals (s), comma-separated")
+    ap.add_argument("--room-objects", type=int, default=4, help="with --drift: objects in each room")
+    ap.add_argument("--room-frames", type=int, default=120, help="with --drift: frames of each room (10 Hz)")
+    ap.add_argument("--room-association", choices=("given", "auto"), default="given",
+                    help="with --drift: the rooms' instance ids as given, or removed and the tracks associated")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)
