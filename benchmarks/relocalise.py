@@ -27,6 +27,9 @@ and of the run, for each drift correction of ``--drift-intervals`` (seconds betw
 the synthetic demo rooms (seeds 0-2, ``--room-frames`` at 10 Hz, default 120, ``--room-objects``,
 default 4, each odometry drift of ``--room-drifts``: σ metres and σ/2 radians per step; with
 ``--room-association auto`` their instance ids removed) and the intervals of ``--room-intervals``.
+Each run without knots once per start of ``--initial-poses`` (``RunSettings.initial_poses``:
+``input``, the odometry's poses; ``auto``, on these unbounded trajectories the frames replayed
+through the online mapper first).
 
 The answer is compared with the motion capture's relation of the two halves: each half's
 input trajectory aligned rigidly to the motion capture (M₁, M₂), so that the recording's
@@ -211,35 +214,49 @@ def drifted(seq, sigma_t: float, sigma_r: float, seed: int):
     return dataclasses.replace(seq, poses_tum=rows, priors=priors)
 
 
+def drift_settings(settings, intervals: str, starts: str):
+    """(knot interval, initial poses, settings) of each run of the drift study: every interval
+    with ``input``; ``auto`` and ``incremental`` without knots only (with knots auto starts from
+    the input poses, and incremental is refused)."""
+    out = []
+    for interval in (float(x) for x in intervals.split(",")):
+        for start in (x for x in starts.split(",") if x):
+            if interval == 0 or start == "input":
+                out.append((interval, start, settings.replace(drift_interval=interval, initial_poses=start)))
+    return out
+
+
 def drift_study(fr2, settings, a) -> None:
     rows = []
     for item in (x for x in a.rates.split(",") if x):
         st, sr = (float(x) for x in item.split(":"))
         seq = drifted(fr2, st, sr, a.seed)
-        for interval in (float(x) for x in a.drift_intervals.split(",")):
+        for interval, start, run in drift_settings(settings, a.drift_intervals, a.initial_poses):
             t0 = time.perf_counter()
-            r = run_sequence(seq, settings.replace(drift_interval=interval))
-            row = {"sigma_t": st, "sigma_r": sr, "drift_interval": interval, **summary_of(seq, r),
-                   "seconds": time.perf_counter() - t0}
+            r = run_sequence(seq, run)
+            row = {"sigma_t": st, "sigma_r": sr, "drift_interval": interval, "initial_poses": start,
+                   **summary_of(seq, r), "seconds": time.perf_counter() - t0}
             rows.append(row)
-            print(f"drift {st} m, {sr} rad per frame, knots {interval:g} s apart: {row}")
+            print(f"drift {st} m, {sr} rad per frame, knots {interval:g} s apart, start {start}: {row}")
     rooms = []
     for drift in (float(x) for x in a.room_drifts.split(",") if x):
         for seed in range(3):
             room = make_room_sequence(seed, frames=a.room_frames, objects=a.room_objects, drift=drift)
-            run = settings
+            base = settings
             if a.room_association == "auto":  # the detections without their instance ids
                 room = dataclasses.replace(room, detections=[dataclasses.replace(d, instance=None)
                                                              for d in room.detections])
-                run = settings.replace(associate="auto")
-            for interval in (float(x) for x in a.room_intervals.split(",")):
-                r = run_sequence(room, run.replace(drift_interval=interval))
+                base = settings.replace(associate="auto")
+            for interval, start, run in drift_settings(base, a.room_intervals, a.initial_poses):
+                t0 = time.perf_counter()
+                r = run_sequence(room, run)
                 m = summary_of(room, r)
-                row = {"seed": seed, "drift": drift, "drift_interval": interval, "ate_input_mm": m["ate_input_mm"],
-                       "ate_mm": m["ate_mm"], "mean_iou": m["mean_iou"], "duplicates": m["duplicates"],
-                       "objects": m["objects"], "objects_gt": len(room.objects_gt), "association": a.room_association}
+                row = {"seed": seed, "drift": drift, "drift_interval": interval, "initial_poses": start,
+                       "ate_input_mm": m["ate_input_mm"], "ate_mm": m["ate_mm"], "mean_iou": m["mean_iou"],
+                       "duplicates": m["duplicates"], "objects": m["objects"], "objects_gt": len(room.objects_gt),
+                       "association": a.room_association, "seconds": time.perf_counter() - t0}
                 rooms.append(row)
-                print(f"room {seed}, drift {drift} per step, knots {interval:g} s apart: {row}")
+                print(f"room {seed}, drift {drift} per step, knots {interval:g} s apart, start {start}: {row}")
     print(json.dumps({"drift": rows, "rooms": rooms}, indent=1))
     write_out(a, {"drift": rows, "rooms": rooms})
 
@@ -303,6 +320,10 @@ def main() -> None:
     ap.add_argument("--room-frames", type=int, default=120, help="with --drift: frames of each room (10 Hz)")
     ap.add_argument("--room-association", choices=("given", "auto"), default="given",
                     help="with --drift: the rooms' instance ids as given, or removed and the tracks associated")
+    ap.add_argument("--initial-poses", default="input,auto",
+                    help="with --drift: RunSettings.initial_poses of each run without knots, comma-separated "
+                         "(input: the odometry's poses; auto: a replay through the online mapper first on "
+                         "these unbounded trajectories); runs with knots start from the input poses")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)

@@ -190,7 +190,7 @@ def test_degenerate_objects_are_reported_not_mapped(monkeypatch):
         return e
 
     monkeypatch.setattr(run_mod, "multi_initialize", flat_first)
-    r = run_sequence(seq, "multi-spd")
+    r = run_sequence(seq, "multi-spd", initial_poses="input")  # the batch's initialisation
     assert len(r.objects) == 2 and len(r.failed) == 1
     (why,) = r.failed.values()
     assert "initial ellipsoid is singular" in why

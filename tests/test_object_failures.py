@@ -87,10 +87,10 @@ def test_an_object_collapsed_by_the_optimisation_fails_alone(monkeypatch):
     label = room.detections[0].label
     seq = dataclasses.replace(room, detections=[dataclasses.replace(d, label=label)
                                                 for d in room.detections])
-    base = run_sequence(seq, "quadric-slam", associate="auto")
+    base = run_sequence(seq, "quadric-slam", associate="auto", initial_poses="input")  # the batch's own path
     assert len(base.objects) >= 3
     hit = _collapse_after_optimisation(monkeypatch, lambda ids: ids[0])
-    r = run_sequence(seq, "quadric-slam", associate="auto")
+    r = run_sequence(seq, "quadric-slam", associate="auto", initial_poses="input")
     k = hit["id"]
     assert k in r.failed and "degenerate after the optimisation" in r.failed[k]
     assert {o.id for o in r.objects} | {k} >= {o.id for o in base.objects}
@@ -115,7 +115,7 @@ def test_an_object_the_initialiser_cannot_fit_fails_alone(monkeypatch):
         return real(*a, **kw)
 
     monkeypatch.setattr(run_mod, "multi_initialize", singular_first)
-    r = run_sequence(seq, "multi-spd")
+    r = run_sequence(seq, "multi-spd", initial_poses="input")  # the batch's initialisation
     assert len(r.objects) == 2 and len(r.failed) == 1
     (why,) = r.failed.values()
     assert why == "initialisation: LinAlgError: Singular matrix"
@@ -127,10 +127,36 @@ def test_a_failure_of_the_whole_problem_names_its_step(monkeypatch):
 
     monkeypatch.setattr(LevenbergMarquardt, "optimize", broken)
     with pytest.raises(MappingError) as info:
-        run_sequence(make_room_sequence(0, frames=30, objects=2), "multi-spd")
+        run_sequence(make_room_sequence(0, frames=30, objects=2), "multi-spd", initial_poses="input")
     assert info.value.step == "optimisation (inverse boxes)"
     assert str(info.value) == "optimisation (inverse boxes): Singular matrix"
     assert isinstance(info.value, ValueError)  # the CLI's one-line error
+
+
+def test_a_replay_that_fails_leaves_the_input_poses_or_names_its_step(monkeypatch):
+    """The incremental start is a better start, not a reason to fail: an error confined to objects or numbers (``OBJECT_ERRORS``) in the replay leaves the
+    run at the input poses with a note; any other names the step."""
+    import spdslam.mapping._batch as batch
+
+    seq = make_room_sequence(0, frames=30, objects=2)
+
+    def singular(*a, **kw):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(batch, "replayed_start", singular)
+    r = run_sequence(seq, "multi-spd", initial_poses="incremental")
+    given = run_sequence(seq, "multi-spd", initial_poses="input")
+    assert ("incremental initialisation failed (LinAlgError: Singular matrix): the optimisation starts from "
+            "the input poses") in r.notes
+    assert len(r.objects) == len(given.objects) == 2 and r.final_cost == given.final_cost
+
+    def broken(*a, **kw):
+        raise RuntimeError("the worker died")
+
+    monkeypatch.setattr(batch, "replayed_start", broken)
+    with pytest.raises(MappingError) as info:
+        run_sequence(seq, "multi-spd", initial_poses="incremental")
+    assert str(info.value) == "incremental initialisation: the worker died"
 
 
 @pytest.mark.slow  # a real-data study (40 s); tests above check one failing object alone on rooms

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import assert_cli_error, assert_cli_ok, cli_invoke
 
-from spdslam.evaluation import evaluate_objects
+from spdslam.evaluation import evaluate_objects, evaluate_run
 from spdslam.factors import LandmarkPriorFactor
 from spdslam.geometry import Ellipsoid, EllipsoidFull, manifold
 from spdslam.io import write_sequence
@@ -36,7 +36,7 @@ TIGHT = dict(tolerance=1e-10, max_iterations=300)
 
 @pytest.fixture(scope="module")
 def batch(room):
-    return run_sequence(room, "multi-spd", associate="instances", **TIGHT)
+    return run_sequence(room, "multi-spd", associate="instances", initial_poses="input", **TIGHT)  # the batch's own start
 
 
 @pytest.fixture(scope="module")
@@ -173,6 +173,10 @@ def test_automatic_association_online_finds_the_objects(room):
     assert result.association["mode"] == "online-auto"
     assert len(result.objects) == len(room.objects_gt)
     assert _mean_iou(result, room, by_id=False) > 0.5  # automatic ids are not instance ids
+    # and the run's evaluation (metrics.json, report.md) knows it: objects matched by IoU
+    s = evaluate_run(result.as_dict(), result.objects, result.initial_objects, result.poses_tum, room,
+                     align=False)["summary"]
+    assert s["mean_iou"] == pytest.approx(_mean_iou(result, room, by_id=False))
 
 
 @pytest.mark.parametrize("associate", ["instances", "auto"])

@@ -93,7 +93,7 @@ def test_unknown_keywords_and_settings_given_twice_are_refused():
 def test_settings_are_checked_before_any_work(monkeypatch):
     """A bad setting ends ``run_sequence`` before the screen, the association or anything
     else runs (support planes were checked only after association before)."""
-    import spdslam.mapping._run as run_mod
+    import spdslam.mapping._batch as run_mod
 
     def never(*a, **k):
         raise AssertionError("work started before the settings were checked")

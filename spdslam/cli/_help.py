@@ -98,6 +98,13 @@ FACTS: dict[str, Any] = {
             "(trajectory_absolute_sigma: .inf), fitted to the boxes before the joint optimisation (docs/map-reuse.md); "
             "0: none",
         ),
+        "initial_poses": (
+            "auto",
+            "the poses the joint optimisation starts from: input, or incremental (the frames replayed through the "
+            "online mapper first, which pulls drifting poses back as objects are seen again, and associates on them); "
+            "auto: incremental on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf), else "
+            "input (docs/map-reuse.md)",
+        ),
     },
     "format_entry_points": "spdslam.formats",
     "formats": (

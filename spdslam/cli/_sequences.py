@@ -278,6 +278,7 @@ def run(
     hold_trajectory: bool = typer.Option(_default("hold_trajectory"), "--hold-trajectory/--free-trajectory",
                                          help=_help("hold_trajectory")),
     drift_interval: float = typer.Option(_default("drift_interval"), help=_help("drift_interval")),
+    initial_poses: str = typer.Option(_default("initial_poses"), help=_help("initial_poses")),
     screen: bool = typer.Option(_default("screen"), "--screen/--no-screen", help=_help("screen")),
     class_table: bool = typer.Option(_default("class_table"), "--class-table/--no-class-table",
                                      help=_help("class_table")),
@@ -314,7 +315,8 @@ def run(
         object_shape=object_shape, truncation_margin=truncation_margin,
         max_iterations=max_iterations, keyframes=keyframes, support_planes=support_planes,
         class_table=class_table, tolerance=tolerance, min_views=min_views,
-        hold_trajectory=hold_trajectory, drift_interval=drift_interval, screen=screen, online=on)
+        hold_trajectory=hold_trajectory, drift_interval=drift_interval, initial_poses=initial_poses,
+        screen=screen, online=on)
     options = _format_options(option)
     _sequence_path(sequence)
     check_output(out, [sequence])

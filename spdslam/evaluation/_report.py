@@ -180,6 +180,11 @@ def moved(objects, T):
             for o in objects]
 
 
+#: map.json's association modes whose object ids are track ids, not instance ids (a batch
+#: run's automatic association, an online run's).
+AUTOMATIC_MODES = ("auto", "online-auto")
+
+
 def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
                  align: bool = True) -> dict:
     """Metrics of a run against the sequence's ground truth (what exists of it), the
@@ -196,7 +201,7 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
     association = map_dict.get("association")
     if not isinstance(association, dict):  # maps written before automatic association
         association = {"mode": "instances"}
-    by_id = association.get("mode") != "auto"  # automatic track ids are not instance ids
+    by_id = association.get("mode") not in AUTOMATIC_MODES  # automatic track ids are not instance ids
     if "precision" in association:
         out["association"] = {k: association[k] for k in ("precision", "recall", "tracks", "instances")
                               if k in association}

@@ -3,6 +3,8 @@ the run (associate → initialise → build the graph → solve). Imports ``geom
 ``factors``, ``solver``, ``io`` and ``frontend``; never ``evaluation``.
 """
 
+from ._batch import odometry_spread as odometry_spread
+from ._batch import run_sequence as run_sequence
 from ._context import SequenceContext as SequenceContext
 from ._context import object_shape as object_shape
 from ._drift import DriftCorrection as DriftCorrection
@@ -83,12 +85,12 @@ from ._run import object_quality as object_quality
 from ._run import object_uncertainty as object_uncertainty
 from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
-from ._run import run_sequence as run_sequence
 from ._run import step as step
 from ._settings import METHOD_FIELDS as METHOD_FIELDS
 from ._settings import RUN_OVERRIDES as RUN_OVERRIDES
 from ._settings import RUN_SETTING_NAMES as RUN_SETTING_NAMES
 from ._settings import Associate as Associate
+from ._settings import InitialPoses as InitialPoses
 from ._settings import OnlineSettings as OnlineSettings
 from ._settings import PlaneSource as PlaneSource
 from ._settings import RunSettings as RunSettings

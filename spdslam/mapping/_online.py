@@ -88,7 +88,7 @@ from ._settings import (
     default_association,
 )
 
-__all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "run_online"]
+__all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "ReplayedStart", "replayed_start", "run_online"]
 
 #: ``OnlineSettings``' fields, taken by ``OnlineMapper`` and ``run_online`` as keywords.
 ONLINE_FIELDS = tuple(f.name for f in dataclasses.fields(OnlineSettings))
@@ -938,3 +938,59 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
             say(f"online: frame {n + 1} of {len(order)}, {r.objects} objects")
     result = mapper.finish(progress=say)
     return result, list(mapper.records)
+
+
+@dataclass(frozen=True)
+class ReplayedStart:
+    """``replayed_start``'s answer: the poses the replay ended at (F, 7, jaxlie's wxyz_xyz),
+    its objects {track id: landmark value}, and its tracks (automatic association: the
+    online tracker's, made with the poses as the replay corrected them; else None)."""
+
+    poses: np.ndarray
+    landmarks: dict
+    tracks: list | None = None
+
+
+def replayed_start(seq: Sequence, tracks, run: RunSettings, progress=None) -> ReplayedStart:
+    """Where a batch run on a drifting trajectory starts (``InitialPoses.INCREMENTAL``): the
+    frames of ``seq`` replayed in order through an ``OnlineMapper`` with ``run``'s method,
+    sigmas and views, without a final batch. ``tracks``: the batch association's, given to
+    the mapper as instance ids (with the measured ellipsoids of those ids); None: the
+    detections of ``seq`` associated by the online tracker, which predicts each frame's
+    objects from the poses as corrected so far, so an object seen again after the odometry
+    drifted is found again where the drifted poses would put a new one. The fixed-lag
+    smoother moves each new pose with the objects it sees, so a re-observed object pulls
+    the poses back before the next ones are predicted from them: the batch, started there,
+    no longer has to bend the whole drift out at once."""
+    say = progress or (lambda message: None)
+    by_frame: dict = {}
+    meas: dict = {}
+    if tracks is None:
+        for d in seq.detections:
+            by_frame.setdefault(d.frame, []).append(d)
+    else:
+        for tr in tracks:
+            for f, b in zip(np.asarray(tr.frames, dtype=int), np.asarray(tr.boxes, dtype=float).reshape(-1, 4)):
+                by_frame.setdefault(int(f), []).append((tr.label, b, 1.0, int(tr.id)))
+        ids = {int(tr.id) for tr in tracks}
+        for m in seq.ellipsoids or ():
+            if m.instance is not None and int(m.instance) in ids:
+                meas.setdefault(m.frame, []).append(m)
+    settings = run.replace(associate=Associate.AUTO if tracks is None else Associate.INSTANCES, screen=False,
+                           online=OnlineSettings(final_batch=False), initial_poses="input", drift_interval=0.0,
+                           hold_trajectory=False)
+    mapper = OnlineMapper(seq.camera, seq.priors, settings, name=seq.name)
+    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
+    for n, i in enumerate(order):
+        mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
+                         ellipsoids=meas.get(int(i), ()))
+        if (n + 1) % 100 == 0 or n + 1 == len(order):
+            say(f"incremental initialisation: frame {n + 1} of {len(order)}, {len(mapper.landmarks)} objects")
+    mapper.wait()
+    poses = np.empty((len(order), 7))
+    poses[order] = mapper._est.array
+    found = None
+    if tracks is None:  # the tracks the batch association would keep (AssociationSettings.min_detections)
+        need = mapper._assoc_settings.min_detections
+        found = [mapper._track(k) for k in sorted(mapper._views) if len(mapper._views[k]) >= need]
+    return ReplayedStart(poses, dict(mapper.landmarks), found)

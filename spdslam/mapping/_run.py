@@ -1,15 +1,8 @@
-"""Object SLAM on a sequence, the paper's Table III pipeline: ``run_sequence`` composes
-the steps, each inside ``step(name)`` (docs/core.md draws them):
-
-    RunSettings                    every setting, checked before any work (``_settings``)
-    → keyframes, screening         ``select_keyframes``, ``frontend.screen_detections``
-    → associate_tracks(ctx, …)     Association: tracks and how they were made
-    → initialize(ctx, …)           Initialization: initial ellipsoids, the views that see
-                                   them, failures and notes
-    → build_graph(ctx, …)          the factor graph (``_graph``), with Values
-    → optimisation                 LM per box-model stage, accumulated in ``Optimised``
-    → duplicates                   ``overlapping_duplicates`` (automatic association)
-    → map_result                   uncertainty, each object's quality, ``MapResult``
+"""The steps of a batch run (``_batch.run_sequence`` composes them, each inside
+``step(name)``; docs/core.md draws them) and the result they make: association
+(``associate_tracks``), initialisation (``initialize``), duplicates
+(``overlapping_duplicates``, ``merge_duplicates``), and ``map_result`` (uncertainty, each
+object's quality, ``MapResult``); the online mapper (``_online``) uses them too.
 
 A failure confined to one object moves it to ``failed`` (``OBJECT_ERRORS``); one of the
 whole problem is a ``MappingError`` naming the step. Evaluation against ground truth and
@@ -23,7 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +29,6 @@ from ..frontend import (
     association_scores,
     estimate_support_planes,
     multi_initialize,
-    screen_detections,
     svd_initialize,
     tracks_from_instances,
 )
@@ -52,14 +44,12 @@ from ..geometry import (
 )
 from ..geometry.matfun import eigh
 from ..geometry.se3 import to_tum
-from ..io import MapObject, Sequence, class_prior, map_document, without_class_table
-from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X, marginal_covariances
+from ..io import MapObject, class_prior, map_document
+from ..solver import L, NonlinearFactorGraph, Values, X, marginal_covariances
 from ._context import SequenceContext, as_context, object_shape
-from ._drift import correct_drift
-from ._graph import absolute_sigma, build_graph, mapping_sigmas, measured_objects, support_plane, trajectory_noise_note
-from ._keyframes import parse_keyframes, select_keyframes
+from ._graph import measured_objects, support_plane
 from ._methods import Method
-from ._settings import Associate, PlaneSource, RunSettings, SettingsError, as_settings, default_association
+from ._settings import Associate, PlaneSource, default_association
 
 __all__ = [
     "ASSOCIATIONS",
@@ -70,17 +60,19 @@ __all__ = [
     "MappingError",
     "Optimised",
     "associate_tracks",
+    "association_record_scores",
     "cost_by_factor",
     "implausibly_flat",
     "initialize",
     "initialize_objects",
     "initialize_from_measurements",
     "map_result",
+    "merge_duplicates",
     "merged_track",
     "nesting_depths",
     "object_quality",
+    "planes_note",
     "overlapping_duplicates",
-    "run_sequence",
     "step",
 ]
 
@@ -180,9 +172,15 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None) -> Associat
     found = auto_associate(seq)
     record = {"mode": "auto"}
     if has_ids:
-        record.update(association_scores(found, seq))
-        record.pop("mapping", None)
+        record.update(association_record_scores(found, seq))
     return Association(found, record)
+
+
+def association_record_scores(tracks, seq) -> dict:
+    """Automatic association's scores against the instance ids (``association_scores``)."""
+    scores = dict(association_scores(tracks, seq))
+    scores.pop("mapping", None)
+    return scores
 
 
 # --- initialisation ---------------------------------------------------------------------------
@@ -497,7 +495,7 @@ def initialize(ctx, association: Association, method: Method, min_views: int = 3
             and ctx.up is not None and not ctx.support_planes() and init):
         planes = estimate_support_planes(init, ctx.up)
         if len(planes.planes):
-            notes.append(_planes_note(planes, ctx.up, "initial"))
+            notes.append(planes_note(planes, ctx.up, "initial"))
             rested = [tr for tr in association.tracks if tr.id in planes.assignment and tr.id in init]
             again, _, _ = initialize_objects(ctx, rested, method, min_views, planes)
             init.update(again)  # an object that no longer fits keeps its first start
@@ -599,7 +597,7 @@ def merged_track(keep: Track, drop: Track) -> Track:
     return Track(keep.id, keep.label, frames[order], boxes[order])
 
 
-def _merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initialization:
+def merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initialization:
     """``front`` with each pair's tracks joined (``merged_track``) and the merged object
     dropped from ``landmarks`` (in place); a note per pair."""
     by_id = {tr.id: tr for tr in front.tracks}
@@ -615,7 +613,7 @@ def _merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initiali
     return dataclasses.replace(front, tracks=tracks, notes=notes)
 
 
-def _planes_note(planes: SupportPlanes, up, source: str) -> str:
+def planes_note(planes: SupportPlanes, up, source: str) -> str:
     counts = np.bincount(list(planes.assignment.values()), minlength=len(planes.planes))
     tilt = np.degrees(np.arccos(np.clip(planes.planes[0, :3] @ np.asarray(up), -1.0, 1.0)))
     each = ", ".join(f"height {-p[3]:.3f} m ({n} objects)" for p, n in zip(planes.planes, counts))
@@ -633,149 +631,6 @@ def as_landmark(e: Ellipsoid, method: Method):
         return EllipsoidFull.from_ellipsoid(e)
     R, s = (np.asarray(a) for a in e.axes())
     return EllipsoidRTS.from_axes(R, np.asarray(e.center), s)
-
-
-def run_sequence(
-    seq: Sequence,
-    method: str | Method | RunSettings = "multi-spd",
-    *,
-    tracks=None,
-    verbose: bool = False,
-    progress: Callable[[str], Any] | None = None,
-    **settings,
-) -> MapResult:
-    """Initialise and jointly optimise a sequence in one batch. ``method``: the run's
-    :class:`RunSettings`, or a name of ``METHODS`` (or a :class:`Method`) with ``settings``,
-    the keywords of ``RunSettings.of`` (its fields, and ``Method`` fields as overrides, e.g.
-    ``parameterization="rts"``); all are checked before any work starts.
-
-    The steps (``step``): keyframes (``select_keyframes``; the result's trajectory has those
-    frames only), screening (``frontend.screen_detections``, unless ``screen=False`` or
-    ``tracks`` are given), association (``associate_tracks``: ``tracks`` when given, else
-    by instance ids or automatically), initialisation (``initialize``), the graph
-    (``build_graph``) and its optimisation per box-model stage, support planes estimated
-    from the optimised objects (``support_planes="optimised"``, then optimised again),
-    duplicates merged (automatic association: ``overlapping_duplicates``, then optimised
-    again), and the result (``map_result``: uncertainty and each object's quality). A
-    failure confined to one object moves it to ``failed``; one of the whole problem is a
-    ``MappingError`` naming the step. ``progress(message)`` is called at each step and after
-    each LM iteration. A method's ``robust="auto"`` is resolved by the association
-    (``Method.resolved``)."""
-    say = progress or (lambda message: None)
-    run = as_settings(method, settings)
-    if run.online is not None:
-        raise SettingsError("online", "run_sequence maps in one batch; an online run is run_online's")
-    if not run.class_table:
-        seq = without_class_table(seq)
-    method, keyframes, support_planes = run.method, run.keyframes, run.support_planes
-    sigmas, min_views, hold_trajectory = dict(run.sigma), run.min_views, run.hold_trajectory
-    associate = None if run.associate is None else str(run.associate)
-    max_iterations, tolerance, screen = run.max_iterations, run.tolerance, run.screen
-    if parse_keyframes(keyframes) != "all":
-        if tracks is not None:
-            raise ValueError("keyframes other than 'all' need the run's own association (tracks index frames)")
-        with step("keyframes"):
-            kept = select_keyframes(seq.poses_tum, keyframes)
-        say(f"keyframes ({keyframes}): {kept.size} of {len(seq)} frames")
-        seq = seq.subset(kept)
-    screened = None
-    if screen and tracks is None:
-        with step("screening"):
-            screened = screen_detections(seq, method.margin)
-        seq = screened.sequence
-        say(screened.summary())
-    with step("association"):
-        ctx = SequenceContext.of(seq)
-        say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
-        association = associate_tracks(ctx, tracks, associate)
-    method = method.resolved(association.record.get("mode") == "auto")
-    say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
-    with step("initialisation"):
-        front = initialize(ctx, association, method, min_views, support_planes)
-        front.notes.insert(0, "trajectory held at the input poses" if hold_trajectory
-                           else trajectory_noise_note(ctx, sigmas))
-    if screened is not None and screened.counts():
-        front.notes.insert(1, screened.summary())
-    say(front.notes[0])
-    say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
-
-    landmarks = {k: as_landmark(e, method) for k, e in front.ellipsoids.items()}
-    if not hold_trajectory and run.drift_interval > 0 and landmarks:
-        with step("drift correction"):
-            s = mapping_sigmas(ctx, sigmas)
-            drift = None
-            if np.isinf(s["absolute_translation"]) and np.isinf(s["absolute_rotation"]):
-                say(f"drift correction: knots about {run.drift_interval:g} s apart")
-                drift = correct_drift(ctx, front.tracks, landmarks, method, s, run.drift_interval, front.planes,
-                                      max_iterations, tolerance)
-            else:
-                front.notes.append("no drift correction: the trajectory has a bound on each pose "
-                                   "(trajectory_absolute_sigma)")
-        if drift is not None:
-            seq = dataclasses.replace(seq, poses_tum=drift.poses_tum)
-            ctx = SequenceContext.of(seq)
-            sigmas = {**sigmas, "absolute_translation": float(drift.bound[0]),
-                      "absolute_rotation": float(drift.bound[3])}
-            landmarks.update(drift.landmarks)
-            front.notes.append(drift.note())
-            say(front.notes[-1])
-    values = Values()
-    for i, T in enumerate(ctx.poses):
-        values[X(i)] = T
-    for k, lm in landmarks.items():
-        values[L(k)] = lm
-    stages = ["semi", "inverse"] if method.box_model == "semi-then-inverse" else [method.box_model]
-
-    def each_iteration(rec):
-        say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
-            f"({'accepted' if rec.accepted else 'rejected'}, {'Δ' if rec.radius else 'λ'} {rec.damping:.2g})")
-
-    optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
-                                   relative_tolerance=tolerance,
-                                   callback=each_iteration if progress else None)
-    fixed = [X(i) for i in range(len(ctx.poses))] if hold_trajectory else []
-    solve = Optimised(values=values, fixed=fixed)
-    planes = front.planes
-    made: dict = {}  # box factors per track, across this run's graphs (build_graph's reuse)
-
-    def optimise(stage: str, what: str) -> dict:
-        """The graph of the current tracks, landmarks and planes, optimised: the landmarks."""
-        with step("graph"):
-            graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                                planes, odometry=not hold_trajectory, reuse=made)
-        say(f"optimisation ({what}): {len(solve.values)} variables, {len(graph)} factors")
-        with step(f"optimisation ({what})"):
-            solve.add(graph, optimizer.optimize(graph, solve.values, fixed=fixed))
-        return {k: solve.values[L(k)] for k in landmarks}
-
-    for stage in stages:
-        landmarks = optimise(stage, f"{stage} boxes")
-    if (support_planes == "optimised" and method.support_plane and ctx.up is not None
-            and not ctx.support_planes() and landmarks):
-        with step("support planes"):
-            estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
-        if len(estimated.planes):
-            planes = estimated
-            front.notes.append(_planes_note(planes, ctx.up, "optimised"))
-            landmarks = optimise(stages[-1], "with the estimated support planes")
-
-    labels = {tr.id: tr.label for tr in front.tracks}  # the front end's objects, merged or not
-    if association.record.get("mode") == "auto":  # instance ids are trusted as given
-        with step("duplicates"):
-            pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in landmarks.items()},
-                                           front.tracks)
-            if pairs:
-                front = _merge_duplicates(front, landmarks, pairs)
-                gone = {L(d) for _, d in pairs}
-                solve.values = Values({k: v for k, v in solve.values.items() if k not in gone})
-        if pairs:
-            landmarks = optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
-
-    say("uncertainty: marginal covariances of the objects")
-    walk = not hold_trajectory and absolute_sigma(mapping_sigmas(ctx, sigmas)) is None
-    with step("result"):
-        return map_result(method, solve, labels, front.ellipsoids, seq.timestamps, front.failed,
-                          front.notes, association.record, priors=ctx.priors, given_poses=walk)
 
 
 @dataclass

@@ -32,11 +32,13 @@ __all__ = [
     "Associate",
     "METHOD_FIELDS",
     "OnlineSettings",
+    "REPLAY_MIN_SPREAD",
     "PlaneSource",
     "RUN_OVERRIDES",
     "RUN_SETTING_NAMES",
     "RunSettings",
     "SettingsError",
+    "InitialPoses",
     "as_settings",
     "default_association",
     "setting_help",
@@ -48,6 +50,19 @@ class Associate(enum.StrEnum):
     (``frontend.associate``, which ignores the ids)."""
 
     INSTANCES = "instances"
+    AUTO = "auto"
+
+
+class InitialPoses(enum.StrEnum):
+    """The poses a batch run's joint optimisation starts from: the input poses, the objects
+    initialised from them; or the poses the online mapper ends at when the frames are
+    replayed through it first (incremental: it moves the poses as objects are seen again,
+    and its objects and, with automatic association, its tracks are taken too); auto:
+    incremental on a trajectory without a bound on each pose (drifting odometry) when the
+    method maps online and no drift correction is asked for, else the input."""
+
+    INPUT = "input"
+    INCREMENTAL = "incremental"
     AUTO = "auto"
 
 
@@ -97,6 +112,23 @@ def _choice(name: str, kind: type[enum.StrEnum], value):
         return kind(value)
     except ValueError:
         raise SettingsError(name, f"expected one of {', '.join(kind)}, got {value!r}") from None
+
+
+#: ``initial_poses="auto"`` replays a trajectory without a bound on each pose when its
+#: odometry's random walk over the recording, √(F − 1) σ_step, may exceed this (m, rad): 10 cm
+#: or 2° (an object 3 m away seen 10 cm off). Below it the replay changed nothing measurable
+#: on the demo rooms and costs a second or more (docs/map-reuse.md).
+REPLAY_MIN_SPREAD = (0.1, 0.035)
+
+#: What the online mapper maps with: landmark parameterisations and box models.
+ONLINE_PARAMETERIZATIONS = ("spd", "rts")
+ONLINE_BOX_MODELS = ("inverse", "semi")
+
+
+def maps_online(method: Method) -> bool:
+    """Whether the online mapper takes ``method`` (``ONLINE_PARAMETERIZATIONS``,
+    ``ONLINE_BOX_MODELS``)."""
+    return method.parameterization in ONLINE_PARAMETERIZATIONS and method.box_model in ONLINE_BOX_MODELS
 
 
 @dataclass(frozen=True)
@@ -199,6 +231,11 @@ class RunSettings:
         "seconds between the knots of a drift correction of a trajectory without a bound on each "
         "pose (trajectory_absolute_sigma: .inf), fitted to the boxes before the joint "
         "optimisation (docs/map-reuse.md); 0: none"))
+    initial_poses: InitialPoses = field(default=InitialPoses.AUTO, metadata=_help(
+        "the poses the joint optimisation starts from: input, or incremental (the frames "
+        "replayed through the online mapper first, which pulls drifting poses back as objects "
+        "are seen again, and associates on them); auto: incremental on a trajectory without a "
+        "bound on each pose (trajectory_absolute_sigma: .inf), else input (docs/map-reuse.md)"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
     class_table: bool = field(default=True, metadata=_help(
@@ -232,6 +269,19 @@ class RunSettings:
         if isinstance(di, bool) or not isinstance(di, (int, float)) or not (math.isfinite(di) and di >= 0):
             raise SettingsError("drift_interval", f"expected a finite number of seconds ≥ 0, got {di!r}")
         object.__setattr__(self, "drift_interval", float(di))
+        object.__setattr__(self, "initial_poses",
+                           _choice("initial_poses", InitialPoses, self.initial_poses))
+        if self.initial_poses == InitialPoses.INCREMENTAL:
+            if self.hold_trajectory:
+                raise SettingsError("initial_poses", "incremental moves the poses, which hold_trajectory "
+                                    "holds: expected input or auto")
+            if self.drift_interval > 0:
+                raise SettingsError("initial_poses", "a drift correction starts from the input poses: "
+                                    "expected input or auto with drift_interval")
+            if not maps_online(self.method):
+                raise SettingsError("initial_poses", "incremental replays the frames through the online "
+                                    "mapper, which takes SPD or RTS landmarks and one box model (inverse "
+                                    f"or semi), not {self.method.parameterization} with {self.method.box_model}")
         try:
             object.__setattr__(self, "keyframes", parse_keyframes(self.keyframes))
         except ValueError as e:
@@ -247,10 +297,10 @@ class RunSettings:
             if self.support_planes != PlaneSource.PRIORS:
                 raise SettingsError("support_planes", "an online run takes support planes from the "
                                     f"priors only: expected priors, got {self.support_planes!r}")
-            if self.method.parameterization not in ("spd", "rts"):
+            if self.method.parameterization not in ONLINE_PARAMETERIZATIONS:
                 raise SettingsError("parameterization", "online mapping takes SPD or RTS landmarks: "
                                     f"expected spd or rts, got {self.method.parameterization!r}")
-            if self.method.box_model not in ("inverse", "semi"):
+            if self.method.box_model not in ONLINE_BOX_MODELS:
                 raise SettingsError("box_model", "online mapping takes one box model: expected "
                                     f"inverse or semi, got {self.method.box_model!r}")
 
@@ -301,6 +351,16 @@ class RunSettings:
             online = OnlineSettings(**online)
         mine = {k: v for k, v in settings.items() if k in own and k != "online"}
         return cls(method=method, online=online, **mine)
+
+    def starts_incremental(self, drifting: bool) -> bool:
+        """Whether a batch run starts from the frames replayed through the online mapper
+        (``InitialPoses``): always for ``incremental``; for ``auto`` on a ``drifting``
+        trajectory (no bound on each pose, and an odometry that may have drifted over the
+        recording by more than ``REPLAY_MIN_SPREAD``)."""
+        if self.initial_poses == InitialPoses.INCREMENTAL:
+            return True
+        return (self.initial_poses == InitialPoses.AUTO and drifting and not self.hold_trajectory
+                and self.drift_interval == 0 and maps_online(self.method))
 
     def replace(self, **changes) -> RunSettings:
         """A copy with ``changes`` (checked again)."""
