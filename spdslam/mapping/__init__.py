@@ -87,6 +87,7 @@ from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import step as step
 from ._settings import METHOD_FIELDS as METHOD_FIELDS
+from ._settings import REPLAY_MIN_SPREAD as REPLAY_MIN_SPREAD
 from ._settings import RUN_OVERRIDES as RUN_OVERRIDES
 from ._settings import RUN_SETTING_NAMES as RUN_SETTING_NAMES
 from ._settings import Associate as Associate
