@@ -102,8 +102,8 @@ FACTS: dict[str, Any] = {
             "auto",
             "the poses the joint optimisation starts from: input, or incremental (the frames replayed through the "
             "online mapper first, which pulls drifting poses back as objects are seen again, and associates on them); "
-            "auto: incremental on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf), else "
-            "input (docs/map-reuse.md)",
+            "auto: incremental on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf) whose "
+            "odometry may have drifted over the recording by more than 10 cm or 2°, else input (docs/map-reuse.md)",
         ),
     },
     "format_entry_points": "spdslam.formats",

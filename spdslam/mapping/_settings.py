@@ -58,8 +58,9 @@ class InitialPoses(enum.StrEnum):
     initialised from them; or the poses the online mapper ends at when the frames are
     replayed through it first (incremental: it moves the poses as objects are seen again,
     and its objects and, with automatic association, its tracks are taken too); auto:
-    incremental on a trajectory without a bound on each pose (drifting odometry) when the
-    method maps online and no drift correction is asked for, else the input."""
+    incremental on a trajectory without a bound on each pose (drifting odometry) whose walk
+    over the recording may exceed ``REPLAY_MIN_SPREAD``, when the method maps online and no
+    drift correction is asked for, else the input."""
 
     INPUT = "input"
     INCREMENTAL = "incremental"
@@ -235,7 +236,8 @@ class RunSettings:
         "the poses the joint optimisation starts from: input, or incremental (the frames "
         "replayed through the online mapper first, which pulls drifting poses back as objects "
         "are seen again, and associates on them); auto: incremental on a trajectory without a "
-        "bound on each pose (trajectory_absolute_sigma: .inf), else input (docs/map-reuse.md)"))
+        "bound on each pose (trajectory_absolute_sigma: .inf) whose odometry may have drifted over "
+        "the recording by more than 10 cm or 2°, else input (docs/map-reuse.md)"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
     class_table: bool = field(default=True, metadata=_help(
