@@ -41,12 +41,10 @@ from ._methods import Method
 from ._online import replayed_start
 from ._run import (
     OBJECT_ERRORS,
-    Association,
     MapResult,
     Optimised,
     as_landmark,
     associate_tracks,
-    association_record_scores,
     initialize,
     map_result,
     merge_duplicates,
@@ -54,7 +52,7 @@ from ._run import (
     planes_note,
     step,
 )
-from ._settings import REPLAY_MIN_SPREAD, RunSettings, SettingsError, as_settings
+from ._settings import REPLAY_MIN_SPREAD, RunSettings, SettingsError, as_settings, default_association
 
 __all__ = ["odometry_spread", "run_sequence"]
 
@@ -131,26 +129,32 @@ def run_sequence(
         say(screened.summary())
     with step("association"):
         ctx = SequenceContext.of(seq)
-        say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
-        association = associate_tracks(ctx, tracks, associate)
-    method = method.resolved(association.record.get("mode") == "auto")
-    say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
-    start, fallback, spread = None, None, odometry_spread(ctx, sigmas)
-    if run.starts_incremental(spread is not None and spread_drifts(spread)) and association.tracks:
-        auto = association.record.get("mode") == "auto"
+        mode = "given" if tracks is not None else str(associate or default_association(seq))
+    method = method.resolved(mode == "auto")
+    spread = odometry_spread(ctx, sigmas)
+    replay = run.starts_incremental(spread is not None and spread_drifts(spread))
+    start, fallback = None, None
+
+    def replay_from(given):
+        """The replay's start (``replayed_start``), or None and a note when it failed on numbers."""
         say(f"incremental initialisation: {len(seq)} frames through the online mapper")
         with step("incremental initialisation"):
             try:
-                start = replayed_start(seq, None if auto else association.tracks, run.replace(method=method), say)
+                return replayed_start(seq, given, run.replace(method=method), say), None
             except OBJECT_ERRORS as e:  # the replay is a better start, never a reason to fail the run
-                fallback = (f"incremental initialisation failed ({type(e).__name__}: {e}): the optimisation "
-                            "starts from the input poses")
-                say(fallback)
-        if start is not None and start.tracks is not None:  # associated on the corrected poses
-            record = {**association.record, "associated_on": "incremental poses"}
-            if "precision" in record:
-                record.update(association_record_scores(start.tracks, seq))
-            association = Association(start.tracks, record)
+                why = (f"incremental initialisation failed ({type(e).__name__}: {e}): the optimisation "
+                       "starts from the input poses")
+                say(why)
+                return None, why
+
+    if replay and mode == "auto" and seq.detections:  # the online tracker associates on the corrected poses
+        start, fallback = replay_from(None)
+    with step("association"):
+        say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
+        association = associate_tracks(ctx, tracks, associate, found=None if start is None else start.tracks)
+    say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
+    if replay and mode != "auto" and association.tracks:
+        start, fallback = replay_from(association.tracks)
     with step("initialisation"):
         init_ctx = ctx if start is None else SequenceContext.of(dataclasses.replace(seq, poses_tum=to_tum(
             jaxlie.SE3(start.poses))))  # type: ignore[arg-type]

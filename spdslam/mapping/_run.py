@@ -60,7 +60,6 @@ __all__ = [
     "MappingError",
     "Optimised",
     "associate_tracks",
-    "association_record_scores",
     "cost_by_factor",
     "implausibly_flat",
     "initialize",
@@ -155,10 +154,12 @@ class Association:
     record: dict
 
 
-def associate_tracks(ctx, tracks=None, associate: str | None = None) -> Association:
+def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None) -> Association:
     """``tracks`` when given; else ``associate="instances"`` (group by the instance ids),
-    ``"auto"`` (``frontend.associate``, which ignores the ids), or None: the ids when every
-    detection has one, automatic otherwise."""
+    ``"auto"`` (``frontend.associate``, which ignores the ids; ``found``: tracks an automatic
+    association already made, the replay's online tracker's, recorded as
+    ``associated_on: incremental poses``), or None: the ids when every detection has one,
+    automatic otherwise."""
     seq = as_context(ctx).seq
     if tracks is not None:
         return Association(list(tracks), {"mode": "given"})
@@ -169,14 +170,17 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None) -> Associat
         associate = str(default_association(seq))
     if associate == "instances":
         return Association(tracks_from_instances(seq), {"mode": "instances"})
-    found = auto_associate(seq)
     record = {"mode": "auto"}
+    if found is None:
+        found = auto_associate(seq)
+    else:
+        record["associated_on"] = "incremental poses"
     if has_ids:
-        record.update(association_record_scores(found, seq))
-    return Association(found, record)
+        record.update(_record_scores(found, seq))
+    return Association(list(found), record)
 
 
-def association_record_scores(tracks, seq) -> dict:
+def _record_scores(tracks, seq) -> dict:
     """Automatic association's scores against the instance ids (``association_scores``)."""
     scores = dict(association_scores(tracks, seq))
     scores.pop("mapping", None)
