@@ -71,7 +71,7 @@ def mapped(folder: Path, seq) -> dict:
     read = read_sequence(folder)
     read = dataclasses.replace(read, objects_gt=seq.objects_gt, groundtruth_tum=seq.groundtruth_tum)
     t0 = time.perf_counter()
-    r = run_sequence(read, "multi-spd", associate="auto")
+    r = run_sequence(read, "multi-spd", associate="auto", initial_poses="input")  # as spdslam demo maps
     m = evaluate_run(r.as_dict(), r.objects, r.initial_objects, r.poses_tum, read)
     return {"objects": len(r.objects), "mean_iou": m["summary"]["mean_iou"], "matched": m["summary"]["matched"],
             "seconds": time.perf_counter() - t0}

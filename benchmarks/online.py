@@ -167,11 +167,12 @@ def demo_rooms(args) -> dict:
     out = {}
     for seed in args.seeds:
         seq = make_room_sequence(seed)
-        batch = run_sequence(seq, "multi-spd", tolerance=1e-10, max_iterations=300)
+        # the demo rooms' boxes move their drifting poses (initial_poses input, as spdslam demo maps)
+        batch = run_sequence(seq, "multi-spd", tolerance=1e-10, max_iterations=300, initial_poses="input")
         online, _ = run_online(seq, final_batch=False, window=args.window, every=args.every,
-                               iterations=args.iterations)
+                               iterations=args.iterations, initial_poses="input")
         final, _ = run_online(seq, window=args.window, every=args.every, iterations=args.iterations,
-                              max_iterations=300, tolerance=1e-10)
+                              max_iterations=300, tolerance=1e-10, initial_poses="input")
         r = dict(batch_cost=batch.final_cost, final_cost=final.final_cost,
                  cost_rel_diff=abs(final.final_cost - batch.final_cost) / batch.final_cost,
                  iou_batch=mean_iou(batch, seq), iou_online=mean_iou(online, seq),
@@ -196,7 +197,7 @@ def room(args) -> dict:
     out = {}
     for rep in ("first", "second"):
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
-                         every=args.every, iterations=args.iterations)
+                         every=args.every, iterations=args.iterations, initial_poses="input")
         t0 = time.perf_counter()
         for i in range(len(seq)):
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))

@@ -28,7 +28,7 @@ the synthetic demo rooms (seeds 0-2, ``--room-frames`` at 10 Hz, default 120, ``
 default 4, each odometry drift of ``--room-drifts``: σ metres and σ/2 radians per step; with
 ``--room-association auto`` their instance ids removed) and the intervals of ``--room-intervals``.
 Each run without knots once per start of ``--initial-poses`` (``RunSettings.initial_poses``:
-``input``, the odometry's poses; ``auto``, on these unbounded trajectories the frames replayed
+``input``, the odometry's poses; ``incremental`` (``auto`` before issue 46), the frames replayed
 through the online mapper first).
 
 The answer is compared with the motion capture's relation of the two halves: each half's
@@ -66,7 +66,7 @@ from spdslam.mapping import (
     run_sequence,
     transform_ellipsoid,
 )
-from spdslam.synthetic import make_room_sequence
+from spdslam.synthetic import drifted_sequence, make_room_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 FR2 = ROOT / "../shared/data/tum_fr2_desk"
@@ -197,23 +197,6 @@ def summary_of(seq, result) -> dict:
             "ate_input_mm": 1e3 * m["ate"]["input"]["rmse"] if "ate" in m else None}
 
 
-def drifted(seq, sigma_t: float, sigma_r: float, seed: int):
-    """``seq`` with a random walk added to its odometry (module docstring), unbounded."""
-    rng = np.random.default_rng(seed)
-    T = [pose_matrix(r) for r in seq.poses_tum]
-    out = [T[0]]
-    for i in range(1, len(T)):
-        n = rng.normal(0, sigma_r, 3)
-        step = np.linalg.inv(T[i - 1]) @ T[i]
-        E = np.eye(4)
-        E[:3, :3] = Rotation.from_rotvec(n).as_matrix()
-        E[:3, 3] = rng.normal(0, sigma_t, 3)
-        out.append(out[-1] @ step @ E)
-    rows = np.array([np.r_[M[:3, 3], Rotation.from_matrix(M[:3, :3]).as_quat()] for M in out])
-    priors = seq.priors.replace(trajectory_absolute_sigma=np.array([np.inf, np.inf]))
-    return dataclasses.replace(seq, poses_tum=rows, priors=priors)
-
-
 def drift_settings(settings, intervals: str, starts: str):
     """(knot interval, initial poses, settings) of each run of the drift study: every interval
     with ``input``; ``auto`` and ``incremental`` without knots only (with knots auto starts from
@@ -230,7 +213,7 @@ def drift_study(fr2, settings, a) -> None:
     rows = []
     for item in (x for x in a.rates.split(",") if x):
         st, sr = (float(x) for x in item.split(":"))
-        seq = drifted(fr2, st, sr, a.seed)
+        seq = drifted_sequence(fr2, st, sr, a.seed)
         for interval, start, run in drift_settings(settings, a.drift_intervals, a.initial_poses):
             t0 = time.perf_counter()
             r = run_sequence(seq, run)
@@ -320,10 +303,10 @@ def main() -> None:
     ap.add_argument("--room-frames", type=int, default=120, help="with --drift: frames of each room (10 Hz)")
     ap.add_argument("--room-association", choices=("given", "auto"), default="given",
                     help="with --drift: the rooms' instance ids as given, or removed and the tracks associated")
-    ap.add_argument("--initial-poses", default="input,auto",
+    ap.add_argument("--initial-poses", default="input,incremental",
                     help="with --drift: RunSettings.initial_poses of each run without knots, comma-separated "
-                         "(input: the odometry's poses; auto: a replay through the online mapper first on "
-                         "these unbounded trajectories); runs with knots start from the input poses")
+                         "(input: the odometry's poses; incremental: a replay through the online mapper "
+                         "first; auto: loops, docs/drift.md); runs with knots start from the input poses")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     fr2 = read_sequence(a.sequence)

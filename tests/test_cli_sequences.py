@@ -373,7 +373,7 @@ def test_import_fr3_cabinet(tmp_path, monkeypatch):
 # --------------------------------------------------------------------------- demo
 
 
-def test_demo_writes_sequence_and_run_and_replaces_itself(tmp_path, run_out):
+def test_demo_writes_sequence_and_run_and_replaces_itself(tmp_path, seq_dir):
     d = tmp_path / "demo"
     result = invoke("demo", "--out", d, "--frames", FRAMES, "--objects", OBJECTS)
     assert_ok(result)
@@ -386,9 +386,11 @@ def test_demo_writes_sequence_and_run_and_replaces_itself(tmp_path, run_out):
     m, objs = read_map(d / "run")
     assert m["method"] == "multi-spd" and len(objs) == OBJECTS
     assert (d / "run" / "metrics.json").is_file()
-    # same sequence as run_out's, same default method: the same map
+    # the same sequence as seq_dir's, mapped by the default method with the boxes moving the
+    # poses (the demo's initial_poses input): the same map
     metrics = json.loads((d / "run" / "metrics.json").read_text(encoding="utf-8"))
-    ref = json.loads((run_out[1] / "metrics.json").read_text(encoding="utf-8"))
+    assert_ok(invoke("run", seq_dir, "--out", tmp_path / "ref", "--initial-poses", "input"))
+    ref = json.loads((tmp_path / "ref" / "metrics.json").read_text(encoding="utf-8"))
     assert metrics["summary"]["mean_iou"] == pytest.approx(ref["summary"]["mean_iou"], abs=1e-6)
 
     # a second demo into the same folder replaces the first

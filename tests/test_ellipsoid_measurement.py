@@ -220,7 +220,7 @@ def mixed_run(room):
     dets = [d for d in seq.detections if d.instance not in (2, 3)]
     dets += [d for d in seq.detections if d.instance == 2][:2]
     mixed = _with(seq, dets, ells)
-    return mixed, run_sequence(mixed, "multi-spd")
+    return mixed, run_sequence(mixed, "multi-spd", initial_poses="input")  # the boxes move the poses
 
 
 def test_an_object_seen_only_as_measured_ellipsoids_is_mapped(room, mixed_run):

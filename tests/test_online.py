@@ -42,7 +42,7 @@ def batch(room):
 @pytest.fixture(scope="module")
 def replay(room):
     """The room replayed frame by frame: (mapper, online map, map after a final batch)."""
-    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances")
+    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances", initial_poses="input")
     for i in range(len(room)):
         m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
     return m, m.finish(final_batch=False), m.finish(final_batch=True, **TIGHT)
@@ -205,7 +205,8 @@ def test_a_mapper_in_the_background_that_keeps_up_maps_the_same(room, associate)
 
 def test_a_mapper_in_the_background_never_holds_up_a_frame_and_catches_up(room, replay):
     sync = replay[0]
-    bg = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances", background=True)
+    bg = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances", background=True,
+                      initial_poses="input")  # as the replay fixture's
     gate, update = threading.Event(), bg._update
 
     def held():  # the worker's first optimisation waits until every frame has been added
@@ -375,7 +376,8 @@ def test_an_online_mapper_starts_from_a_saved_map_and_extends_it(room, batch):
     from spdslam.mapping import LocalizingMapper
 
     saved, left_out, G, rec = _saved_map_and_recording(room, batch)
-    mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances")
+    mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances",
+                              initial_poses="input")  # the boxes move the poses, as the batch fixture's
     with pytest.raises(ValueError, match="no objects"):
         LocalizingMapper([], rec.camera)
     assert mapper.localization is None and mapper.reason
@@ -406,7 +408,7 @@ def test_a_localizing_mapper_in_the_background_tries_in_the_worker(room, batch):
 
     saved, left_out, G, rec = _saved_map_and_recording(room, batch)
     mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances",
-                              background=True)
+                              initial_poses="input", background=True)
     threads, tried = [], mapper._try
 
     def recorded(objects):

@@ -100,10 +100,10 @@ FACTS: dict[str, Any] = {
         ),
         "initial_poses": (
             "auto",
-            "the poses the joint optimisation starts from: input, or incremental (the frames replayed through the "
-            "online mapper first, which pulls drifting poses back as objects are seen again, and associates on them); "
-            "auto: incremental on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf) whose "
-            "odometry may have drifted over the recording by more than 10 cm or 2°, else input (docs/map-reuse.md)",
+            "where the poses come from on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf): "
+            "input (the joint optimisation starts from the input poses), incremental (the frames replayed through the "
+            "online mapper first), loops (the drift taken out by loops closed between submaps, the poses then held at "
+            "the corrected trajectory: the boxes do not move the poses); auto: loops (docs/drift.md)",
         ),
     },
     "format_entry_points": "spdslam.formats",

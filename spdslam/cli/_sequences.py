@@ -755,7 +755,10 @@ def demo(
     from ..io import write_sequence
     from ..synthetic import make_room_sequence
 
-    settings = _settings(method, associate=associate if associate is not None
+    # the generator's boxes are the ellipsoids' own projections with independent noise: the
+    # demo lets them move the poses (initial_poses input); a recording's default holds the
+    # poses of a drifting odometry and closes loops instead (docs/drift.md)
+    settings = _settings(method, initial_poses="input", associate=associate if associate is not None
                          else "auto" if no_ids else "instances")
     if no_ids and settings.associate != "auto":
         fail("--associate: the detections have no instance ids (--no-ids): expected auto")

@@ -314,6 +314,7 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
             lines += [f"**The optimisation made the trajectory worse** (ATE {1e3 * a['input']['rmse']:.2f} → "
                       f"{1e3 * a['optimized']['rmse']:.2f} mm): the boxes moved the poses beyond the input's "
                       "accuracy; see the trajectory noise note below and docs/sequences.md.", ""]
+    lines += trajectory_section(map_dict.get("trajectory") or {})
     costs = map_dict.get("cost_by_factor") or {}
     if costs:
         total = sum(costs.values()) or 1.0
@@ -329,6 +330,36 @@ def report_markdown(metrics: dict, map_dict: dict) -> str:
     for n in map_dict.get("notes") or []:
         lines.append(f"- note: {n}")
     return "\n".join(lines).rstrip() + "\n"
+
+
+def trajectory_section(t: dict) -> list:
+    """report.md's lines on a trajectory without a bound on each pose (map.json's
+    ``trajectory``): where the poses came from, each check against the odometry, the loops."""
+    if not t:
+        return []
+    lines = ["## Drift", "", f"The trajectory has no bound on each pose; its poses: {t.get('start', 'input')} "
+                             "(docs/drift.md)."]
+    for c in t.get("checks") or []:
+        verdict = "accepted" if c["accepted"] else "**refused** (the poses it started from were kept)"
+        lines.append(f"- {c['step']}: moved the cameras by {1e3 * c['moved_median_m']:.3g} mm median, "
+                     f"{1e3 * c['moved_max_m']:.3g} mm most, at most {c['worst_sigma']:.3g}σ of the odometry's "
+                     f"walk (limit {c['limit_sigma']:g}σ): {verdict}.")
+    lc = t.get("loop_closure")
+    if lc:
+        loops = lc.get("loops") or []
+        n = {k: sum(lp["status"] == k for lp in loops) for k in ("verified", "rejected", "not verified")}
+        lines += ["", f"Loop closure: {len(lc.get('submaps', []))} submaps, {len(loops)} candidate revisits, "
+                      f"{n['verified']} verified and used, {n['rejected']} rejected in the pose graph, "
+                      f"{n['not verified']} not verified."]
+        if loops:
+            lines += ["", "| frames | later frames | status | objects matched | box agreement | why |",
+                      "| --- | --- | --- | --- | --- | --- |"]
+            for lp in loops:
+                agree = " / ".join(f"{100 * a:.0f} %" for a in lp.get("box_agreement") or [])
+                lines.append(f"| {lp['earlier_frames'][0]}–{lp['earlier_frames'][1]} | {lp['later_frames'][0]}–"
+                             f"{lp['later_frames'][1]} | {lp['status']} | {lp['matches']} | {agree or '–'} | "
+                             f"{lp.get('reason') or '–'} |")
+    return lines + [""]
 
 
 def ground_truth_in_map_frame(seq, T):

@@ -114,9 +114,9 @@ def _place_labels(fig, ax, anchors, texts, colors, fontsize: float = 7.0) -> Non
             t.remove()
 
 
-def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool):
-    """Ellipsoids, ground-truth footprints and trajectories of a top view on ``ax``;
-    returns each ellipsoid's (centre, colour, area)."""
+def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool, loops=()):
+    """Ellipsoids, ground-truth footprints, trajectories and loop closures (``plot_map_top``)
+    of a top view on ``ax``; returns each ellipsoid's (centre, colour, area)."""
     from scipy.spatial import ConvexHull, QhullError
 
     out = []
@@ -147,6 +147,17 @@ def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool):
             continue
         ax.plot(xy[:, 0], xy[:, 1], style, color=color, lw=1.0, label=name if legend else None)
         ax.plot(xy[:1, 0], xy[:1, 1], "o", color=color, ms=4)
+    est = trajectories[-1][0] if trajectories else None
+    if loops and est is not None and len(est):
+        xy = camera_centers(est) @ B.T
+        shown: set = set()
+        for a, b, closed in loops:
+            if not (0 <= a < len(xy) and 0 <= b < len(xy)):
+                continue
+            name = "loop closed" if closed else "loop rejected"
+            ax.plot(xy[[a, b], 0], xy[[a, b], 1], "-" if closed else ":", color="tab:green" if closed else "tab:purple",
+                    lw=1.8 if closed else 1.0, label=name if legend and name not in shown else None)
+            shown.add(name)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel(f"{_axis_name(B[0])} [m]")
     ax.set_ylabel(f"{_axis_name(B[1])} [m]")
@@ -161,15 +172,17 @@ ZOOM_RATIO = 2.5
 
 
 def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None,
-                 gt_trajectory=None, up=(0.0, 0.0, 1.0), title=None, dpi: int = 110) -> Path:  # fmt: skip
+                 gt_trajectory=None, up=(0.0, 0.0, 1.0), title=None, dpi: int = 110, loops=()) -> Path:  # fmt: skip
     """Top view of a map, saved as PNG at ``path``; returns ``Path(path)``.
 
     ``ellipsoids``: landmarks (``.P`` and ``.center``), drawn as their silhouettes
     (``top_view_ellipse``) with ``labels`` (default: their indices) placed so that they do
     not cover each other; ``gt_cuboids``: ``Cuboid``s or objects with ``.cuboid`` (e.g.
     ``GroundTruthObject``), drawn dashed as footprints; ``trajectory`` / ``gt_trajectory``:
-    TUM rows (N, 7) or (N, 8) of the estimated and ground-truth camera poses. ``up`` is the
-    viewing direction (the plot's axes are ``plane_basis(up)``). With many objects, or a
+    TUM rows (N, 7) or (N, 8) of the estimated and ground-truth camera poses; ``loops``:
+    (frame a, frame b, closed) of the loop closures tried, each drawn between the two
+    estimated camera centres (closed: solid green; rejected in the pose graph: dotted). ``up``
+    is the viewing direction (the plot's axes are ``plane_basis(up)``). With many objects, or a
     trajectory much larger than the objects' extent, a second panel zooms on the objects
     (the labels go there).
     """
@@ -189,7 +202,7 @@ def plot_map_top(path, ellipsoids, labels=None, gt_cuboids=None, trajectory=None
         zoom = len(ellipsoids) > ZOOM_OBJECTS or span > ZOOM_RATIO * extent
     fig = _figure(figsize=(13.0, 6.2) if zoom else (7.0, 6.0))
     ax = fig.add_subplot(1, 2, 1) if zoom else fig.add_subplot()
-    drawn = _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend=True)
+    drawn = _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend=True, loops=loops)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8, loc="best")
     name = title if title is not None else f"top view (up = {_axis_name(np.cross(B[0], B[1]))})"

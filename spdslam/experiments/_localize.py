@@ -10,7 +10,9 @@ import numpy as np
 
 from ..evaluation import check_sequence
 from ..mapping import (
+    MIN_BOX_AGREEMENT,
     LocalizationError,
+    box_agreement,
     joined_sequence,
     localize_objects,
     localized_result,
@@ -30,8 +32,10 @@ def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, toleran
     found from the objects refined with the recording's boxes (``mapping.refine_localization``;
     the objects' transform is kept in localization.json's ``from_objects``; under Sim(3) the
     scale too only with ``refine_scale``). Raises
-    ``mapping.LocalizationError`` when the objects do not fix a unique transform (nothing is
-    written: the caller writes afterwards) and ``ValueError`` when the run itself fails."""
+    ``mapping.LocalizationError`` when the objects do not fix a unique transform, or the
+    recording's boxes contradict it (``mapping.box_agreement`` below ``MIN_BOX_AGREEMENT``;
+    nothing is written: the caller writes afterwards) and ``ValueError`` when the run itself
+    fails."""
     say = progress or (lambda message: None)
     if len(map_objects) < 3:  # before the recording is mapped: nothing could change it
         raise LocalizationError(f"fewer than three usable matches: the map has {len(map_objects)} "
@@ -45,7 +49,15 @@ def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, toleran
         loc = refine_localization(seq, result.objects, map_objects, loc, poses_tum=result.poses_tum,
                                   refine_scale=refine_scale)
     moved = localized_result(result, loc)
+    matched = {int(b) for _, b in loc.matches}
+    share, predicted = box_agreement(seq, [o for o in map_objects if int(o.id) in matched], moved.poses_tum[:, 1:])
+    if predicted and not share >= MIN_BOX_AGREEMENT:
+        raise LocalizationError(
+            f"the recording's boxes contradict the transform: they confirm {100 * share:.0f} % of the "
+            f"{predicted} sightings of the {len(matched)} matched map objects it predicts, below "
+            f"{100 * MIN_BOX_AGREEMENT:.0f} %")
     doc = loc.as_dict()
+    doc["box_agreement"] = {"share": share, "predicted": predicted}
     if refine:
         doc["from_objects"] = {"T_map_sequence": first.T_map_sequence.tolist(), "scale": float(first.scale),
                                "center_rms": first.rms}

@@ -65,10 +65,13 @@ def write_run(out, seq, result, records=None, *, overlay: bool = True,
         T = np.asarray(metrics["to_groundtruth"]) if "to_groundtruth" in metrics else None
         gt_cuboids, gt_traj = ground_truth_in_map_frame(seq, T)
         labels = [f"{o.label} {o.id}" for o in result.objects]
+        closure = (getattr(result, "trajectory", None) or {}).get("loop_closure") or {}
+        loops = [(*lp["frames"], lp["status"] == "verified") for lp in closure.get("loops", [])
+                 if lp["status"] in ("verified", "rejected")]
         plot_map_top(
             tmp / "map_top.png", [o.ellipsoid for o in result.objects], labels=labels,
             gt_cuboids=gt_cuboids, trajectory=result.poses_tum, gt_trajectory=gt_traj, up=gravity,
-            title=f"{result.method.name} on {seq.name}",
+            title=f"{result.method.name} on {seq.name}", loops=loops,
         )
         if overlay and seq.images:
             write_overlays(tmp / "overlay", seq, [o.ellipsoid for o in result.objects],

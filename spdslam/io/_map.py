@@ -30,6 +30,9 @@ MAP_KEYS = {
     "notes": "what the run noticed",
     "association": "how detections were grouped (mode; precision and recall against ids)",
     "cost_by_factor": "{factor kind: its part of the final cost}",
+    "trajectory": "a trajectory without a bound on each pose only: where its poses came from, the "
+                  "loop closure (submaps, each candidate loop and what became of it) and each check "
+                  "against the odometry (docs/drift.md)",
 }
 
 
@@ -64,11 +67,12 @@ class MapObject:
 
 def map_document(*, method: str, parameterization: str, iterations: int, final_cost: float,
                  initial_cost: float, converged: bool, reason: str, settings: dict, objects,
-                 failed: dict, notes, association: dict, cost_by_factor: dict) -> dict:
-    """The content of map.json (``MAP_KEYS``, in that order) from a run's figures;
-    ``objects`` are ``MapObject`` s. ``spdslam run`` may add ``sequence`` (the folder it
-    read) and ``to_groundtruth`` (4×4) after them."""
-    return {
+                 failed: dict, notes, association: dict, cost_by_factor: dict,
+                 trajectory: dict | None = None) -> dict:
+    """The content of map.json (``MAP_KEYS``, in that order; ``trajectory`` only when given
+    and not empty) from a run's figures; ``objects`` are ``MapObject`` s. ``spdslam run`` may
+    add ``sequence`` (the folder it read) and ``to_groundtruth`` (4×4) after them."""
+    out = {
         "method": method,
         "parameterization": parameterization,
         "iterations": int(iterations),
@@ -83,6 +87,9 @@ def map_document(*, method: str, parameterization: str, iterations: int, final_c
         "association": dict(association),
         "cost_by_factor": {k: float(v) for k, v in cost_by_factor.items()},
     }
+    if trajectory:
+        out["trajectory"] = trajectory
+    return out
 
 
 def write_map(path, map_dict: dict) -> None:

@@ -3,7 +3,6 @@ the run (associate → initialise → build the graph → solve). Imports ``geom
 ``factors``, ``solver``, ``io`` and ``frontend``; never ``evaluation``.
 """
 
-from ._batch import odometry_spread as odometry_spread
 from ._batch import run_sequence as run_sequence
 from ._context import SequenceContext as SequenceContext
 from ._context import object_shape as object_shape
@@ -25,6 +24,11 @@ from ._keyframes import parse_keyframes as parse_keyframes
 from ._keyframes import select_keyframes as select_keyframes
 from ._localizing import ONLINE_MIN_MATCHES as ONLINE_MIN_MATCHES
 from ._localizing import LocalizingMapper as LocalizingMapper
+from ._loops import LOOP_SUBMAP_SECONDS as LOOP_SUBMAP_SECONDS
+from ._loops import Loop as Loop
+from ._loops import LoopClosure as LoopClosure
+from ._loops import close_loops as close_loops
+from ._loops import solve_pose_graph as solve_pose_graph
 from ._methods import AUTO_BOX_KERNEL as AUTO_BOX_KERNEL
 from ._methods import BOX_MODELS as BOX_MODELS
 from ._methods import DEFAULT_MAPPING_SIGMAS as DEFAULT_MAPPING_SIGMAS
@@ -41,12 +45,21 @@ from ._methods import Method as Method
 from ._methods import check_sigma as check_sigma
 from ._methods import parse_robust as parse_robust
 from ._methods import robust_kernel as robust_kernel
+from ._odometry import WALK_LIMIT as WALK_LIMIT
+from ._odometry import TrajectoryCheck as TrajectoryCheck
+from ._odometry import check_trajectory as check_trajectory
+from ._odometry import odometry_factors as odometry_factors
+from ._odometry import walk_covariances as walk_covariances
 from ._online import FrameRecord as FrameRecord
 from ._online import OnlineMap as OnlineMap
 from ._online import OnlineMapper as OnlineMapper
 from ._online import run_online as run_online
+from ._reuse import MIN_BOX_AGREEMENT as MIN_BOX_AGREEMENT
+from ._reuse import RIVAL_MARGIN as RIVAL_MARGIN
 from ._reuse import Localization as Localization
 from ._reuse import LocalizationError as LocalizationError
+from ._reuse import TransformGate as TransformGate
+from ._reuse import box_agreement as box_agreement
 from ._reuse import joined_sequence as joined_sequence
 from ._reuse import localize_objects as localize_objects
 from ._reuse import localized_result as localized_result
@@ -87,7 +100,6 @@ from ._run import overlapping_duplicates as overlapping_duplicates
 from ._run import poorly_observed as poorly_observed
 from ._run import step as step
 from ._settings import METHOD_FIELDS as METHOD_FIELDS
-from ._settings import REPLAY_MIN_SPREAD as REPLAY_MIN_SPREAD
 from ._settings import RUN_OVERRIDES as RUN_OVERRIDES
 from ._settings import RUN_SETTING_NAMES as RUN_SETTING_NAMES
 from ._settings import Associate as Associate

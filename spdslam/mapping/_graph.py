@@ -8,7 +8,8 @@ key ``L(id)``. Factors, in this order:
   trajectory (σ per step: ``odometry_translation`` m, ``odometry_rotation`` rad) and a
   ``PriorFactor`` on every other pose at its input value (σ ``absolute_translation``,
   ``absolute_rotation``; none when both are infinite): the trajectory is the odometry, its
-  global accuracy and the initial values (``_noise``);
+  global accuracy and the initial values (``_noise``; the factors are
+  ``_odometry.odometry_factors``, which the online mapper and the loop closure use too);
 - per object, per detection, a box factor (inverse or semi-inverse) of the object's
   silhouette model, its ellipsoid or (box-like classes, ``Method.object_shape``) its
   circumscribed cuboid; inverse boxes have σ = ``inverse_box`` + ``inverse_box_relative`` ×
@@ -31,19 +32,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-import jaxlie
 import numpy as np
 
 from ..factors import (
     AxisOrientationFactor,
-    BetweenFactor,
     ClassicOrientationFactor,
     ClassicShapeFactor,
     EllipsoidMeasurementFactor,
     InverseBoxFactor,
     InverseCuboidBoxFactor,
     OrientationFactor,
-    PriorFactor,
     RadiusFloorFactor,
     SemiInverseBoxFactor,
     SemiInverseCuboidBoxFactor,
@@ -64,8 +62,9 @@ from ._methods import (
     robust_kernel,
 )
 from ._noise import estimate_step_sigma
+from ._odometry import odometry_factors
 
-__all__ = ["OBJECT_FACTORS", "ObjectFactorRule", "ObjectInputs", "absolute_sigma", "box_factors",
+__all__ = ["OBJECT_FACTORS", "ObjectFactorRule", "ObjectInputs", "box_factors",
            "build_graph", "mapping_sigmas", "measured_objects", "measurement_factors",
            "object_factors", "support_plane", "trajectory_noise_note", "with_robust_by_type"]
 
@@ -161,56 +160,6 @@ def support_plane(priors, e):
         if abs(d) < dist:
             best, dist = p, abs(d)
     return best
-
-
-def absolute_sigma(s: dict):
-    """The σ (6,) of the absolute prior on each pose, or None when both are infinite."""
-    t, r = s["absolute_translation"], s["absolute_rotation"]
-    if np.isinf(t) and np.isinf(r):
-        return None
-    big = 1e6  # an infinite component: a prior that does not hold it
-    return np.r_[np.full(3, big if np.isinf(t) else t), np.full(3, big if np.isinf(r) else r)]
-
-
-#: σ (v m, ω rad) of the prior on the first pose of each later segment of a joined sequence,
-#: at the pose it was given (``Sequence.segments``): weak beside the objects it shares with
-#: the first segment, it only fixes what they leave free.
-SEGMENT_PRIOR_SIGMA = np.r_[np.full(3, 0.1), np.full(3, 0.05)]
-
-
-def _odometry(ctx: SequenceContext, s: dict) -> list:
-    """The trajectory's factors: a prior on the first pose, the odometry between consecutive
-    poses and, unless unbounded, a prior on each later pose; in a joined sequence
-    (``Sequence.segments``) no odometry across a segment's start, and a later segment's poses
-    bounded relative to its first pose instead of where they were given (between factors with
-    the per-pose σ), so that the segment moves as one body, placed by the objects it shares
-    (and held weakly at its first pose, ``SEGMENT_PRIOR_SIGMA``)."""
-    q = ctx.wxyz_xyz
-    # T_i⁻¹ T_{i+1}; jaxlie takes NumPy arrays
-    steps = np.asarray((jaxlie.SE3(q[:-1]).inverse() @ jaxlie.SE3(q[1:])).wxyz_xyz)  # type: ignore[arg-type]
-    out: list = [PriorFactor(X(0), ctx.poses[0], sigma=s["first_pose"])]
-    odo = np.r_[np.full(3, s["odometry_translation"]), np.full(3, s["odometry_rotation"])]
-    n = len(steps)
-    starts = ctx.seq.segments
-    linked = np.ones(n, bool)
-    linked[[k - 1 for k in starts]] = False
-    i = np.flatnonzero(linked)
-    if i.size:
-        out.append(BetweenFactor.many([X(int(k)) for k in i], [X(int(k) + 1) for k in i], steps[i], sigma=odo))
-    for k in starts:  # a weak hold where the segment was placed: its gauge if objects do not fix it
-        out.append(PriorFactor(X(k), ctx.poses[k], sigma=SEGMENT_PRIOR_SIGMA))
-    pose_sigma = absolute_sigma(s)
-    last = starts[0] if starts else n + 1  # frames 1 … last − 1 are bounded
-    if pose_sigma is not None and last > 1:
-        out.append(PriorFactor.many([X(k) for k in range(1, last)], q[1:last], sigma=pose_sigma))
-    if pose_sigma is not None:  # a later segment: each pose bounded relative to its first
-        for k0, k1 in zip(starts, [*starts[1:], n + 1]):
-            if k1 - k0 > 1:
-                rel = np.asarray((jaxlie.SE3(np.broadcast_to(q[k0], (k1 - k0 - 1, 7))).inverse()  # type: ignore[arg-type]
-                                  @ jaxlie.SE3(q[k0 + 1:k1])).wxyz_xyz)  # type: ignore[arg-type]
-                out.append(BetweenFactor.many([X(k0)] * (k1 - k0 - 1), [X(k) for k in range(k0 + 1, k1)], rel,
-                                              sigma=pose_sigma))
-    return out
 
 
 @dataclass(frozen=True)
@@ -402,7 +351,7 @@ def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
     ctx = as_context(seq)
     s = mapping_sigmas(ctx, sigmas)
     robust = robust_kernel(method.robust, method.robust_k)
-    factors = _odometry(ctx, s) if odometry else []
+    factors = odometry_factors(ctx.wxyz_xyz, ctx.seq.segments, s) if odometry else []
     for tr in tracks:
         if tr.id in landmarks:
             factors += object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,

@@ -45,7 +45,7 @@ import jaxlie
 import numpy as np
 import scipy.sparse
 
-from ..factors import BetweenFactor, LandmarkPriorFactor, PriorFactor
+from ..factors import LandmarkPriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
@@ -62,7 +62,6 @@ from ..solver import (
 )
 from ._context import SequenceContext, camera_axes_of
 from ._graph import (
-    absolute_sigma,
     box_factors,
     build_graph,
     mapping_sigmas,
@@ -71,6 +70,7 @@ from ._graph import (
     with_robust_by_type,
 )
 from ._methods import Method, robust_kernel
+from ._odometry import absolute_sigma, check_trajectory, odometry_factors, walk_covariances
 from ._run import (
     Optimised,
     as_landmark,
@@ -82,13 +82,14 @@ from ._run import (
 )
 from ._settings import (
     Associate,
+    InitialPoses,
     OnlineSettings,
     RunSettings,
     as_settings,
     default_association,
 )
 
-__all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "ReplayedStart", "replayed_start", "run_online"]
+__all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "ReplayedStart", "replay", "replayed_start", "run_online"]
 
 #: ``OnlineSettings``' fields, taken by ``OnlineMapper`` and ``run_online`` as keywords.
 ONLINE_FIELDS = tuple(f.name for f in dataclasses.fields(OnlineSettings))
@@ -135,6 +136,7 @@ class _Frame:
     pose: np.ndarray  # input T_wc, jaxlie wxyz_xyz
     detections: list
     ellipsoids: list
+    new_segment: bool = False
 
 
 class _Poses:
@@ -247,6 +249,10 @@ class OnlineMapper:
         empty = Sequence(name, camera, np.zeros(0), np.zeros((0, 7)), [], priors=priors)
         self._ctx0 = SequenceContext.of(empty)
         self._sigmas = mapping_sigmas(self._ctx0, sigmas)
+        #: a trajectory without a bound on each pose: the boxes do not move the poses (they
+        #: follow the odometry) unless ``initial_poses="input"`` lets them (module docstring)
+        self.hold_poses = absolute_sigma(self._sigmas) is None and run.initial_poses != InitialPoses.INPUT
+        self._segments: list = []  # the frames that start a later segment (add_frame's new_segment)
         self._user_sigmas = sigmas
         self._robust = robust_kernel(method.robust, method.robust_k)
         self._optimizer = LevenbergMarquardt(max_iterations=online.iterations)
@@ -343,15 +349,19 @@ class OnlineMapper:
         return time.perf_counter() - t0
 
     def add_frame(self, timestamp: float, pose: Any = None, *, odometry: Any = None,
-                  detections: Iterable = (), ellipsoids: Iterable = ()) -> FrameRecord:
+                  detections: Iterable = (), ellipsoids: Iterable = (), new_segment: bool = False) -> FrameRecord:
         """Add one frame (module docstring) and return what was done. ``pose``: T_wc (a
         ``jaxlie.SE3``, 4×4, or a TUM row tx ty tz qx qy qz qw); or ``odometry``: the motion
         T_{i−1}⁻¹ Tᵢ since the previous frame. ``detections``: ``Detection``s or (label, box
         [x1, y1, x2, y2][, score[, instance]]); ``ellipsoids``: ``EllipsoidDetection``s
-        (camera frame, with instance ids)."""
+        (camera frame, with instance ids). ``new_segment``: the frame starts a later segment of
+        a joined recording (``Sequence.segments``): no odometry links it to the frame before,
+        and its pose (given, not odometry) is where the segment was placed."""
         t0 = time.perf_counter()
         self._raise_worker_error()
-        frame = self._accept(timestamp, pose, odometry, detections, ellipsoids)
+        if new_segment and (pose is None or not self._accepted):
+            raise ValueError(f"frame {self._accepted}: a new segment needs a pose and a frame before it")
+        frame = self._accept(timestamp, pose, odometry, detections, ellipsoids, bool(new_segment))
         self._arrival.append(t0)
         if not self.background:
             due = self._ingest(frame)
@@ -377,7 +387,7 @@ class OnlineMapper:
                 self._worker.start()
         return rec
 
-    def _accept(self, timestamp, pose, odometry, detections, ellipsoids) -> _Frame:
+    def _accept(self, timestamp, pose, odometry, detections, ellipsoids, new_segment: bool = False) -> _Frame:
         """A checked and screened frame (``add_frame``); changes only what the caller's
         thread owns (the frames accepted, the screen's counts)."""
         f = self._accepted
@@ -423,14 +433,16 @@ class OnlineMapper:
             self._n_detections += len(dets)
             dets = [d for d, why in zip(dets, whys) if why is None]
         self._accepted, self._last_time, self._last_input = f + 1, t, wxyz
-        return _Frame(f, t, wxyz, dets, meas)
+        return _Frame(f, t, wxyz, dets, meas, new_segment)
 
     def _ingest(self, frame: _Frame) -> bool:
         """Take an accepted frame into the state (pose prediction, association, views);
         returns whether an optimisation is due."""
         f, t, wxyz, dets, meas = (frame.index, frame.timestamp, frame.pose, frame.detections,
                                   frame.ellipsoids)
-        if f == 0:
+        if frame.new_segment:
+            self._segments.append(f)
+        if f == 0 or frame.new_segment:
             est = wxyz
         else:
             step = jaxlie.SE3(self._input.array[-1]).inverse() @ jaxlie.SE3(wxyz)  # type: ignore[arg-type]
@@ -680,27 +692,21 @@ class OnlineMapper:
         self._merge_duplicates([k for k in self.landmarks if self._pending.get(k)])
         n = len(self)
         start = max(0, n - self.window)
-        factors: list = []
-        if start == 0:
-            factors.append(PriorFactor(X(0), self._input[0], sigma=self._sigmas["first_pose"]))
-        odo = np.r_[np.full(3, self._sigmas["odometry_translation"]),
-                    np.full(3, self._sigmas["odometry_rotation"])]
-        for i in range(max(start, 1), n):
-            step = self._input[i - 1].inverse() @ self._input[i]
-            factors.append(BetweenFactor(X(i - 1), X(i), step, sigma=odo))
-        pose_sigma = absolute_sigma(self._sigmas)
-        if pose_sigma is not None:
-            factors += [PriorFactor(X(i), self._input[i], sigma=pose_sigma) for i in range(max(start, 1), n)]
+        factors: list = [] if self.hold_poses else list(NonlinearFactorGraph(
+            odometry_factors(self._input.array, self._segments, self._sigmas, start)))
         active = sorted(k for k in self.landmarks if self._pending.get(k) or self._pending_meas.get(k))
         for k in active:
             factors += self._object_graph(k, self._pending.get(k, []) + self._pending_meas.get(k, []), True)
         factors = with_robust_by_type(factors, self.method)
+        if not factors:  # poses held and no object with new views: nothing to solve
+            self._marginalise(start)
+            return 0, 0, 0
         graph = NonlinearFactorGraph(factors)
         values = Values()
         keys = {key for f in factors for key in f.keys}
         for key in keys:
             values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
-        fixed = [key for key in keys if key.chr == "x" and key.index < start]
+        fixed = [key for key in keys if key.chr == "x" and (key.index < start or self.hold_poses)]
         if start > 0:
             fixed.append(X(start - 1))
         fixed = sorted(set(fixed) & keys, key=lambda k: k.index)
@@ -817,7 +823,8 @@ class OnlineMapper:
         rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._input.array]) if len(self) else np.zeros((0, 7))
         return Sequence(self.name, self._ctx0.camera, np.asarray(self._timestamps), rows,
                         list(self._detections), priors=self._ctx0.priors,
-                        ellipsoids=list(self._ellipsoids) if self._ellipsoids else None)
+                        ellipsoids=list(self._ellipsoids) if self._ellipsoids else None,
+                        segments=tuple(self._segments))
 
     def finish(self, final_batch: bool | None = None, max_iterations: int | None = None,
                tolerance: float | None = None, progress=None):
@@ -846,8 +853,13 @@ class OnlineMapper:
                 landmarks.pop(k)
             tracks = [tr for tr in tracks if tr.id in landmarks]
         measured = {k: self._measured[k] for k in landmarks if k in self._measured}
+        unbounded = absolute_sigma(self._sigmas) is None
+        hold, notes = self.hold_poses, list(self.notes)
+        if hold:
+            notes.append("the poses follow the odometry (no bound on each pose: the boxes do not move them)")
+        fixed = [X(i) for i in range(len(self))] if hold else []
         graph = build_graph(ctx, tracks, landmarks, self.method, self.method.box_model,
-                            self._user_sigmas, measured)
+                            self._user_sigmas, measured, odometry=not hold)
         values = Values()
         for i in range(len(self)):
             values[X(i)] = self._est[i]
@@ -856,11 +868,25 @@ class OnlineMapper:
         optimizer = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance)
         say(f"{'final batch optimisation' if final_batch else 'online map'}: {len(values)} "
             f"variables, {len(graph)} factors")
+        trajectory: dict = {}
         if final_batch:
-            res = optimizer.optimize(graph, values)
+            res = optimizer.optimize(graph, values, fixed=fixed)
+            if unbounded and not hold:  # no further than the odometry can have drifted
+                est = np.stack([np.asarray(res.values[X(i)].wxyz_xyz) for i in range(len(self))])
+                check = check_trajectory("the final batch", ctx.wxyz_xyz, est,
+                                         walk_covariances(ctx.wxyz_xyz, self._sigmas, seq.segments))
+                trajectory["checks"] = [check.as_dict()]
+                if not check.accepted:
+                    notes.append(check.note())
+                    fixed = [X(i) for i in range(len(self))]
+                    graph = build_graph(ctx, tracks, landmarks, self.method, self.method.box_model,
+                                        self._user_sigmas, measured, odometry=False)
+                    res = optimizer.optimize(graph, values, fixed=fixed)
             values = res.values
         else:
             res = _Unchanged(graph, values)  # type: ignore[assignment]  # the figures only
+        if unbounded:
+            trajectory["start"] = "held" if fixed else "input"
         failed = {**self.failed, **rare}
         need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
         short = 0
@@ -874,16 +900,15 @@ class OnlineMapper:
             else:
                 failed.setdefault(k, "not initialised: the boxes do not give an ellipsoid in front of the cameras")
         labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
-        notes = list(self.notes) + ([f"{short} tentative tracks with fewer than {need} detections "
-                                     "discarded"] if short else [])
+        notes += [f"{short} tentative tracks with fewer than {need} detections discarded"] if short else []
         if self._screened:
             notes.append(screen_summary(self._screened, self._n_detections))
         record = {"mode": "online-" + self.associate}
         solved = Optimised(values=values, graph=graph, result=res, iterations=res.iterations,
-                           initial_cost=res.initial_cost)
-        return map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
-                          failed, notes, record, priors=seq.priors,
-                          given_poses=absolute_sigma(self._sigmas) is None)
+                           initial_cost=res.initial_cost, fixed=fixed)
+        result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
+                            failed, notes, record, priors=seq.priors, given_poses=unbounded and not fixed)
+        return dataclasses.replace(result, trajectory=trajectory)
 
 
 class _Unchanged:
@@ -926,18 +951,29 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
     meas: dict = {}
     for m in seq.ellipsoids or ():
         meas.setdefault(m.frame, []).append(m)
-    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
-    t_first, start = (float(seq.timestamps[order[0]]) if len(order) else 0.0), time.perf_counter()
-    for n, i in enumerate(order):
-        if mapper.online.realtime:
-            time.sleep(max(0.0, start + float(seq.timestamps[i]) - t_first - time.perf_counter()))
-        mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
-                         ellipsoids=meas.get(int(i), ()))
-        if (n + 1) % 100 == 0 or n + 1 == len(order):
-            r = mapper.records[-1]
-            say(f"online: frame {n + 1} of {len(order)}, {r.objects} objects")
+    replay(seq, mapper, by_frame, meas, lambda n, total: say(
+        f"online: frame {n} of {total}, {mapper.records[-1].objects} objects"), realtime=mapper.online.realtime)
     result = mapper.finish(progress=say)
     return result, list(mapper.records)
+
+
+def replay(seq: Sequence, mapper: OnlineMapper, detections: dict, ellipsoids: dict, progress=None,
+           realtime: bool = False) -> None:
+    """Add the frames of ``seq`` to ``mapper`` in timestamp order: each its pose, its
+    ``detections[frame]`` and ``ellipsoids[frame]`` (lists, default none), a later segment's
+    first frame as a new segment (``Sequence.segments``); ``realtime``: each when its time
+    since the first frame has passed. ``progress(n, frames)`` every 100 frames and at the
+    last."""
+    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
+    segments = set(int(k) for k in seq.segments)
+    t_first, start = (float(seq.timestamps[order[0]]) if len(order) else 0.0), time.perf_counter()
+    for n, i in enumerate(order):
+        if realtime:
+            time.sleep(max(0.0, start + float(seq.timestamps[i]) - t_first - time.perf_counter()))
+        mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=detections.get(int(i), ()),
+                         ellipsoids=ellipsoids.get(int(i), ()), new_segment=int(i) in segments)
+        if progress is not None and ((n + 1) % 100 == 0 or n + 1 == len(order)):
+            progress(n + 1, len(order))
 
 
 @dataclass(frozen=True)
@@ -980,13 +1016,10 @@ def replayed_start(seq: Sequence, tracks, run: RunSettings, progress=None) -> Re
                            online=OnlineSettings(final_batch=False), initial_poses="input", drift_interval=0.0,
                            hold_trajectory=False)
     mapper = OnlineMapper(seq.camera, seq.priors, settings, name=seq.name)
-    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
-    for n, i in enumerate(order):
-        mapper.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(int(i), ()),
-                         ellipsoids=meas.get(int(i), ()))
-        if (n + 1) % 100 == 0 or n + 1 == len(order):
-            say(f"incremental initialisation: frame {n + 1} of {len(order)}, {len(mapper.landmarks)} objects")
+    replay(seq, mapper, by_frame, meas, lambda n, total: say(
+        f"incremental initialisation: frame {n} of {total}, {len(mapper.landmarks)} objects"))
     mapper.wait()
+    order = np.argsort(np.asarray(seq.timestamps), kind="stable")
     poses = np.empty((len(order), 7))
     poses[order] = mapper._est.array
     found = None

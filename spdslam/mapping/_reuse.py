@@ -18,7 +18,14 @@ unknown, as from a monocular front end):
 4. **Refusal** (``LocalizationError``, one line): fewer than three matches; matched centres
    on a line (the rotation about it is free); or a rival transform that pairs at least two
    objects differently, puts the matched objects elsewhere (their median displacement
-   between the two over 2·``tolerance``) and matches as many (a symmetric layout).
+   between the two over 2·``tolerance``) and matches as many, or all but ``RIVAL_MARGIN``
+   − 1 as many (a symmetric layout, or one nearly so: a wrong transform matched 5 objects
+   of a drifting office recording against a right one's 4).
+
+With a ``gate`` (``TransformGate``: the transform known to within a distance and an angle of
+a guess, as the odometry knows it between two stretches of one recording) only candidate
+pairs whose centres the guess brings within the gate's distance, and hypotheses within the
+gate, are considered: the matcher of the loop closure (``_loops``).
 
 The covariance of the transform is that of the least-squares fit of the matched centres,
 residual variance estimated from the fit (at least ``tolerance``/3 per axis, since the map's
@@ -38,6 +45,12 @@ marginals leave out model error), in the left-perturbation coordinates x ↦ Exp
    them (docs/map-reuse.md measures it). Paired again at the refined frame and solved again
    (``REFINE_ROUNDS``). The covariance is then the frame's marginal, moved to the
    left-perturbation coordinates.
+
+6. **Agreement of the boxes** (``box_agreement``): of the frames where a matched map object,
+   projected from the localised poses, lies in front of the camera and inside the image,
+   the share with a detection of its label that overlaps it (IoU ≥ 0.3). A transform that
+   the boxes contradict puts objects where the camera sees none of their class: below
+   ``MIN_BOX_AGREEMENT`` it is refused (``spdslam localize``, the loop closure).
 """
 
 from __future__ import annotations
@@ -54,8 +67,9 @@ from ..geometry import Ellipsoid, align_rigid, align_rigid_many, in_front, proje
 from ..solver import Symbol
 from ._graph import inverse_box_sigma
 
-__all__ = ["Localization", "LocalizationError", "localize_objects", "refine_localization", "transform_ellipsoid",
-           "transform_poses_tum", "localized_result", "moved_sequence", "joined_sequence"]
+__all__ = ["Localization", "LocalizationError", "MIN_BOX_AGREEMENT", "RIVAL_MARGIN", "TransformGate",
+           "box_agreement", "localize_objects", "refine_localization", "transform_ellipsoid", "transform_poses_tum",
+           "localized_result", "moved_sequence", "joined_sequence"]
 
 
 #: Reweighted refits of the matched centres (Cauchy, scale ``tolerance``/3).
@@ -69,6 +83,36 @@ REFINE_SHAPE_SIGMA = 1e-4
 REFINE_ROUNDS = 2
 #: The key of the frame variable in ``refine_localization``'s graph.
 FRAME_KEY = Symbol("f", 0)
+#: A transform is refused when the recording's boxes confirm fewer than this share of the
+#: sightings of the matched map objects it predicts (``box_agreement``): ``spdslam localize``
+#: and the loop closure's verification.
+MIN_BOX_AGREEMENT = 0.5
+#: A transform is refused when a rival matches at least its matches − ``RIVAL_MARGIN`` + 1
+#: objects: it must match ``RIVAL_MARGIN`` more than any rival.
+RIVAL_MARGIN = 2
+
+
+@dataclass(frozen=True)
+class TransformGate:
+    """What is known of a transform before the objects are matched: within ``distance`` (m)
+    of where ``T`` (4×4) puts the recording's objects, and within ``angle`` (rad) of its
+    rotation (``localize_objects``' ``gate``)."""
+
+    T: np.ndarray
+    distance: float
+    angle: float
+
+    def admits(self, R, t, points) -> np.ndarray:
+        """Whether each of h transforms (R (h, 3, 3), t (h, 3)) lies within the gate: its
+        rotation within ``angle`` of T's, and the ``points`` (n, 3) of the recording it moves
+        within ``distance`` of where T puts them (the largest displacement)."""
+        R0, t0 = np.asarray(self.T, float)[:3, :3], np.asarray(self.T, float)[:3, 3]
+        cos = (np.einsum("hij,ij->h", np.asarray(R), R0) - 1.0) / 2.0
+        turn = np.arccos(np.clip(cos, -1.0, 1.0))
+        p = np.asarray(points, float).reshape(-1, 3)
+        moved = np.einsum("hij,nj->hni", R, p) + np.asarray(t)[:, None] - (p @ R0.T + t0)[None]
+        far = np.linalg.norm(moved, axis=-1).max(axis=1) if len(p) else np.zeros(len(turn))
+        return (turn <= self.angle) & (far <= self.distance)
 
 
 class LocalizationError(ValueError):
@@ -129,13 +173,18 @@ def _parts(objects):
     return ids, labels, centers, radii
 
 
-def _candidates(seq, mp, sim3: bool, size_ratio: float) -> np.ndarray:
-    """(k, 2) index pairs (recording, map) that could be one object."""
-    _, la, _, ra = seq
-    _, lb, _, rb = mp
+def _candidates(seq, mp, sim3: bool, size_ratio: float, gate: TransformGate | None = None) -> np.ndarray:
+    """(k, 2) index pairs (recording, map) that could be one object (within the ``gate``'s
+    distance of each other where its guess puts the recording's, when given)."""
+    _, la, ca, ra = seq
+    _, lb, cb, rb = mp
+    near = None
+    if gate is not None and len(ca) and len(cb):
+        T = np.asarray(gate.T, float)
+        near = np.linalg.norm((ca @ T[:3, :3].T + T[:3, 3])[:, None] - cb[None], axis=-1) <= gate.distance
     out = []
     for i, j in itertools.product(range(len(la)), range(len(lb))):
-        if la[i] != lb[j]:
+        if la[i] != lb[j] or (near is not None and not near[i, j]):
             continue
         a, b = (ra[i] / ra[i][-1], rb[j] / rb[j][-1]) if sim3 else (ra[i], rb[j])
         if np.all(np.maximum(a / b, b / a) <= size_ratio):
@@ -246,14 +295,17 @@ class _Hypotheses:
         return (self[i] for i in range(len(self)))
 
 
-def _hypotheses(cand, cs, cm, triples, sim3: bool, tol: float) -> _Hypotheses:
+def _hypotheses(cand, cs, cm, triples, sim3: bool, tol: float, gate: TransformGate | None = None) -> _Hypotheses:
     """Each triple's transform (``geometry.align_rigid_many``; none where its centres are
-    degenerate, or under Sim(3) its scale is outside (0.05, 20)) and the candidate pairs it
-    puts within ``tol`` of each other, in array operations (``_Hypotheses``)."""
+    degenerate, or under Sim(3) its scale is outside (0.05, 20), or outside the ``gate``) and
+    the candidate pairs it puts within ``tol`` of each other, in array operations
+    (``_Hypotheses``)."""
     R, t, s, ok = (np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool)) if not len(triples) \
         else align_rigid_many(cs[cand[triples, 0]], cm[cand[triples, 1]], with_scale=sim3)
     if sim3:
         ok &= (0.05 < s) & (s < 20.0)
+    if gate is not None and len(R):
+        ok &= gate.admits(R, t, cs[np.unique(cand[:, 0])])
     R, t, s = R[ok], t[ok], s[ok]
     a, b = cs[cand[:, 0]], cm[cand[:, 1]]
     near = np.zeros((len(R), len(cand)), bool)
@@ -292,20 +344,23 @@ def _covariance(cs, R, t, s, residuals, tol, sim3):
 
 
 def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance: float = 0.15,
-                     size_ratio: float = 2.0, max_triples: int = 20_000) -> Localization:
+                     size_ratio: float = 2.0, max_triples: int = 20_000,
+                     gate: TransformGate | None = None) -> Localization:
     """The transform that puts ``seq_objects`` (``io.MapObject``, the recording's frame) onto
-    ``map_objects`` (the map's frame): module docstring. Raises ``LocalizationError`` when
-    the objects do not fix one."""
+    ``map_objects`` (the map's frame): module docstring. ``gate``: what is known of it
+    before (SE(3) only). Raises ``LocalizationError`` when the objects do not fix one."""
+    if gate is not None and sim3:
+        raise ValueError("localize_objects: a gate is an SE(3) guess; it takes no Sim(3)")
     seq, mp = _parts(list(seq_objects)), _parts(list(map_objects))
     cs, cm = seq[2], mp[2]
-    cand = _candidates(seq, mp, sim3, size_ratio)
+    cand = _candidates(seq, mp, sim3, size_ratio, gate)
     usable = min(len(np.unique(cand[:, 0])), len(np.unique(cand[:, 1]))) if len(cand) else 0
     if usable < 3:
         raise LocalizationError(
             f"fewer than three usable matches: {usable} recording object(s) share a label and "
             f"a size with a map object ({len(seq[0])} in the recording, {len(mp[0])} in the map)")
     triples = _triples(cand, cs, cm, sim3, tolerance, max_triples)
-    hyps = _hypotheses(cand, cs, cm, triples, sim3, tolerance)
+    hyps = _hypotheses(cand, cs, cm, triples, sim3, tolerance, gate)
     if not hyps:
         raise LocalizationError(
             f"fewer than three usable matches: no three of the {len(cand)} candidate pairs "
@@ -334,10 +389,10 @@ def localize_objects(seq_objects, map_objects, *, sim3: bool = False, tolerance:
         if differs and moved > 2.0 * tolerance:
             runner_up, apart = n, _angle_deg(R, R2)
             break
-    if runner_up >= len(inl):
+    if runner_up > len(inl) - RIVAL_MARGIN:
         raise LocalizationError(
-            f"the layout is ambiguous: two transforms {apart:.0f}° apart each match {runner_up} objects "
-            f"(a symmetric arrangement)")
+            f"the layout is ambiguous: a transform matches {len(inl)} objects and another {apart:.0f}° "
+            f"apart {runner_up} (a symmetric arrangement, or nearly)")
     pairs = cand[inl]
     res = np.linalg.norm(s * cs[pairs[:, 0]] @ R.T + t - cm[pairs[:, 1]], axis=1)
     for _ in range(IRLS_ITERATIONS):  # Cauchy weights: an object mapped apart in one recording counts less
@@ -412,6 +467,40 @@ def _paired_detections(seq, ellipsoids, labels, poses_tum, min_iou: float = 0.3)
     key = frames[d] * (len(ellipsoids) + 1) + k[d]
     d = d[np.r_[True, key[1:] != key[:-1]]] if len(d) else d
     return d, k[d], best[d]
+
+
+def box_agreement(seq, objects, poses_tum, min_iou: float = 0.3) -> tuple[float, int]:
+    """(share, predicted) of the projections of ``objects`` (``io.MapObject`` s, in the frame
+    of ``poses_tum``: (F, 7) TUM rows, one per frame of ``seq``) that a detection of ``seq``
+    confirms (module docstring, step 6): ``predicted`` counts the (frame, object) pairs
+    where the object lies in front of the camera with its box inside the image, the share
+    those with a detection of its label overlapping it by IoU ≥ ``min_iou``. (nan, 0) when
+    no object is predicted anywhere."""
+    from ..geometry import box_iou
+    from ..geometry.se3 import from_tum
+
+    objects = list(objects)
+    if not objects or not len(seq):
+        return float("nan"), 0
+    P = jnp.asarray(np.stack([np.asarray(o.ellipsoid.P, float) for o in objects]))
+    c = jnp.asarray(np.stack([np.asarray(o.ellipsoid.center, float) for o in objects]))
+    proj, front = _project_all(P, c, from_tum(np.asarray(poses_tum, float)), seq.camera)
+    proj, front = np.asarray(proj), np.asarray(front)
+    cam = seq.camera
+    inside = front & np.all(np.isfinite(proj), -1) & (proj[..., 0] >= 0) & (proj[..., 1] >= 0) \
+        & (proj[..., 2] <= cam.width) & (proj[..., 3] <= cam.height)
+    if not inside.any():
+        return float("nan"), 0
+    seen = np.zeros(inside.shape, bool)
+    labels = np.array([str(o.label) for o in objects])
+    for d in seq.detections:
+        f = int(d.frame)
+        ks = np.flatnonzero(inside[f] & (labels == d.label))
+        if ks.size:
+            iou = box_iou(np.asarray(d.box, float)[None], proj[f, ks])
+            seen[f, ks] |= np.asarray(iou) >= min_iou
+    n = int(inside.sum())
+    return float(seen[inside].mean()), n
 
 
 def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,

@@ -131,6 +131,10 @@ class MapResult:
     #: the final cost of each factor kind, {kind: ½ Σ ρ(‖W r‖²)}: which constraint the
     #: optimum pays for
     costs: dict = field(default_factory=dict)
+    #: a trajectory without a bound on each pose: where its poses came from ("start"), the
+    #: box errors' correlation, the loop closure (``LoopClosure.as_dict``) and each check
+    #: against the odometry (``TrajectoryCheck.as_dict``); empty with a bound
+    trajectory: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """The content of map.json (``io.map_document``)."""
@@ -139,7 +143,8 @@ class MapResult:
             iterations=self.iterations, final_cost=self.final_cost,
             initial_cost=self.initial_cost, converged=self.converged, reason=self.reason,
             settings=dataclasses.asdict(self.method), objects=self.objects, failed=self.failed,
-            notes=self.notes, association=self.association, cost_by_factor=self.costs)
+            notes=self.notes, association=self.association, cost_by_factor=self.costs,
+            trajectory=self.trajectory)
 
 
 # --- association ------------------------------------------------------------------------------

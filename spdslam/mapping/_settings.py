@@ -32,7 +32,6 @@ __all__ = [
     "Associate",
     "METHOD_FIELDS",
     "OnlineSettings",
-    "REPLAY_MIN_SPREAD",
     "PlaneSource",
     "RUN_OVERRIDES",
     "RUN_SETTING_NAMES",
@@ -54,16 +53,21 @@ class Associate(enum.StrEnum):
 
 
 class InitialPoses(enum.StrEnum):
-    """The poses a batch run's joint optimisation starts from: the input poses, the objects
-    initialised from them; or the poses the online mapper ends at when the frames are
-    replayed through it first (incremental: it moves the poses as objects are seen again,
-    and its objects and, with automatic association, its tracks are taken too); auto:
-    incremental on a trajectory without a bound on each pose (drifting odometry) whose walk
-    over the recording may exceed ``REPLAY_MIN_SPREAD``, when the method maps online and no
-    drift correction is asked for, else the input."""
+    """Where a batch run's poses come from on a trajectory without a bound on each pose
+    (drifting odometry). input: the joint optimisation starts from the input poses, each pose
+    as free as the trajectory's noise model lets it (the boxes move the poses); incremental:
+    from the poses the online mapper ends at when the frames are replayed through it first
+    (its objects and, with automatic association, its tracks are taken too); loops: the
+    objects mapped on the input poses held, the drift taken out by the loops their objects
+    close between submaps (``close_loops``), and the poses then held at the corrected
+    trajectory (the boxes do not move the poses). auto: loops on a trajectory without a bound
+    on each pose (neither ``hold_trajectory`` nor a drift interval), else input. Every
+    trajectory a step proposes is checked against the odometry's walk
+    (``check_trajectory``)."""
 
     INPUT = "input"
     INCREMENTAL = "incremental"
+    LOOPS = "loops"
     AUTO = "auto"
 
 
@@ -114,12 +118,6 @@ def _choice(name: str, kind: type[enum.StrEnum], value):
     except ValueError:
         raise SettingsError(name, f"expected one of {', '.join(kind)}, got {value!r}") from None
 
-
-#: ``initial_poses="auto"`` replays a trajectory without a bound on each pose when its
-#: odometry's random walk over the recording, √(F − 1) σ_step, may exceed this (m, rad): 10 cm
-#: or 2° (an object 3 m away seen 10 cm off). Below it the replay changed nothing measurable
-#: on the demo rooms and costs a second or more (docs/map-reuse.md).
-REPLAY_MIN_SPREAD = (0.1, 0.035)
 
 #: What the online mapper maps with: landmark parameterisations and box models.
 ONLINE_PARAMETERIZATIONS = ("spd", "rts")
@@ -233,11 +231,11 @@ class RunSettings:
         "pose (trajectory_absolute_sigma: .inf), fitted to the boxes before the joint "
         "optimisation (docs/map-reuse.md); 0: none"))
     initial_poses: InitialPoses = field(default=InitialPoses.AUTO, metadata=_help(
-        "the poses the joint optimisation starts from: input, or incremental (the frames "
-        "replayed through the online mapper first, which pulls drifting poses back as objects "
-        "are seen again, and associates on them); auto: incremental on a trajectory without a "
-        "bound on each pose (trajectory_absolute_sigma: .inf) whose odometry may have drifted over "
-        "the recording by more than 10 cm or 2°, else input (docs/map-reuse.md)"))
+        "where the poses come from on a trajectory without a bound on each pose "
+        "(trajectory_absolute_sigma: .inf): input (the joint optimisation starts from the input "
+        "poses), incremental (the frames replayed through the online mapper first), loops (the "
+        "drift taken out by loops closed between submaps, the poses then held at the corrected "
+        "trajectory: the boxes do not move the poses); auto: loops (docs/drift.md)"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
     class_table: bool = field(default=True, metadata=_help(
@@ -273,6 +271,13 @@ class RunSettings:
         object.__setattr__(self, "drift_interval", float(di))
         object.__setattr__(self, "initial_poses",
                            _choice("initial_poses", InitialPoses, self.initial_poses))
+        if self.initial_poses == InitialPoses.LOOPS:
+            if self.hold_trajectory:
+                raise SettingsError("initial_poses", "loops move the poses, which hold_trajectory holds: "
+                                    "expected input or auto")
+            if self.drift_interval > 0:
+                raise SettingsError("initial_poses", "a drift correction starts from the input poses: "
+                                    "expected input or auto with drift_interval")
         if self.initial_poses == InitialPoses.INCREMENTAL:
             if self.hold_trajectory:
                 raise SettingsError("initial_poses", "incremental moves the poses, which hold_trajectory "
@@ -354,15 +359,14 @@ class RunSettings:
         mine = {k: v for k, v in settings.items() if k in own and k != "online"}
         return cls(method=method, online=online, **mine)
 
-    def starts_incremental(self, drifting: bool) -> bool:
-        """Whether a batch run starts from the frames replayed through the online mapper
-        (``InitialPoses``): always for ``incremental``; for ``auto`` on a ``drifting``
-        trajectory (no bound on each pose, and an odometry that may have drifted over the
-        recording by more than ``REPLAY_MIN_SPREAD``)."""
-        if self.initial_poses == InitialPoses.INCREMENTAL:
-            return True
-        return (self.initial_poses == InitialPoses.AUTO and drifting and not self.hold_trajectory
-                and self.drift_interval == 0 and maps_online(self.method))
+    def start(self, unbounded: bool) -> InitialPoses:
+        """Where a batch run's poses come from (``InitialPoses``) on a trajectory with
+        (``unbounded`` False) or without a bound on each pose: auto is loops on an unbounded
+        trajectory, not held, without a drift correction, else input."""
+        if self.initial_poses != InitialPoses.AUTO:
+            return self.initial_poses
+        free = unbounded and not self.hold_trajectory and self.drift_interval == 0
+        return InitialPoses.LOOPS if free else InitialPoses.INPUT
 
     def replace(self, **changes) -> RunSettings:
         """A copy with ``changes`` (checked again)."""

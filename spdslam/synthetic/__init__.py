@@ -6,6 +6,7 @@
 from ._rooms import MARGIN_PX as MARGIN_PX
 from ._rooms import MIN_BOX_PX as MIN_BOX_PX
 from ._rooms import ROOM_CLASSES as ROOM_CLASSES
+from ._rooms import drifted_sequence as drifted_sequence
 from ._rooms import make_room_sequence as make_room_sequence
 from ._scenes import DEFAULT_CAMERA as DEFAULT_CAMERA
 from ._scenes import NOISE_LEVELS as NOISE_LEVELS

@@ -434,6 +434,34 @@ def _drift(rng, centres: np.ndarray, R_wc: np.ndarray, drift: float) -> np.ndarr
     return _tum(T_odo[:, :3, 3], T_odo[:, :3, :3])
 
 
+def drifted_sequence(seq: Sequence, sigma_t: float, sigma_r: float, seed: int = 0) -> Sequence:
+    """``seq`` (a recording, e.g. with motion-capture poses) made a drifting odometry: each
+    relative motion Tᵢ₋₁⁻¹Tᵢ composed with Exp(ε), ε = (v, ω) ~ N(0, diag(σ_t² I₃, σ_r² I₃))
+    (m, rad per frame step; for each step three draws of ω, then three of v, from
+    ``numpy.random.default_rng(seed)``), chained from the first pose; its priors say
+    ``trajectory_absolute_sigma: [.inf, .inf]`` (no bound on each pose). The ground truth
+    and everything else are unchanged."""
+    import dataclasses
+
+    sigma_t = _real("sigma_t", sigma_t, 0.0)
+    sigma_r = _real("sigma_r", sigma_r, 0.0)
+    rows = np.asarray(seq.poses_tum, dtype=float)
+    n = len(rows)
+    priors = (seq.priors or Priors()).replace(trajectory_absolute_sigma=[np.inf, np.inf])
+    if n < 2:
+        return dataclasses.replace(seq, priors=priors)
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(rows[:, 3:7]).as_matrix()
+    T[:, :3, 3], T[:, 3, 3] = rows[:, :3], 1.0
+    noise = np.random.default_rng(seed).standard_normal(size=(n - 1, 6))
+    E = np.zeros((n - 1, 4, 4))
+    E[:, :3, :3] = Rotation.from_rotvec(sigma_r * noise[:, :3]).as_matrix()
+    E[:, :3, 3], E[:, 3, 3] = sigma_t * noise[:, 3:], 1.0
+    U = np.linalg.inv(T[:-1]) @ T[1:]
+    chained = _prefix_products(np.concatenate([T[:1], U @ E]))
+    return dataclasses.replace(seq, poses_tum=_tum(chained[:, :3, 3], chained[:, :3, :3]), priors=priors)
+
+
 # --- the sequence ---------------------------------------------------------------------------
 
 

@@ -1,0 +1,289 @@
+"""Objects against drift (docs/drift.md): the odometry's walk and the check of a trajectory
+against it, loops verified and closed in a pose graph, a wrong loop rejected and named, and
+a drifting trajectory never made worse by default (batch and online)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import jaxlie
+import numpy as np
+import pytest
+from conftest import assert_cli_error as assert_error
+from conftest import assert_cli_ok as assert_ok
+from conftest import cli_invoke as invoke
+from scipy.spatial.transform import Rotation
+
+from spdslam.evaluation import absolute_trajectory_error
+from spdslam.geometry import Ellipsoid
+from spdslam.io import MapObject, write_sequence
+from spdslam.mapping import (
+    RIVAL_MARGIN,
+    WALK_LIMIT,
+    LocalizationError,
+    Loop,
+    OnlineMapper,
+    RunSettings,
+    SequenceContext,
+    SettingsError,
+    TransformGate,
+    build_graph,
+    check_trajectory,
+    localize_objects,
+    mapping_sigmas,
+    odometry_factors,
+    run_online,
+    run_sequence,
+    solve_pose_graph,
+    walk_covariances,
+)
+from spdslam.solver import X
+from spdslam.synthetic import drifted_sequence, make_room_sequence
+
+
+def _ate(rows, seq) -> float:
+    rows = np.asarray(rows, float)
+    rows = np.c_[seq.timestamps, rows] if rows.shape[1] == 7 else rows
+    return absolute_trajectory_error(rows, seq.groundtruth_tum)["rmse"]
+
+
+def _matrices(rows) -> np.ndarray:
+    rows = np.asarray(rows, float)
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(rows[:, 3:7]).as_matrix()
+    T[:, :3, 3] = rows[:, :3]
+    return T
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """A room's true trajectory (120 frames, one closed loop) as an undrifted sequence."""
+    room = make_room_sequence(3, frames=120, objects=6, drift=0.0)
+    return replace(room, poses_tum=room.groundtruth_tum[:, 1:])
+
+
+# --------------------------------------------------------------------------- the odometry's walk
+
+
+def test_the_walk_covariance_is_the_spread_of_drifted_odometry(truth):
+    """``walk_covariances`` against 400 drifts of one trajectory (``drifted_sequence``): the
+    departure of the last pose from the truth, Log(Tᵢ⁻¹ T̂ᵢ), has the covariance it predicts
+    (each σ within 15 %, the rotation's lever on the translation included)."""
+    seq = truth.subset(np.arange(40))
+    st, sr = 0.01, 0.02
+    last = []
+    T = jaxlie.SE3.from_matrix(_matrices(seq.poses_tum)[-1])
+    for seed in range(400):
+        d = drifted_sequence(seq, st, sr, seed)
+        last.append(np.asarray((T.inverse() @ jaxlie.SE3.from_matrix(_matrices(d.poses_tum)[-1])).log()))
+    s = {"odometry_translation": st, "odometry_rotation": sr, "first_pose": 1e-4}
+    ctx = SequenceContext.of(seq)
+    predicted = np.sqrt(np.diag(walk_covariances(ctx.wxyz_xyz, s)[-1]))
+    measured = np.std(np.stack(last), axis=0)
+    np.testing.assert_allclose(measured, predicted, rtol=0.15)
+    assert predicted[0] > 3 * st * np.sqrt(39)  # the lever of the rotation's walk dominates
+
+
+def _drifted(truth, st, sr, seed):
+    """``truth`` made a drifting odometry whose priors state its step σ."""
+    seq = drifted_sequence(truth, st, sr, seed)
+    return replace(seq, priors=seq.priors.replace(trajectory_sigma=[st, sr]))
+
+
+def test_the_check_refuses_a_trajectory_moved_beyond_the_walk(truth):
+    seq = _drifted(truth, 0.005, 0.0025, 0)
+    s = mapping_sigmas(seq)
+    ctx = SequenceContext.of(seq)
+    walk = walk_covariances(ctx.wxyz_xyz, s)
+    # the truth is within the walk of the drifted input; the input itself does not move
+    ok = check_trajectory("the truth", ctx.wxyz_xyz, SequenceContext.of(truth).wxyz_xyz, walk)
+    assert ok.accepted and 0 < ok.worst < WALK_LIMIT
+    same = check_trajectory("the input", ctx.wxyz_xyz, ctx.wxyz_xyz, walk)
+    assert same.accepted and same.worst == 0 and same.moved_max == 0
+    # every camera 2 m away (a diverged replay): refused, and the note says so
+    far = ctx.wxyz_xyz.copy()
+    far[:, 4] += 2.0
+    bad = check_trajectory("the replay", ctx.wxyz_xyz, far, walk)
+    assert not bad.accepted and bad.worst > WALK_LIMIT
+    assert bad.note().startswith("the replay refused: it moved the cameras by 2e+03 mm median")
+    assert "the input poses are kept for this step" in bad.note()
+    nan = far.copy()
+    nan[5, 4] = np.nan
+    assert not check_trajectory("x", ctx.wxyz_xyz, nan, walk).accepted
+
+
+def test_one_function_makes_the_odometry_of_the_batch_and_of_a_window():
+    """The batch graph's trajectory factors are ``odometry_factors``'; a window from frame k
+    has those that involve frames k … F − 1 (the step into k included), in a joined
+    sequence none across a segment's start."""
+    seq = make_room_sequence(0, frames=30, objects=2)
+    seq = replace(seq, segments=(20,), priors=seq.priors.replace(trajectory_absolute_sigma=[0.01, 0.01]))
+    ctx = SequenceContext.of(seq)
+    s = mapping_sigmas(ctx)
+    graph = build_graph(ctx, [], {}, RunSettings().method, "inverse", odometry=True)
+    mine = [f.keys for f in build_graph(ctx, [], {}, RunSettings().method, "inverse", odometry=False)]
+    assert mine == []
+    whole = sorted(f.keys for f in graph)
+    assert whole == sorted(f.keys for f in _expand(odometry_factors(ctx.wxyz_xyz, seq.segments, s)))
+    window = [f.keys for f in _expand(odometry_factors(ctx.wxyz_xyz, seq.segments, s, start=25))]
+    assert (X(24), X(25)) in window and (X(23), X(24)) not in window
+    assert (X(20), X(26)) in window  # a later segment's poses bounded relative to its first
+    assert all(min(k.index for k in keys) >= 20 or max(k.index for k in keys) >= 25 for keys in window)
+    assert (X(19), X(20)) not in whole and (X(20),) in whole  # no odometry across the join; its weak hold
+
+
+def _expand(factors):
+    from spdslam.solver import NonlinearFactorGraph
+
+    return list(NonlinearFactorGraph(factors))
+
+
+# --------------------------------------------------------------------------- loops
+
+
+def _corrections(truth, drifted, frames):
+    """The true correction C_a⁻¹ C_b (x_earlier = T x_later) of each frame pair (a, b), C the
+    world correction T_true T̂⁻¹ of a drifted pose."""
+    Tt, Td = _matrices(truth.poses_tum), _matrices(drifted.poses_tum)
+    C = Tt @ np.linalg.inv(Td)
+    return [np.linalg.inv(C[a]) @ C[b] for a, b in frames]
+
+
+def _loop(a, b, T, sigma=(0.01, 0.005)):
+    cov = np.diag(np.r_[np.full(3, sigma[0] ** 2), np.full(3, sigma[1] ** 2)])
+    return Loop(earlier=(a - 5, a + 5), later=(b - 5, b + 5), frames=(a, b), status="verified", matches=5, T=T,
+                covariance=cov)
+
+
+def test_loops_close_a_drifting_trajectory_and_a_wrong_one_is_rejected_and_named(truth):
+    """Three right loops between the start and the end of a drifting room take most of its
+    drift out; a fourth, 15° off (a wrong match), disagrees with them and the odometry in the
+    pose graph: rejected, named, and the trajectory as good as without it."""
+    seq = _drifted(truth, 0.004, 0.003, 2)
+    ctx = SequenceContext.of(seq)
+    s = mapping_sigmas(ctx)
+    frames = [(8, 110), (12, 113), (5, 106)]
+    good = [_loop(a, b, T) for (a, b), T in zip(frames, _corrections(truth, seq, frames))]
+    wrong = _corrections(truth, seq, [(10, 108)])[0]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(15.0)]).as_matrix()
+    loops = good + [_loop(10, 108, turn @ wrong)]
+    poses, out = solve_pose_graph(ctx, s, list(loops))
+    assert [lp.status for lp in out] == ["verified"] * 3 + ["rejected"]
+    assert out[3].reason.startswith("disagrees with the odometry and the other loops (χ² ")
+    assert all(lp.chi2_graph < 22.5 for lp in out[:3])
+    before, after = _ate(seq.poses_tum, seq), _ate(_tum(poses), seq)
+    clean, _ = solve_pose_graph(ctx, s, list(good))
+    assert after < 0.5 * before
+    assert after == pytest.approx(_ate(_tum(clean), seq), rel=1e-3)
+
+
+def _tum(wxyz_xyz):
+    from spdslam.geometry.se3 import to_tum
+
+    return to_tum(jaxlie.SE3(np.asarray(wxyz_xyz)))
+
+
+def test_a_rival_that_nearly_matches_as_many_is_refused():
+    """A transform matching five objects against a rival's four is refused (the rule behind
+    ``RIVAL_MARGIN``: a wrong transform of a drifting office recording matched five against a
+    right one's four); with a gate that admits only transforms near the truth the rival is not
+    considered and the transform is found."""
+    assert RIVAL_MARGIN == 2
+    row = [MapObject(i, "bottle", Ellipsoid.from_axes(np.eye(3), (0.25 * i, 0.0, 0.8), (0.04, 0.04, 0.12)))
+           for i in range(5)]
+    extra = [MapObject(9, "cup", Ellipsoid.from_axes(np.eye(3), (0.5, 0.6, 0.8), (0.05, 0.05, 0.06)))]
+    seq_objects = row[:5] + extra
+    map_objects = row + [MapObject(7, "bottle", Ellipsoid.from_axes(np.eye(3), (1.25, 0.0, 0.8),
+                                                                     (0.04, 0.04, 0.12)))] + extra
+    # shifted by one bottle the row matches 5 of its 5 again: a rival as good as the answer
+    with pytest.raises(LocalizationError, match="ambiguous: a transform matches .* and another .* apart"):
+        localize_objects(seq_objects, map_objects)
+    gate = TransformGate(np.eye(4), 0.1, np.radians(2.0))
+    loc = localize_objects(seq_objects, map_objects, gate=gate)
+    np.testing.assert_allclose(loc.T_map_sequence, np.eye(4), atol=1e-6)
+    assert sorted(loc.matches) == [(i, i) for i in range(5)] + [(9, 9)]
+    with pytest.raises(ValueError, match="a gate is an SE\\(3\\) guess"):
+        localize_objects(seq_objects, map_objects, gate=gate, sim3=True)
+
+
+# --------------------------------------------------------------------------- runs
+
+
+@pytest.fixture(scope="module")
+def drifting():
+    """A room whose odometry drifts, no bound on each pose, its detections without ids."""
+    seq = make_room_sequence(1, frames=120, objects=6, drift=0.01)
+    return replace(seq, detections=[replace(d, instance=None) for d in seq.detections])
+
+
+def test_by_default_a_drifting_trajectory_is_moved_only_by_loops(drifting):
+    """By default (``initial_poses="auto"`` → loops) the boxes do not move the poses of a
+    trajectory without a bound on each pose: without a verified loop the run's trajectory is
+    its input, exactly; its notes and map.json's ``trajectory`` say how the poses came about."""
+    run = run_sequence(drifting, "multi-spd")
+    t = run.trajectory
+    assert t["start"] == "loops" and "loop_closure" in t
+    lc = t["loop_closure"]
+    if not any(lp["status"] == "verified" for lp in lc["loops"]):
+        np.testing.assert_allclose(run.poses_tum[:, 1:], drifting.poses_tum, atol=1e-12)
+    assert _ate(run.poses_tum, drifting) <= _ate(drifting.poses_tum, drifting) * (1 + 1e-9)
+    assert any(n.startswith("loop closure: 8 submaps") for n in run.notes)
+    assert any(n.startswith("trajectory held at the") for n in run.notes)
+    doc = run.as_dict()
+    assert doc["trajectory"]["start"] == "loops" and json.dumps(doc["trajectory"])
+    free = run_sequence(drifting, "multi-spd", initial_poses="input")
+    assert free.trajectory["start"] == "input" and free.trajectory["checks"][0]["step"] == "the joint optimisation"
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"initial_poses": "loops", "hold_trajectory": True}, "initial_poses: loops move the poses"),
+    ({"initial_poses": "loops", "drift_interval": 5.0}, "initial_poses: a drift correction starts from"),
+    ({"initial_poses": "replay"}, "initial_poses: expected one of input, incremental, loops, auto, got 'replay'"),
+])
+def test_loops_that_cannot_be_are_refused(kwargs, message):
+    with pytest.raises(SettingsError, match=message):
+        RunSettings.of("multi-spd", **kwargs)
+
+
+def test_the_online_mapper_follows_the_odometry_of_a_drifting_trajectory(drifting):
+    """Without a bound on each pose the online mapper does not let the boxes move the poses
+    (it diverged to metres on a real recording): every estimate, online and after the final
+    batch, is the input's; with ``initial_poses="input"`` the boxes move them as before."""
+    result, _ = run_online(drifting, "multi-spd")
+    np.testing.assert_allclose(result.poses_tum[:, 1:], drifting.poses_tum, atol=1e-9)
+    assert result.trajectory["start"] == "held"
+    assert any("the poses follow the odometry" in n for n in result.notes)
+    m = OnlineMapper(drifting.camera, drifting.priors, "multi-spd")
+    assert m.hold_poses
+    free = OnlineMapper(drifting.camera, drifting.priors, "multi-spd", initial_poses="input")
+    assert not free.hold_poses
+
+
+def test_a_joined_recording_replayed_online_has_no_odometry_across_the_join():
+    seq = make_room_sequence(0, frames=24, objects=3)
+    seq = replace(seq, priors=seq.priors.replace(trajectory_absolute_sigma=[0.002, 0.002]))
+    joined = replace(seq, segments=(12,))
+    m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", every=4)
+    from spdslam.mapping._online import replay
+
+    replay(joined, m, {}, {})
+    assert m.sequence().segments == (12,)
+    with pytest.raises(ValueError, match="a new segment needs a pose"):
+        OnlineMapper(seq.camera, seq.priors, "multi-spd").add_frame(0.0, seq.poses_tum[0], new_segment=True)
+
+
+def test_cli_run_of_a_drifting_room_reports_its_loop_closure(drifting, tmp_path):
+    folder = tmp_path / "room"
+    write_sequence(drifting, folder)
+    out = tmp_path / "run"
+    assert_ok(invoke("run", folder, "--out", out))
+    report = (out / "report.md").read_text()
+    assert "## Drift" in report and "Loop closure:" in report
+    m = json.loads((out / "map.json").read_text())
+    assert m["trajectory"]["start"] == "loops"
+    assert (out / "map_top.png").stat().st_size > 0
+    assert_error(invoke("run", folder, "--out", tmp_path / "x", "--initial-poses", "loops", "--hold-trajectory"),
+                 "--initial-poses: loops move the poses, which hold_trajectory holds")
+    assert not (tmp_path / "x").exists()
