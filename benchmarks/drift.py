@@ -13,13 +13,20 @@ found (candidate revisits), verified and rejected, the objects, and the seconds.
 ``--compare input`` each real recording is also mapped with ``--initial-poses input`` (the
 boxes move each pose), beside it.
 
+``--localize``: instead, the issue's relocalisation of a drifting recording's last quarter
+against its first (the office recording at the rates and seeds above): each quarter mapped
+by default (its poses held near its input), then ``spdslam localize``'s steps
+(``experiments.localize_sequence``); the transform, when not refused, compared with the drift
+between the two quarters (the correction between their middle frames, from the motion
+capture): rotation error, and translation error at the last quarter's middle camera.
+
 Synthetic rooms: ``make_room_sequence`` (``--room-frames``, ``--room-objects``, ``--room-drift``
 m per step and half that in rad), seeds of ``--room-seeds``, with the detector's failures of
 ``--room-failures`` (outliers, missed, truncation: ``outliers=0.1, missed=0.1,
 truncation=True``) and without instance ids.
 
     python3 benchmarks/drift.py [--recordings fr2,office] [--rates 0.0005:0.025,0.001:0.05,0.003:0.15]
-        [--seeds 0,1,2] [--online] [--compare input] [--rooms/--no-rooms] [--out FILE]
+        [--seeds 0,1,2] [--online] [--compare input] [--rooms/--no-rooms] [--localize] [--out FILE]
 """
 
 from __future__ import annotations
@@ -31,14 +38,24 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from spdslam.evaluation import absolute_trajectory_error
+from spdslam.experiments import localize_sequence
 from spdslam.io import read_sequence
-from spdslam.mapping import RunSettings, run_online, run_sequence
+from spdslam.mapping import LocalizationError, RunSettings, run_online, run_sequence
 from spdslam.synthetic import drifted_sequence, make_room_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDINGS = {"fr2": ROOT / "../shared/data/tum_fr2_desk", "office": ROOT / "../shared/data/tum_fr3_long_office"}
+
+
+def matrices(rows) -> np.ndarray:
+    rows = np.asarray(rows, float)
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(rows[:, 3:7]).as_matrix()
+    T[:, :3, 3] = rows[:, :3]
+    return T
 
 
 def ate_mm(rows, seq) -> float:
@@ -56,19 +73,92 @@ def loops_of(result) -> dict:
             "loops_rejected": status.count("rejected")}
 
 
+def loop_errors(seq, result) -> list:
+    """Each candidate loop that reached a transform: its status, the drift it should measure
+    (the true correction between its two frames, from the ground truth) and its error against
+    it (rotation °, translation mm at the later frame's camera)."""
+    lc = (result.trajectory or {}).get("loop_closure") or {"loops": []}
+    gt = np.asarray(seq.groundtruth_tum, float)
+    idx = np.clip(np.searchsorted(gt[:, 0], seq.timestamps), 0, len(gt) - 1)
+    prev = np.clip(idx - 1, 0, len(gt) - 1)
+    idx = np.where(np.abs(gt[prev, 0] - seq.timestamps) < np.abs(gt[idx, 0] - seq.timestamps), prev, idx)
+    ok = np.abs(gt[idx, 0] - seq.timestamps) < 0.02
+    truth, given = matrices(gt[idx, 1:]), matrices(seq.poses_tum)
+    C = truth @ np.linalg.inv(given)  # truth = C · input (up to the ground truth's own frame)
+    out = []
+    for lp in lc["loops"]:
+        if "T_earlier_later" not in lp:
+            continue
+        a, b = lp["frames"]
+        if not (ok[a] and ok[b]):
+            continue
+        T, G = np.asarray(lp["T_earlier_later"]), np.linalg.inv(C[a]) @ C[b]
+        p = given[b][:3, 3]
+        E = np.linalg.inv(G) @ T
+        sd = np.sqrt(np.diag(np.asarray(lp["covariance"]))) if "covariance" in lp else np.full(6, np.nan)
+        out.append({"frames": [a, b], "status": lp["status"],
+                    "drift_deg": float(np.degrees(Rotation.from_matrix(G[:3, :3]).magnitude())),
+                    "drift_mm": 1e3 * float(np.linalg.norm(G[:3, :3] @ p + G[:3, 3] - p)),
+                    "error_deg": float(np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude())),
+                    "error_mm": 1e3 * float(np.linalg.norm(T[:3, :3] @ p + T[:3, 3] - (G[:3, :3] @ p + G[:3, 3]))),
+                    "sigma_deg": float(np.degrees(np.max(sd[3:])))})
+    return out
+
+
 def row_of(seq, result, seconds: float, **more) -> dict:
     a_in, a_out = ate_mm(seq.poses_tum, seq), ate_mm(result.poses_tum, seq)
     t = result.trajectory or {}
     return {**more, "ate_input_mm": a_in, "ate_mm": a_out, "ratio": a_out / a_in, "start": t.get("start"),
-            "box_correlation": t.get("box_correlation"), **loops_of(result), "objects": len(result.objects),
-            "seconds": seconds}
+            **loops_of(result), "objects": len(result.objects), "seconds": seconds,
+            "checks": t.get("checks", []), "loop_errors": loop_errors(seq, result)}
 
 
 def show(r: dict) -> None:
     what = " ".join(f"{k} {r[k]}" for k in ("recording", "room", "rate", "seed", "mode") if k in r)
     loops = f"loops {r['loops_found']}/{r['loops_verified']}/{r['loops_rejected']}"
+    refused = [c["step"] for c in r["checks"] if not c["accepted"]]
     print(f"{what}: ATE {r['ate_input_mm']:.1f} → {r['ate_mm']:.1f} mm ({r['ratio']:.2f}×), start {r['start']}, "
-          f"{loops} (found/verified/rejected), {r['objects']} objects, {r['seconds']:.1f} s", flush=True)
+          f"{loops} (found/verified/rejected), {r['objects']} objects, {r['seconds']:.1f} s"
+          + (f"; refused by the check against the odometry: {', '.join(refused)}" if refused else ""), flush=True)
+
+
+def localize_study(a, settings) -> list:
+    """The last quarter of each drifted office recording localised against its first (module
+    docstring)."""
+    base = read_sequence(RECORDINGS["office"])
+    rows = []
+    for rate in (x for x in a.rates.split(",") if x):
+        st, sr_deg = (float(x) for x in rate.split(":"))
+        for seed in (int(x) for x in a.seeds.split(",") if x):
+            seq = drifted_sequence(base, st, np.radians(sr_deg), seed)
+            q = len(seq) // 4
+            first, last = np.arange(q), np.arange(len(seq) - q, len(seq))
+            C = matrices(base.poses_tum) @ np.linalg.inv(matrices(seq.poses_tum))  # truth = C · input
+            mid_a, mid_b = int(first[q // 2]), int(last[q // 2])
+            truth = np.linalg.inv(C[mid_a]) @ C[mid_b]  # x_first = truth · x_last, the inputs' frames
+            drift_deg = float(np.degrees(Rotation.from_matrix(truth[:3, :3]).magnitude()))
+            p = matrices(seq.poses_tum)[mid_b][:3, 3]
+            drift_mm = 1e3 * float(np.linalg.norm(truth[:3, :3] @ p + truth[:3, 3] - p))
+            t0 = time.perf_counter()
+            map_objects = run_sequence(seq.subset(first), settings).objects
+            row = {"rate": rate, "seed": seed, "drift_deg": drift_deg, "drift_mm": drift_mm}
+            try:
+                _, loc, _ = localize_sequence(seq.subset(last), map_objects, settings)
+                T = loc.T_map_sequence
+                E = np.linalg.inv(truth) @ T
+                row.update(status="localised", matches=len(loc.matches), rival=loc.runner_up,
+                           rotation_error_deg=float(np.degrees(Rotation.from_matrix(E[:3, :3]).magnitude())),
+                           translation_error_mm=1e3 * float(np.linalg.norm(T[:3, :3] @ p + T[:3, 3]
+                                                                            - (truth[:3, :3] @ p + truth[:3, 3]))))
+            except LocalizationError as e:
+                row.update(status="refused", reason=str(e))
+            row["seconds"] = time.perf_counter() - t0
+            rows.append(row)
+            print(f"office {rate} seed {seed}: drift between the quarters {drift_deg:.2f}°, {drift_mm:.0f} mm; "
+                  + (f"localised from {row['matches']} objects (rival {row['rival']}): off by "
+                     f"{row['rotation_error_deg']:.2f}° and {row['translation_error_mm']:.0f} mm"
+                     if row["status"] == "localised" else f"refused: {row['reason']}"), flush=True)
+    return rows
 
 
 def main() -> None:
@@ -86,9 +176,18 @@ def main() -> None:
     ap.add_argument("--room-seeds", default="0,1,2")
     ap.add_argument("--room-failures", action=argparse.BooleanOptionalAction, default=True,
                     help="outliers 0.1, missed 0.1 and truncation")
+    ap.add_argument("--localize", action="store_true", help="instead, the office's last quarter localised against "
+                    "its first")
     ap.add_argument("--out", type=Path)
     a = ap.parse_args()
     settings = RunSettings.of("multi-spd")
+    if a.localize:
+        doc = {"localize": localize_study(a, settings)}
+        if a.out:
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+            print(f"wrote {a.out}")
+        return
     rows, rooms = [], []
     for name in (x for x in a.recordings.split(",") if x):
         base = read_sequence(RECORDINGS[name])

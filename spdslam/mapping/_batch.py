@@ -244,9 +244,9 @@ def _map(seq: Sequence, run: RunSettings, tracks, verbose: bool, progress, first
         mode = "given" if tracks is not None else str(associate or default_association(seq))
     method = method.resolved(mode == "auto")
     replay = run.initial_poses == InitialPoses.INCREMENTAL
-    unbounded = absolute_sigma(mapping_sigmas(ctx, sigmas)) is None
-    walk = walk_covariances(ctx.wxyz_xyz, mapping_sigmas(ctx, sigmas), seq.segments) \
-        if unbounded and not hold_trajectory else None
+    in_use = mapping_sigmas(ctx, sigmas)
+    unbounded = absolute_sigma(in_use) is None
+    walk = walk_covariances(ctx.wxyz_xyz, in_use, seq.segments) if unbounded and not hold_trajectory else None
     checks: list = []
     start, fallback = None, None
 
@@ -299,6 +299,7 @@ def _map(seq: Sequence, run: RunSettings, tracks, verbose: bool, progress, first
     say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
 
     landmarks = {k: as_landmark(e, method) for k, e in front.ellipsoids.items()}
+    drift = None
     if not hold_trajectory and run.drift_interval > 0 and landmarks:
         with step("drift correction"):
             s = mapping_sigmas(ctx, sigmas)
@@ -400,5 +401,7 @@ def _map(seq: Sequence, run: RunSettings, tracks, verbose: bool, progress, first
     if unbounded:
         start_name = "held" if hold_trajectory else ("incremental" if start is not None else "input")
         result = dataclasses.replace(result, trajectory={"start": start_name, "checks": [c.as_dict() for c in checks]})
+    if drift is not None:  # the sigmas of the corrected trajectory's graph
+        in_use = mapping_sigmas(ctx, sigmas)
     return _Mapped(result, ctx, front.tracks, {k: solve.values[L(k)] for k in landmarks}, method,
-                   mapping_sigmas(ctx, sigmas), planes, min_views, max_iterations)
+                   in_use, planes, min_views, max_iterations)

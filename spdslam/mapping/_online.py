@@ -14,7 +14,13 @@ optional measured ellipsoids) in timestamp order. Per frame:
    solved by LM from the current estimates (warm start).
 
 The fixed-lag problem. Free: the poses of the last ``window`` frames and the objects that
-have factors not yet marginalised. Factors: the odometry between consecutive frames of the
+have factors not yet marginalised. On a trajectory without a bound on each pose (drifting
+odometry) the poses are held at the odometry instead (``hold_poses``; the boxes of a real
+detector do not fix a camera better than the odometry over a minute, and the window's free
+poses once followed them metres away on a real recording, docs/drift.md) unless
+``initial_poses="input"`` frees them; ``finish`` then holds them too. The odometry factors
+are ``_odometry.odometry_factors``' (the batch graph's), with the segments of a joined
+recording (``add_frame``'s ``new_segment``). Factors: the odometry between consecutive frames of the
 window (the first one from the frame before it, whose pose is held fixed; a prior on the
 first frame while the window starts there), the box (and measured-ellipsoid) factors not yet
 marginalised (their poses fixed when older than the window), each object's own factors
