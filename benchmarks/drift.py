@@ -182,12 +182,7 @@ def main() -> None:
     a = ap.parse_args()
     settings = RunSettings.of("multi-spd")
     if a.localize:
-        doc = {"localize": localize_study(a, settings)}
-        if a.out:
-            a.out.parent.mkdir(parents=True, exist_ok=True)
-            a.out.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
-            print(f"wrote {a.out}")
-        return
+        return write_out(a, {"localize": localize_study(a, settings)})
     rows, rooms = [], []
     for name in (x for x in a.recordings.split(",") if x):
         base = read_sequence(RECORDINGS[name])
@@ -221,7 +216,11 @@ def main() -> None:
             show(r)
     worst = max([r["ratio"] for r in rows + rooms] or [float("nan")])
     print(f"worst ratio to the input's ATE: {worst:.3f}")
-    doc = {"recordings": rows, "rooms": rooms, "worst_ratio": worst}
+    write_out(a, {"recordings": rows, "rooms": rooms, "worst_ratio": worst})
+
+
+def write_out(a, doc: dict) -> None:
+    """``doc`` as JSON to ``--out``, when given."""
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")

@@ -271,20 +271,15 @@ class RunSettings:
         object.__setattr__(self, "drift_interval", float(di))
         object.__setattr__(self, "initial_poses",
                            _choice("initial_poses", InitialPoses, self.initial_poses))
-        if self.initial_poses == InitialPoses.LOOPS:
+        if self.initial_poses in (InitialPoses.LOOPS, InitialPoses.INCREMENTAL):
+            moves = "loops move" if self.initial_poses == InitialPoses.LOOPS else "incremental moves"
             if self.hold_trajectory:
-                raise SettingsError("initial_poses", "loops move the poses, which hold_trajectory holds: "
+                raise SettingsError("initial_poses", f"{moves} the poses, which hold_trajectory holds: "
                                     "expected input or auto")
             if self.drift_interval > 0:
                 raise SettingsError("initial_poses", "a drift correction starts from the input poses: "
                                     "expected input or auto with drift_interval")
         if self.initial_poses == InitialPoses.INCREMENTAL:
-            if self.hold_trajectory:
-                raise SettingsError("initial_poses", "incremental moves the poses, which hold_trajectory "
-                                    "holds: expected input or auto")
-            if self.drift_interval > 0:
-                raise SettingsError("initial_poses", "a drift correction starts from the input poses: "
-                                    "expected input or auto with drift_interval")
             if not maps_online(self.method):
                 raise SettingsError("initial_poses", "incremental replays the frames through the online "
                                     "mapper, which takes SPD or RTS landmarks and one box model (inverse "
