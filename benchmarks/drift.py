@@ -27,6 +27,10 @@ truncation=True``) and without instance ids.
 
     python3 benchmarks/drift.py [--recordings fr2,office] [--rates 0.0005:0.025,0.001:0.05,0.003:0.15]
         [--seeds 0,1,2] [--online] [--compare input] [--rooms/--no-rooms] [--localize] [--out FILE]
+        [--against EARLIER.json]
+
+``--against`` compares each row with the same row of an earlier ``--out`` (a refactoring
+must leave them equal to 1e-9).
 """
 
 from __future__ import annotations
@@ -179,6 +183,8 @@ def main() -> None:
     ap.add_argument("--localize", action="store_true", help="instead, the office's last quarter localised against "
                     "its first")
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--against", type=Path, help="an earlier --out of this benchmark: each row's ATE against its "
+                    "row there (a refactoring's check: the same to 1e-9)")
     a = ap.parse_args()
     settings = RunSettings.of("multi-spd")
     if a.localize:
@@ -216,7 +222,33 @@ def main() -> None:
             show(r)
     worst = max([r["ratio"] for r in rows + rooms] or [float("nan")])
     print(f"worst ratio to the input's ATE: {worst:.3f}")
-    write_out(a, {"recordings": rows, "rooms": rooms, "worst_ratio": worst})
+    doc = {"recordings": rows, "rooms": rooms, "worst_ratio": worst}
+    if a.against:
+        doc["against"] = {"file": str(a.against), **compare_rows(rows + rooms, json.loads(a.against.read_text()))}
+    write_out(a, doc)
+
+
+def compare_rows(rows: list, earlier: dict) -> dict:
+    """Each row's ATE and loop counts against the same row (recording or room, rate, seed,
+    mode) of an ``earlier`` run of this benchmark; prints and returns the largest relative
+    ATE difference, the rows whose counts differ and those the earlier run lacks."""
+    def key(r):
+        return r.get("recording", r.get("room")), str(r["rate"]), r["seed"], r["mode"]
+
+    old = {key(r): r for r in earlier.get("recordings", []) + earlier.get("rooms", [])}
+    worst, differ, missing = 0.0, [], []
+    for r in rows:
+        o = old.get(key(r))
+        if o is None:
+            missing.append(key(r))
+            continue
+        worst = max(worst, abs(r["ate_mm"] - o["ate_mm"]) / max(abs(o["ate_mm"]), 1e-12))
+        if any(r[f] != o[f] for f in ("loops_found", "loops_verified", "loops_rejected", "objects")):
+            differ.append(key(r))
+    print(f"against the earlier run: {len(rows) - len(missing)} rows compared, largest relative ATE difference "
+          f"{worst:.1e}, {len(differ)} with other loop or object counts, {len(missing)} not in it")
+    return {"compared": len(rows) - len(missing), "worst_relative_ate": worst, "counts_differ": differ,
+            "missing": missing}
 
 
 def write_out(a, doc: dict) -> None:

@@ -25,7 +25,7 @@ Each row: mean IoU over the 7 ground-truth objects (class-aware), over the match
 the mean centre error of the matched, the ATE (part B) and the cost of each factor kind at
 the optimum. Then the whitened box residuals ‖W r‖ (per box, 4 edges) at the optimum of row
 A2 (true association) and of the automatic association without a kernel: the measurement
-behind the robust kernel's threshold (``mapping.AUTO_BOX_KERNEL``).
+behind the robust kernel's threshold (``mapping.SETTINGS.auto_box_kernel``).
 
 ``--up`` prints only how far the up direction estimated from the cameras (``io.estimate_up``)
 is from the motion capture's vertical, for each trajectory.
@@ -45,8 +45,8 @@ from spdslam.evaluation import (absolute_trajectory_error, evaluate_objects, mov
 from spdslam.frontend import Track, estimate_support_planes
 from spdslam.geometry.se3 import to_tum
 from spdslam.io import MapObject, import_oaslam
-from spdslam.mapping import (METHODS, SequenceContext, associate_tracks, build_graph,
-                             cost_by_factor, initialize_objects, run_sequence)
+from spdslam.mapping import METHODS, SequenceContext, build_graph, run_sequence
+from spdslam.mapping._run import associate_tracks, cost_by_factor, initialize_objects
 from spdslam.solver import L, LevenbergMarquardt, NonlinearFactorGraph, Problem, Values, X
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,7 +71,7 @@ def oracle_tracks(seq) -> list:
 def solve(ctx, tracks, start: dict, method, planes=None):
     """Objects optimised with the poses held: (values, graph)."""
     lms = {t.id: start[t.id] for t in tracks}
-    graph = build_graph(ctx, tracks, lms, method, "inverse", planes=planes, odometry=False)
+    graph = build_graph(ctx, tracks, lms, method, planes=planes, odometry=False)
     values = Values()
     for i, T in enumerate(ctx.poses):
         values[X(i)] = T

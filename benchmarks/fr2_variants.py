@@ -47,7 +47,7 @@ def _row(name, seq, r, dt, poses=None):
 def halves(seq) -> None:
     import numpy as np
 
-    from spdslam.mapping import degenerate, implausibly_flat
+    from spdslam.mapping._run import degenerate, implausibly_flat
 
     n = len(seq)
     for name, idx in (("first half", np.arange(n // 2)), ("second half", np.arange(n // 2, n))):

@@ -60,7 +60,7 @@ def make_problem(name: str):
         from spdslam.mapping import METHODS, build_graph
 
         seq, tracks, lms, values, _ = scaling.scene(10000, 100, 0)
-        return build_graph(seq, tracks, lms, METHODS["multi-spd"], "inverse"), values
+        return build_graph(seq, tracks, lms, METHODS["multi-spd"]), values
     raise ValueError(f"unknown problem {name!r}; expected one of {', '.join(PROBLEMS)}")
 
 

@@ -180,7 +180,7 @@ def floors_study(halves, maps, M, settings, a) -> None:
         for item in a.floors.split(","):
             fc, fs = (float(x) for x in item.split(":"))
             ref = refine_localization(seq, result.objects, maps[map_k], loc, poses_tum=result.poses_tum,
-                                      center_sigma=fc, shape_sigma=fs)
+                                      floors=(fc, fs))
             rot, trans, _ = errors(ref.T_map_sequence, ref.scale)
             rows.append({"map": map_k, "recording": rec_k, "floors": [fc, fs], "rotation_deg": rot,
                          "translation_m": trans, "note": ref.notes[-1]})

@@ -193,7 +193,7 @@ def worker(frames: int, objects: int, iterations: int, seed: int, order_names,
         if ev == "/jax/core/compile/backend_compile_duration" else None)
     seq, tracks, lms, values, t_gen = scene(frames, objects, seed)
     t0 = time.perf_counter()
-    graph = build_graph(seq, tracks, lms, METHODS["multi-spd"], "inverse")
+    graph = build_graph(seq, tracks, lms, METHODS["multi-spd"])
     t_build = time.perf_counter() - t0
     kinds: dict = {}
     for f in graph:
@@ -266,7 +266,7 @@ def recompile_worker(frames: int, objects: int, seed: int) -> dict:
     for scale in (1.0, 1.03, 1.1, 1.3, 1.0):
         F = int(round(frames * scale))
         seq, tracks, lms, values, _ = scene(F, objects, seed)
-        graph = build_graph(seq, tracks, lms, METHODS["multi-spd"], "inverse")
+        graph = build_graph(seq, tracks, lms, METHODS["multi-spd"])
         p = Problem(graph, values)
         shapes = sorted(int(ix[0].shape[0]) for ix in p.gidx)
         n0 = len(events)

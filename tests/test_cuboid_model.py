@@ -28,8 +28,9 @@ from spdslam.factors import (
     semi_inverse_cuboid_box_residual,
     tangent_jacobians,
 )
-from spdslam.frontend import multi_initialize
-from spdslam.mapping import Method, object_shape, run_sequence
+from spdslam.frontend import multi_initialize, MultiFit
+from spdslam.mapping import Method, run_sequence
+from spdslam.mapping._context import object_shape
 from spdslam.io import ClassPrior, Priors
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
@@ -218,14 +219,15 @@ def test_multi_initialize_cuboid_recovers_a_noise_free_box_object():
     e = upright_ellipsoid()
     poses = ring_of_views(np.asarray(e.center))
     boxes = np.stack([np.asarray(project_cuboid_box(e, T, CAM)) for T in poses])
-    got = multi_initialize(boxes, poses, CAM, up=[0, 0, 1], support_plane=[0, 0, 1, 0], shape="cuboid")
+    got = multi_initialize(boxes, poses, CAM, up=[0, 0, 1], support_plane=[0, 0, 1, 0],
+                           fit=MultiFit(shape="cuboid"))
     np.testing.assert_allclose(got.center, e.center, atol=1e-6)
     np.testing.assert_allclose(got.P, e.P, atol=1e-6)
     # the ellipsoid model on the same boxes inflates the radii (the motivation)
     ell = multi_initialize(boxes, poses, CAM, up=[0, 0, 1], support_plane=[0, 0, 1, 0])
     assert np.all(np.asarray(ell.radii) > np.asarray(e.radii) * 1.05)
     with pytest.raises(ValueError, match="shape must be one of"):
-        multi_initialize(boxes, poses, CAM, up=[0, 0, 1], shape="box")
+        multi_initialize(boxes, poses, CAM, up=[0, 0, 1], fit=MultiFit(shape="box"))
 
 
 def test_object_shape_from_method_or_class_priors():
@@ -259,12 +261,12 @@ def test_build_graph_uses_the_cuboid_factors_for_cuboid_classes():
     assert {tr.id for tr in tracks} <= set(init)
     for shape, kinds in (("cuboid", {"inverse_cuboid_box"}), ("ellipsoid", {"inverse_box"})):
         method = Method("x", object_shape=shape)
-        graph = build_graph(seq, tracks, init, method, "inverse")
+        graph = build_graph(seq, tracks, init, method)
         box_kinds = {f.kind for f in graph if "box" in f.kind}
         assert box_kinds == kinds
         # every box factor carries a truncation mask, so they all batch together
         assert all(len(f.args) == 3 for f in graph if "box" in f.kind)
-        semi = build_graph(seq, tracks, init, method, "semi")
+        semi = build_graph(seq, tracks, init, method.replace(box_model="semi"))
         assert {f.kind for f in semi if "box" in f.kind} == {
             k.replace("inverse", "semi_inverse") for k in kinds}
 

@@ -17,26 +17,11 @@ from scipy.spatial.transform import Rotation
 from spdslam.evaluation import absolute_trajectory_error
 from spdslam.geometry import Ellipsoid
 from spdslam.io import MapObject, write_sequence
-from spdslam.mapping import (
-    RIVAL_MARGIN,
-    WALK_LIMIT,
-    LocalizationError,
-    Loop,
-    OnlineMapper,
-    RunSettings,
-    SequenceContext,
-    SettingsError,
-    TransformGate,
-    build_graph,
-    check_trajectory,
-    localize_objects,
-    mapping_sigmas,
-    odometry_factors,
-    run_online,
-    run_sequence,
-    solve_pose_graph,
-    walk_covariances,
-)
+from spdslam.mapping import LocalizationError, OnlineMapper, RunSettings, SequenceContext, SettingsError, build_graph, localize_objects, run_online, run_sequence
+from spdslam.mapping._graph import mapping_sigmas
+from spdslam.mapping._loops import Loop, solve_pose_graph
+from spdslam.mapping._odometry import WALK_LIMIT, check_trajectory, odometry_factors, walk_covariances
+from spdslam.mapping._reuse import RIVAL_MARGIN, TransformGate
 from spdslam.solver import X
 from spdslam.synthetic import drifted_sequence, make_room_sequence
 
@@ -120,8 +105,8 @@ def test_one_function_makes_the_odometry_of_the_batch_and_of_a_window():
     seq = replace(seq, segments=(20,), priors=seq.priors.replace(trajectory_absolute_sigma=[0.01, 0.01]))
     ctx = SequenceContext.of(seq)
     s = mapping_sigmas(ctx)
-    graph = build_graph(ctx, [], {}, RunSettings().method, "inverse", odometry=True)
-    mine = [f.keys for f in build_graph(ctx, [], {}, RunSettings().method, "inverse", odometry=False)]
+    graph = build_graph(ctx, [], {}, RunSettings().method, odometry=True)
+    mine = [f.keys for f in build_graph(ctx, [], {}, RunSettings().method, odometry=False)]
     assert mine == []
     whole = sorted(f.keys for f in graph)
     assert whole == sorted(f.keys for f in _expand(odometry_factors(ctx.wxyz_xyz, seq.segments, s)))
@@ -255,11 +240,18 @@ def test_a_joined_recording_replayed_online_has_no_odometry_across_the_join():
     seq = make_room_sequence(0, frames=24, objects=3)
     seq = replace(seq, priors=seq.priors.replace(trajectory_absolute_sigma=[0.002, 0.002]))
     joined = replace(seq, segments=(12,))
-    m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", every=4)
+    m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", every=4, window=30,
+                     initial_poses="input")
     from spdslam.mapping._online import replay
 
-    replay(joined, m, {}, {})
+    by_frame = {}
+    for d in joined.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    replay(joined, m, by_frame, {})
     assert m.sequence().segments == (12,)
+    pairs = {tuple(sorted(k.index for k in keys)) for f in m._last_graph if f.kind == "between"
+             for keys in ([f.keys] if len(f.keys) == 2 else [f.keys[i:i + 2] for i in range(0, len(f.keys), 2)])}
+    assert (10, 11) in pairs and (12, 13) in pairs and (11, 12) not in pairs
     with pytest.raises(ValueError, match="a new segment needs a pose"):
         OnlineMapper(seq.camera, seq.priors, "multi-spd").add_frame(0.0, seq.poses_tum[0], new_segment=True)
 

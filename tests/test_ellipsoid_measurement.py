@@ -24,7 +24,8 @@ from spdslam.factors import (
     ellipsoid_measurement_residual,
 )
 from spdslam.frontend import tracks_from_instances
-from spdslam.mapping import METHODS, build_graph, initialize_from_measurements, run_sequence
+from spdslam.mapping import METHODS, build_graph, run_sequence
+from spdslam.mapping._run import initialize_from_measurements
 from spdslam.solver import L, X
 from spdslam.evaluation import evaluate_objects
 from spdslam.geometry.se3 import quat_to_matrix
@@ -260,14 +261,14 @@ def test_graph_has_one_factor_per_assigned_measurement(room):
     landmarks = {g.id: Ellipsoid.from_axes(g.cuboid.rotation, g.cuboid.center, g.cuboid.half_extents)
                  for g in seq.objects_gt}
     tracks = tracks_from_instances(s2)
-    g = build_graph(s2, tracks, landmarks, METHODS["multi-spd"], "inverse")
+    g = build_graph(s2, tracks, landmarks, METHODS["multi-spd"])
     meas = [f for f in g.factors if f.kind == "ellipsoid_measurement"]
     assert len(meas) == len(ells)  # None / negative instance: no object; 9: no landmark
     assert {f.keys for f in meas} == {(X(m.frame), L(m.instance)) for m in ells}
     with pytest.raises(ValueError, match="unknown sigma"):
-        build_graph(s2, tracks, landmarks, METHODS["multi-spd"], "inverse", {"ellipsoid_shap": 1})
+        build_graph(s2, tracks, landmarks, METHODS["multi-spd"], {"ellipsoid_shap": 1})
     # the sigmas are overridable like the others
-    g2 = build_graph(s2, tracks, landmarks, METHODS["multi-spd"], "inverse", {"ellipsoid_center": 0.5})
+    g2 = build_graph(s2, tracks, landmarks, METHODS["multi-spd"], {"ellipsoid_center": 0.5})
     w = [f.sqrt_info for f in g2.factors if f.kind == "ellipsoid_measurement"]
     np.testing.assert_allclose(np.diag(w[0]), [10] * 6 + [2] * 3)
 
@@ -298,5 +299,5 @@ def test_measurements_are_left_out_under_automatic_association(room):
     r = run_sequence(mixed, "multi-spd", associate="auto", max_iterations=1)
     assert any("measured ellipsoids left out" in n for n in r.notes)
     assert not any("initialised from" in n for n in r.notes)
-    g = build_graph(mixed, [], {}, r.method, "inverse", measured={})
+    g = build_graph(mixed, [], {}, r.method, measured={})
     assert not any(f.kind == "ellipsoid_measurement" for f in g)

@@ -7,6 +7,7 @@ an upward import fails here whether or not any test happens to execute it.
 from __future__ import annotations
 
 import ast
+import inspect
 from pathlib import Path
 
 import pytest
@@ -298,3 +299,80 @@ def test_the_privacy_checks_can_fail(tmp_path):
         "spdslam/io/_readers.py:5 _kind (from spdslam.io._parse)",
     ]
     assert private_module_imports(pkg / "__init__.py", pkg) == []  # its own private modules
+
+
+# --- the mapping layer's shape ------------------------------------------------------------
+# In ``mapping`` and ``frontend`` no object reads another's ``_`` state (``self._x`` and
+# ``cls._x`` are its own; ``super()._x`` is a base class's private, overridden or called);
+# ``spdslam.mapping`` exports a small API, each name of it in docs/core.md.
+SHAPED = ("mapping", "frontend")
+MAX_MAPPING_NAMES = 25
+
+
+def private_attribute_reads(path: Path) -> list[str]:
+    """``file:line .name on what`` for each use of another object's ``_`` attribute."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not _is_dunder(node.attr):
+            if isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"):
+                continue
+            out.append(f"{path.name}:{node.lineno} .{node.attr} on {ast.unparse(node.value)}")
+    return out
+
+
+def test_no_object_in_mapping_or_frontend_reads_another_objects_private_state():
+    bad = [b for layer in SHAPED for path in sorted((PKG / layer).glob("*.py")) for b in private_attribute_reads(path)]
+    assert not bad, "reads of another object's private state:\n" + "\n".join(bad)
+
+
+def test_the_private_state_check_can_fail(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("class A(B):\n    def f(self, o):\n        self._a = o._b\n        super()._c()\n"
+                 "        return cls._d, o.__len__\n")
+    assert private_attribute_reads(f) == ["m.py:3 ._b on o", "m.py:4 ._c on super()"]
+
+
+def public_names(module) -> list[str]:
+    return sorted(n for n in vars(module) if not n.startswith("_") and not inspect.ismodule(getattr(module, n))
+                  and n != "annotations")
+
+
+def test_the_mapping_package_exports_a_small_documented_api():
+    import spdslam.mapping
+
+    names = public_names(spdslam.mapping)
+    assert len(names) <= MAX_MAPPING_NAMES, f"{len(names)} names: {', '.join(names)}"
+    core = (PKG.parent / "docs" / "core.md").read_text(encoding="utf-8")
+    missing = [n for n in names if f"`{n}`" not in core and f"`mapping.{n}`" not in core]
+    assert not missing, "public names docs/core.md does not name: " + ", ".join(missing)
+
+
+MAX_FUNCTION_LINES, MAX_PARAMETERS = 80, 8
+
+
+def oversized_functions(path: Path) -> list[str]:
+    """``file:line name`` of each function over ``MAX_FUNCTION_LINES`` lines or
+    ``MAX_PARAMETERS`` parameters (``self`` and ``cls`` aside, ``*args`` and ``**kw`` counted)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            a = node.args
+            params = [p.arg for p in a.posonlyargs + a.args + a.kwonlyargs if p.arg not in ("self", "cls")]
+            params += ["*"] * (a.vararg is not None) + ["**"] * (a.kwarg is not None)
+            lines = node.end_lineno - node.lineno + 1
+            if lines > MAX_FUNCTION_LINES or len(params) > MAX_PARAMETERS:
+                out.append(f"{path.name}:{node.lineno} {node.name}: {lines} lines, {len(params)} parameters")
+    return out
+
+
+def test_no_function_in_mapping_or_frontend_is_over_80_lines_or_8_parameters():
+    bad = [b for layer in SHAPED for path in sorted((PKG / layer).glob("*.py")) for b in oversized_functions(path)]
+    assert not bad, "functions to split:\n" + "\n".join(bad)
+
+
+def test_the_size_check_can_fail(tmp_path):
+    f = tmp_path / "m.py"
+    body = "".join(f"    x{i} = {i}\n" for i in range(80))
+    f.write_text(f"def long():\n{body}\ndef wide(self, a, b, c, d, e, f, g, *h, **i):\n    pass\n"
+                 "def fine(self, a, b, c, d, e, f, g, h):\n    pass\n")
+    assert oversized_functions(f) == ["m.py:1 long: 81 lines, 0 parameters", "m.py:83 wide: 2 lines, 9 parameters"]

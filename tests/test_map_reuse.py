@@ -16,15 +16,9 @@ import spdslam  # noqa: F401
 from spdslam import Camera, Ellipsoid, look_at, project_box
 from spdslam.geometry import align_rigid
 from spdslam.io import MapObject, read_sequence, write_sequence
-from spdslam.mapping import (
-    LocalizationError,
-    drift_knots,
-    localize_objects,
-    moved_sequence,
-    run_sequence,
-    transform_ellipsoid,
-    transform_poses_tum,
-)
+from spdslam.mapping import LocalizationError, localize_objects, moved_sequence, run_sequence, transform_ellipsoid
+from spdslam.mapping._drift import drift_knots
+from spdslam.mapping._reuse import transform_poses_tum
 from spdslam.solver import X
 from spdslam.synthetic import make_room_sequence
 
@@ -322,7 +316,7 @@ def test_a_joined_recording_moves_as_one_body_onto_the_objects_it_shares():
     off[:3, 3] = [0.08, 0.0, 0.0]
     joined = joined_sequence(seq, moved_sequence(seq, off))
     assert joined.segments == (40,) and len(joined) == 80
-    graph = build_graph(joined, [], {}, METHODS["multi-spd"], "inverse")  # the trajectory's factors
+    graph = build_graph(joined, [], {}, METHODS["multi-spd"])  # the trajectory's factors
     keys = {f.keys for f in graph if f.kind == "between"}
     assert (X(38), X(39)) in keys and (X(40), X(41)) in keys and (X(40), X(79)) in keys
     assert (X(39), X(40)) not in keys  # nothing across the junction
@@ -410,7 +404,7 @@ def test_a_drifting_trajectory_does_not_make_its_objects_poorly_observed():
     object is judged given the cameras (``map_result``): every object of a long drifting room
     is mapped, while the centre σ they report (the marginal) exceed the 0.1 m that dropped
     19 of the 24 as "poorly observed" before."""
-    from spdslam.mapping import MAX_CENTER_SIGMA
+    from spdslam.mapping._run import MAX_CENTER_SIGMA
 
     seq = make_room_sequence(1, frames=400, objects=24, drift=0.01)
     run = run_sequence(seq, "multi-spd", associate="instances", initial_poses="input")  # the poses free

@@ -18,7 +18,8 @@ from spdslam.frontend import (
     triangulate_rays,
 )
 from spdslam.geometry import Cuboid
-from spdslam.mapping import METHODS, Method, mapping_sigmas, run_sequence
+from spdslam.mapping import METHODS, Method, run_sequence
+from spdslam.mapping._graph import mapping_sigmas
 from spdslam.evaluation import evaluate_objects
 from spdslam.io import Detection, Sequence, read_sequence
 from spdslam.synthetic import DEFAULT_CAMERA
@@ -77,7 +78,8 @@ def test_faithful_rts_baseline_constrains_the_third_axis_and_the_stored_scales()
     the sorted ratios."""
     from spdslam.factors import ClassicOrientationFactor, ClassicShapeFactor, ShapeFactor
     from spdslam.frontend import tracks_from_instances
-    from spdslam.mapping import build_graph, initialize_objects
+    from spdslam.mapping import build_graph
+    from spdslam.mapping._run import initialize_objects
     from spdslam.mapping._run import as_landmark
     from spdslam.solver import L
 
@@ -87,7 +89,7 @@ def test_faithful_rts_baseline_constrains_the_third_axis_and_the_stored_scales()
     for name in ("multi-rts", "multi-rts-nearest"):
         init, _, _ = initialize_objects(seq, tracks, METHODS[name])
         landmarks = {k: as_landmark(e, METHODS[name]) for k, e in init.items()}
-        graph = build_graph(seq, [t for t in tracks if t.id in landmarks], landmarks, METHODS[name], "inverse")
+        graph = build_graph(seq, [t for t in tracks if t.id in landmarks], landmarks, METHODS[name])
         built[name] = (graph, landmarks)
     g, lms = built["multi-rts"]
     orient = [f for f in g if isinstance(f, ClassicOrientationFactor)]
@@ -173,7 +175,8 @@ def test_degenerate_objects_are_reported_not_mapped(monkeypatch):
     both crash the run: a zero radius in the report's cuboid)."""
     import spdslam.mapping._run as run_mod
     from spdslam.geometry import Ellipsoid
-    from spdslam.mapping import degenerate, run_sequence
+    from spdslam.mapping import run_sequence
+    from spdslam.mapping._run import degenerate
 
     assert degenerate(Ellipsoid(np.diag([1.0, 1.0, 1e-10]), np.zeros(3)))
     assert "non-finite" in degenerate(Ellipsoid(np.diag([1.0, np.nan, 1.0]), np.zeros(3)))

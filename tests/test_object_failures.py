@@ -14,13 +14,8 @@ import pytest
 
 from spdslam.frontend import Track
 from spdslam.geometry import Ellipsoid, EllipsoidRTS
-from spdslam.mapping import (
-    MappingError,
-    degenerate,
-    nesting_depths,
-    overlapping_duplicates,
-    run_sequence,
-)
+from spdslam.mapping import MappingError, run_sequence
+from spdslam.mapping._run import degenerate, nesting_depths, overlapping_duplicates
 from spdslam.solver import L, LevenbergMarquardt
 from spdslam.synthetic import make_room_sequence
 
@@ -50,13 +45,28 @@ def test_nesting_depths_are_the_pairwise_rule_and_skip_collapsed_objects():
     assert np.all(np.isfinite(D[:5, :5][~np.eye(5, dtype=bool)]))
 
 
+def test_duplicates_are_one_rule_for_the_batch_and_the_window():
+    """The deepest pair first, each object once, more views kept (the smaller id on a tie);
+    ``among`` (the online window) keeps only the pairs with one of its objects."""
+    P = np.diag([0.3, 0.2, 0.1]) ** 2
+    ells = {0: Ellipsoid(P, np.zeros(3)), 1: Ellipsoid(P, np.array([0.01, 0.0, 0.0])),
+            2: Ellipsoid(P, np.array([0.05, 0.0, 0.0])), 5: Ellipsoid(P, np.array([3.0, 0.0, 0.0])),
+            6: Ellipsoid(P, np.array([3.02, 0.0, 0.0]))}
+    labels = {0: "book", 1: "book", 2: "book", 5: "cup", 6: "book"}
+    views = {0: 3, 1: 3, 2: 9, 5: 4, 6: 4}
+    assert overlapping_duplicates(ells, labels, views) == [(0, 1)]  # 0-1 deepest; 2 left alone, 5/6 differ
+    assert overlapping_duplicates(ells, labels, views, among=[2]) == [(2, 1)]  # only pairs with 2: 1-2 (4 cm) before 0-2
+    assert overlapping_duplicates(ells, {**labels, 5: "book"}, views, among=[5]) == [(5, 6)]  # a tie: the smaller id
+    assert overlapping_duplicates(ells, labels, views, among=[7]) == []
+
+
 def test_a_collapsed_object_is_in_no_duplicate_pair():
     """np.linalg.solve on its P raised "Singular matrix" here before."""
     P = np.diag([0.3, 0.2, 0.1]) ** 2
     ells = {0: Ellipsoid(P, np.zeros(3)), 1: Ellipsoid(0.5 * P, np.array([0.05, 0.0, 0.0])),
             2: Ellipsoid(np.diag([0.09, 0.04, 0.0]), np.array([0.02, 0.0, 0.0]))}
     tracks = [_track(0, "book", 3), _track(1, "book", 4), _track(2, "book", 5)]
-    assert overlapping_duplicates(ells, tracks) == [(1, 0)]
+    assert overlapping_duplicates(ells, {t.id: t.label for t in tracks}, {t.id: len(t.frames) for t in tracks}) == [(1, 0)]
 
 
 def _collapse_after_optimisation(monkeypatch, which):

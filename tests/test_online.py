@@ -19,7 +19,7 @@ from spdslam.geometry import Ellipsoid, EllipsoidFull, manifold
 from spdslam.io import write_sequence
 from spdslam.mapping import OnlineMapper, run_online, run_sequence
 from spdslam.mapping._online import OnlineMapper as _Mapper
-from spdslam.mapping._online import _padded_size, _padded_sizes_above
+from spdslam.solver import FixedLagSmoother, padded_size, padded_sizes_above
 from spdslam.solver import L, NonlinearFactorGraph, Values
 from spdslam.synthetic import make_room_sequence
 
@@ -252,7 +252,7 @@ def test_marginal_prior_is_the_quadratic_it_replaces(rng):
     A = rng.normal(size=(9, 7))
     H = A @ A.T
     g = H @ rng.normal(size=9)  # in the range of H, as a sum of JᵀJ and Jᵀr is
-    offset, W = _Mapper._prior_from(H, g)
+    offset, W = FixedLagSmoother.prior_from(H, g)
     np.testing.assert_allclose(W.T @ W, H, atol=1e-9)
     x0 = Ellipsoid.from_axes(np.eye(3), [0.5, -0.2, 1.0], [0.4, 0.3, 0.2])
     f = LandmarkPriorFactor(L(0), x0, offset, sqrt_info=W)
@@ -330,8 +330,8 @@ def test_warmup_compiles_ahead_and_leaves_the_mapper_unchanged():
     grown = [gk for gk in group_kernels() if "box" in gk.cost.__name__
              and gk.sizes - before.get(id(gk), set())]
     assert grown  # the replay's box programs, and the sizes of two doublings beyond
-    assert any(set(_padded_sizes_above(s, 4)) <= gk.sizes
-               and max(_padded_sizes_above(s, 4)) in gk.sizes - before.get(id(gk), set())
+    assert any(set(padded_sizes_above(s, 4)) <= gk.sizes
+               and max(padded_sizes_above(s, 4)) in gk.sizes - before.get(id(gk), set())
                for gk in grown for s in gk.sizes)
 
 
@@ -345,14 +345,14 @@ def test_padding_follows_the_count_up_and_down(room):
 
     def rows(n_box, n_between):
         fs = [SimpleNamespace(kind="inverse_box")] * n_box + [SimpleNamespace(kind="between")] * n_between
-        return m._padding(fs, {})
+        return m._smoother.rows(fs, {})
 
     assert rows(10, 2) == {"inverse_box": 128, "between": 48}  # floors: 4·window, window + every + 8
     assert rows(500, 30)["inverse_box"] == 512
     assert rows(520, 30)["inverse_box"] == 768  # a third padded at most, not 1024
     assert rows(200, 30)["inverse_box"] == 256  # down again
-    assert [_padded_size(n) for n in (1, 9, 13, 17, 25, 384, 385)] == [8, 12, 16, 24, 32, 384, 512]
-    assert _padded_sizes_above(128, 4) == [192, 256, 384, 512]
+    assert [padded_size(n) for n in (1, 9, 13, 17, 25, 384, 385)] == [8, 12, 16, 24, 32, 384, 512]
+    assert padded_sizes_above(128, 4) == [192, 256, 384, 512]
 
 
 def _saved_map_and_recording(room, batch):
@@ -436,3 +436,24 @@ def test_run_online_takes_a_run_settings(room):
 
     result, records = run_online(room, RunSettings.of("multi-spd", associate="instances", max_iterations=3))
     assert len(records) == len(room) and result.iterations <= 3
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_a_collaborator_watches_the_map_as_it_grows(room, background):
+    """``watch(due, look)``: asked after each frame in the caller's thread, or on each map the
+    worker publishes in the background; ``look`` gets the objects only when ``due`` says so."""
+    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="instances", background=background)
+    asked, seen = [], []
+    m.watch(lambda count, frames: asked.append((count, frames)) or count >= 3,
+            lambda objects, frames: seen.append((sorted(objects), frames)))
+    for i in range(40):
+        m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+    m.wait()
+    frames = [f for _, f in asked]
+    assert frames == sorted(frames) and frames[-1] <= 40
+    if not background:
+        assert frames == list(range(1, 41))
+    assert seen and all(len(ids) >= 3 for ids, _ in seen)
+    assert [f for _, f in seen] == [f for c, f in asked if c >= 3]
+    last_ids = seen[-1][0]
+    assert set(last_ids) <= set(m.landmarks)

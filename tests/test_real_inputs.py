@@ -11,11 +11,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from spdslam.frontend import multi_initialize, screen_detections
+from spdslam.frontend import multi_initialize, MultiFit, screen_detections
 from spdslam.geometry import Camera, Ellipsoid, project_box
 from spdslam.io import ClassPrior, Detection, Priors, SequenceFormatError, read_priors, read_sequence, write_sequence
-from spdslam.mapping import (AUTO_BOX_KERNEL, METHODS, MIN_PLAUSIBLE_RADIUS, build_graph, check_sigma,
-                             implausibly_flat, mapping_sigmas, run_sequence)
+from spdslam.mapping import METHODS, build_graph, run_sequence
+from spdslam.mapping._graph import mapping_sigmas
+from spdslam.mapping._methods import AUTO_BOX_KERNEL, check_sigma
+from spdslam.mapping._run import MIN_PLAUSIBLE_RADIUS, implausibly_flat
 from spdslam.mapping._noise import estimate_step_sigma
 from spdslam.synthetic import make_room_sequence
 
@@ -70,12 +72,12 @@ def test_every_pose_is_bound_to_its_input_unless_the_bound_is_infinite():
     seq = make_room_sequence(0, frames=12, objects=1)
     lms = {}
     kinds = lambda g: [f.kind for f in g]  # noqa: E731
-    g = build_graph(seq, [], lms, METHODS["multi-spd"], "inverse")
+    g = build_graph(seq, [], lms, METHODS["multi-spd"])
     assert kinds(g).count("prior") == 1 and kinds(g).count("between") == 11  # drifting: no bound
     bound = dataclasses.replace(seq, priors=seq.priors.replace(trajectory_absolute_sigma=[0.01, 0.02]))
-    g = build_graph(bound, [], lms, METHODS["multi-spd"], "inverse")
+    g = build_graph(bound, [], lms, METHODS["multi-spd"])
     assert kinds(g).count("prior") == 12
-    assert kinds(build_graph(bound, [], lms, METHODS["multi-spd"], "inverse", odometry=False)) == []
+    assert kinds(build_graph(bound, [], lms, METHODS["multi-spd"], odometry=False)) == []
 
 
 def test_the_absolute_sigma_round_trips_through_priors_yaml(tmp_path):
@@ -148,7 +150,7 @@ def test_the_multi_constraint_start_is_not_snapped_upright():
         R, _ = (np.asarray(a) for a in e.axes())
         return np.degrees(np.arccos(np.max(np.abs(R.T @ up))))
 
-    upright = multi_initialize(boxes, poses, cam, up, tilt_sigma=None)
+    upright = multi_initialize(boxes, poses, cam, up, fit=MultiFit(tilt_sigma=None))
     free = multi_initialize(boxes, poses, cam, up)
     assert tilt_deg(upright) < 1e-6
     assert 0.25 < tilt_deg(free) < 4.0
@@ -167,7 +169,7 @@ def test_an_implausibly_flat_result_is_reported_not_mapped():
     reason (``map_result``), whatever made it."""
     from spdslam.factors import LandmarkPriorFactor, PriorFactor
     from spdslam.geometry.se3 import from_tum
-    from spdslam.mapping import Optimised, map_result
+    from spdslam.mapping._run import Optimised, map_result
     from spdslam.solver import L, NonlinearFactorGraph, Values, X
 
     seq = make_room_sequence(0, frames=3, objects=1)
@@ -180,7 +182,6 @@ def test_an_implausibly_flat_result_is_reported_not_mapped():
         final_cost, converged, reason = 0.0, True, "test"
 
     solved = Optimised(values=values, graph=graph, result=_Res(), initial_cost=0.0)
-    r = map_result(METHODS["multi-spd"], solved, {0: "book"}, {}, seq.timestamps[:1],
-                   {}, [], {"mode": "instances"}, priors=Priors())
+    r = map_result(METHODS["multi-spd"], solved, {0: "book"}, {}, seq.timestamps[:1], {}, priors=Priors())
     assert not r.objects and "poorly observed: flat" in r.failed[0]
 

@@ -39,14 +39,9 @@ from spdslam.io import (
     read_sequence,
     write_sequence,
 )
-from spdslam.mapping import (
-    MIN_RADIUS,
-    detection_rate,
-    parse_keyframes,
-    poorly_observed,
-    run_sequence,
-    select_keyframes,
-)
+from spdslam.mapping import run_sequence
+from spdslam.mapping._keyframes import parse_keyframes, select_keyframes
+from spdslam.mapping._run import MIN_RADIUS, detection_rate, poorly_observed
 from spdslam.solver import (
     L,
     LevenbergMarquardt,
@@ -197,7 +192,8 @@ def test_a_degenerate_object_does_not_leave_the_others_undetermined():
     (``mapped_uncertainty``, what ``run_sequence`` reports) are those of the graph without
     it — quadric-slam on fr2_desk lost all its 17 objects to this."""
     from spdslam.geometry import EllipsoidRTS
-    from spdslam.mapping import METHODS, build_graph, initialize_objects, mapped_uncertainty, object_uncertainty
+    from spdslam.mapping import METHODS, build_graph
+    from spdslam.mapping._run import initialize_objects, mapped_uncertainty, object_uncertainty
     from spdslam.frontend import tracks_from_instances
 
     seq = make_room_sequence(0, frames=40, objects=3)
@@ -210,7 +206,7 @@ def test_a_degenerate_object_does_not_leave_the_others_undetermined():
     flat_id = ids[0]
     R, c = np.asarray(init[flat_id].axes()[0]), np.asarray(init[flat_id].center)
     lms[flat_id] = EllipsoidRTS.from_axes(R, c, [0.3, 0.2, 0.0])
-    graph = build_graph(seq, [t for t in tracks if t.id in lms], lms, method, "inverse")
+    graph = build_graph(seq, [t for t in tracks if t.id in lms], lms, method)
     from spdslam.mapping._context import as_context
 
     values = Values({X(i): p for i, p in enumerate(as_context(seq).poses)} | {L(k): v for k, v in lms.items()})
@@ -358,7 +354,7 @@ def test_precision_recall_and_duplicates_against_the_ground_truth_objects():
 
 def test_overlapping_duplicates_and_merged_track():
     from spdslam.frontend import Track
-    from spdslam.mapping import merged_track, overlapping_duplicates
+    from spdslam.mapping._run import merged_track, overlapping_duplicates
 
     P = np.diag([0.3, 0.2, 0.1]) ** 2
     ells = {0: Ellipsoid(P, np.zeros(3)), 1: Ellipsoid(P * 0.5, np.array([0.1, 0.0, 0.0])),
@@ -372,7 +368,7 @@ def test_overlapping_duplicates_and_merged_track():
     tracks = [track(0, "book", [0, 1, 2]), track(1, "book", [2, 3, 4, 5]), track(2, "cup", [0]),
               track(3, "book", [1]), track(4, "book", [2])]
     # 0 and 1 nest (1 has more boxes: kept); 2 is a cup; 4's centre is outside 3 (0.25 > 0.2)
-    assert overlapping_duplicates(ells, tracks) == [(1, 0)]
+    assert overlapping_duplicates(ells, {t.id: t.label for t in tracks}, {t.id: len(t.frames) for t in tracks}) == [(1, 0)]
     m = merged_track(tracks[1], tracks[0])
     assert m.id == 1 and list(m.frames) == [0, 1, 2, 3, 4, 5]
     assert np.allclose(m.boxes[2], tracks[1].boxes[0]) and np.allclose(m.boxes[0], tracks[0].boxes[0])

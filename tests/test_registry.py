@@ -39,7 +39,7 @@ from spdslam.factors import (
     factor_types,
     robust_groups,
 )
-from spdslam.mapping import DEFAULT_MAPPING_SIGMAS, MAPPING_SIGMAS
+from spdslam.mapping._methods import DEFAULT_MAPPING_SIGMAS, MAPPING_SIGMAS
 from spdslam.solver import LevenbergMarquardt
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)

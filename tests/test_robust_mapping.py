@@ -13,7 +13,8 @@ from spdslam import cli
 from spdslam.synthetic import make_room_sequence
 from spdslam.factors import Cauchy, Huber, robust_groups
 from spdslam.frontend import tracks_from_instances
-from spdslam.mapping import METHODS, build_graph, initialize_objects, run_sequence
+from spdslam.mapping import METHODS, build_graph, run_sequence
+from spdslam.mapping._run import initialize_objects
 
 ROBUST_FACTOR_TYPES = robust_groups()
 from spdslam.evaluation import evaluate_run, match_objects, report_markdown
@@ -33,7 +34,7 @@ def test_robust_by_type_sets_the_kernels_of_those_factors(small):
         robust_by_type=(("odometry", "cauchy", 3.0), ("orientation", "huber", 0.5)),
     )
     init, _, _ = initialize_objects(small, tracks, method)
-    graph = build_graph(small, [t for t in tracks if t.id in init], init, method, "inverse")
+    graph = build_graph(small, [t for t in tracks if t.id in init], init, method)
     seen = set()
     for f in graph:
         seen.add(f.kind)

@@ -10,21 +10,8 @@ import pytest
 from conftest import cli_invoke
 
 from spdslam.experiments import JOB_SETTINGS
-from spdslam.mapping import (
-    METHOD_FIELDS,
-    METHODS,
-    RUN_OVERRIDES,
-    RUN_SETTING_NAMES,
-    Associate,
-    OnlineMapper,
-    OnlineSettings,
-    PlaneSource,
-    RunSettings,
-    SettingsError,
-    run_online,
-    run_sequence,
-    setting_help,
-)
+from spdslam.mapping import METHODS, OnlineMapper, OnlineSettings, RunSettings, SettingsError, run_online, run_sequence
+from spdslam.mapping._settings import METHOD_FIELDS, RUN_OVERRIDES, RUN_SETTING_NAMES, Associate, PlaneSource, setting_help
 from spdslam.synthetic import make_room_sequence
 
 

@@ -16,7 +16,7 @@ from spdslam.factors import (
     SemiInverseCuboidBoxFactor,
     inverse_box_residual,
 )
-from spdslam.frontend import InitializationError, multi_initialize, svd_initialize
+from spdslam.frontend import InitializationError, multi_initialize, MultiFit, svd_initialize
 from spdslam.solver import LevenbergMarquardt, NonlinearFactorGraph, Values
 
 CAM = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
@@ -123,15 +123,15 @@ def test_multi_initialize_is_not_biased_by_truncated_boxes(shape):
     poses, _ = _views(e)
     box_of = project_cuboid_box if shape == "cuboid" else project_box
     boxes = np.stack([_clip(np.asarray(box_of(e, T, CAM))) for T in poses])
-    kw = {"up": [0, 0, 1], "support_plane": [0, 0, 1, 0], "shape": shape}
-    est = multi_initialize(boxes, poses, CAM, truncation_margin=5.0, **kw)
+    kw = {"up": [0, 0, 1], "support_plane": [0, 0, 1, 0]}
+    est = multi_initialize(boxes, poses, CAM, fit=MultiFit(shape=shape, truncation_margin=5.0), **kw)
     np.testing.assert_allclose(est.P, e.P, atol=1e-5)
     np.testing.assert_allclose(est.center, e.center, atol=1e-5)
-    biased = multi_initialize(boxes, poses, CAM, **kw)
+    biased = multi_initialize(boxes, poses, CAM, fit=MultiFit(shape=shape), **kw)
     assert np.abs(np.asarray(biased.P) - np.asarray(e.P)).max() > 1e-2
     with pytest.raises(InitializationError, match="every box edge is truncated"):
         multi_initialize(np.array([[0.0, 0.0, 640.0, 480.0]] * 2), poses[:2], CAM,
-                         truncation_margin=5.0, up=[0, 0, 1])
+                         up=[0, 0, 1], fit=MultiFit(truncation_margin=5.0))
 
 
 def test_back_end_fit_is_not_biased_by_truncated_boxes():

@@ -119,7 +119,7 @@ FACTS: dict[str, Any] = {
 
 def setting(name: str) -> tuple[Any, str]:
     """(command-line default, help) of a field of ``RunSettings`` or (``online.NAME``)
-    ``OnlineSettings``, or the help of a ``RUN_OVERRIDES`` entry (default ``None``)."""
+    ``OnlineSettings``, or the help of a ``mapping.SETTINGS.overrides`` entry (default ``None``)."""
     if name in FACTS["overrides"]:
         return None, FACTS["overrides"][name]
     if name not in FACTS["settings"]:  # a new setting: read from the packages (slow) until
@@ -133,10 +133,10 @@ _MISSING: list[str] = []
 
 
 def _live_setting(name: str) -> tuple[Any, str]:
-    from ..mapping import OnlineSettings, RunSettings, setting_help
+    from ..mapping import SETTINGS, OnlineSettings, RunSettings
 
     cls = OnlineSettings if name.startswith("online.") else RunSettings
-    return _cli_default(cls.__dataclass_fields__[name.removeprefix("online.")].default), setting_help(name)
+    return _cli_default(cls.__dataclass_fields__[name.removeprefix("online.")].default), SETTINGS.help(name)
 
 
 def formats_help() -> str:
@@ -165,23 +165,16 @@ def live_facts() -> dict[str, Any]:
     by ``FACTS["settings"]``, the built-in formats (those defined in spdslam)."""
     from ..factors import robust_groups
     from ..io import ENTRY_POINT_GROUP, FORMATS
-    from ..mapping import (
-        AUTO_BOX_KERNEL,
-        DEFAULT_MAPPING_SIGMAS,
-        METHODS,
-        ROBUST_CHOICES,
-        ROBUST_KERNELS,
-        RUN_OVERRIDES,
-    )
+    from ..mapping import METHODS, SETTINGS
 
     return {
         "methods": tuple(METHODS),
-        "sigmas": tuple(sorted(DEFAULT_MAPPING_SIGMAS)),
-        "robust_choices": tuple(ROBUST_CHOICES),
-        "robust_kernels": tuple(ROBUST_KERNELS),
-        "auto_box_kernel": tuple(AUTO_BOX_KERNEL),
+        "sigmas": tuple(sorted(SETTINGS.sigmas)),
+        "robust_choices": tuple(SETTINGS.robust_choices),
+        "robust_kernels": tuple(SETTINGS.robust_kernels),
+        "auto_box_kernel": tuple(SETTINGS.auto_box_kernel),
         "robust_groups": tuple(robust_groups()),
-        "overrides": dict(RUN_OVERRIDES),
+        "overrides": dict(SETTINGS.overrides),
         "settings": {name: _live_setting(name) for name in [*FACTS["settings"], *_MISSING]},
         "format_entry_points": ENTRY_POINT_GROUP,
         "formats": tuple(f.describe() for f in FORMATS.values() if f.__module__.startswith("spdslam.")),

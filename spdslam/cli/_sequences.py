@@ -52,8 +52,8 @@ def _default(name: str):
 
 
 def _help(name: str, prefix: str = "") -> str:
-    """An option's help from the run's settings (``mapping.setting_help``, or the method
-    overrides' ``RUN_OVERRIDES``, as ``_help.FACTS`` copies them), as a sentence."""
+    """An option's help from the run's settings (``mapping.SETTINGS.help``, or the method
+    overrides' ``SETTINGS.overrides``, as ``_help.FACTS`` copies them), as a sentence."""
     text = setting(name)[1]
     return f"{prefix}: {text}." if prefix else f"{text[0].upper()}{text[1:]}."
 
@@ -113,13 +113,13 @@ def _load_sequence(path: Path, options: dict | None = None):
 def _parse_sigmas(items) -> dict:
     """``--sigma NAME=VALUE`` items as {NAME: number} (the values are checked by
     ``RunSettings``)."""
-    from ..mapping import DEFAULT_MAPPING_SIGMAS
+    from ..mapping import SETTINGS
 
     out = {}
     for item in items or []:
         name, sep, value = item.partition("=")
         if not sep:
-            fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(DEFAULT_MAPPING_SIGMAS))}, got "
+            fail(f"--sigma: expected NAME=VALUE with NAME one of {', '.join(sorted(SETTINGS.sigmas))}, got "
                 f"{item!r}")
         try:
             out[name.strip()] = float(value)

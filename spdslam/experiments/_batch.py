@@ -26,26 +26,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from ..mapping import (
-    METHOD_FIELDS,
-    RUN_OVERRIDES,
-    RUN_SETTING_NAMES,
-    RunSettings,
-    SettingsError,
-    setting_help,
-)
+from ..mapping import SETTINGS, RunSettings, SettingsError
 
 __all__ = ["BATCH_COLUMNS", "JOB_SETTINGS", "Job", "JobReport", "map_sequence",
            "read_manifest", "run_batch", "write_batch_report"]
 
 #: The settings a job may set, with what each means: the fields of ``mapping.RunSettings``
 #: (the method aside), every ``Method`` field as an override (``spdslam run``'s options for
-#: ``mapping.RUN_OVERRIDES``; a method switch a new factor adds is a key here unchanged) and
+#: ``mapping.SETTINGS.overrides``; a method switch a new factor adds is a key here unchanged) and
 #: ``overlay`` (``write_run``'s); ``spdslam run``'s options have the same names.
 JOB_SETTINGS = {
-    **{name: setting_help(name) for name in RUN_SETTING_NAMES if name != "method"},
-    **{name: f"override the method's {name} (mapping.Method)" for name in METHOD_FIELDS},
-    **RUN_OVERRIDES,
+    **{name: SETTINGS.help(name) for name in SETTINGS.run_names if name != "method"},
+    **{name: f"override the method's {name} (mapping.Method)" for name in SETTINGS.method_fields},
+    **SETTINGS.overrides,
     "overlay": "write overlay/ frames when the sequence has images (true or false)",
 }
 #: The synthetic room an online run with ``warmup`` replays first (``OnlineMapper.warmup``):

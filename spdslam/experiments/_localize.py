@@ -10,9 +10,8 @@ import numpy as np
 
 from ..evaluation import check_sequence
 from ..mapping import (
-    MIN_BOX_AGREEMENT,
     LocalizationError,
-    box_agreement,
+    confirm_by_boxes,
     joined_sequence,
     localize_objects,
     localized_result,
@@ -33,7 +32,7 @@ def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, toleran
     the objects' transform is kept in localization.json's ``from_objects``; under Sim(3) the
     scale too only with ``refine_scale``). Raises
     ``mapping.LocalizationError`` when the objects do not fix a unique transform, or the
-    recording's boxes contradict it (``mapping.box_agreement`` below ``MIN_BOX_AGREEMENT``;
+    recording's boxes contradict it (``mapping.confirm_by_boxes``;
     nothing is written: the caller writes afterwards) and ``ValueError`` when the run itself
     fails."""
     say = progress or (lambda message: None)
@@ -49,13 +48,7 @@ def localize_sequence(seq, map_objects, settings, *, sim3: bool = False, toleran
         loc = refine_localization(seq, result.objects, map_objects, loc, poses_tum=result.poses_tum,
                                   refine_scale=refine_scale)
     moved = localized_result(result, loc)
-    matched = {int(b) for _, b in loc.matches}
-    share, predicted = box_agreement(seq, [o for o in map_objects if int(o.id) in matched], moved.poses_tum[:, 1:])
-    if predicted and not share >= MIN_BOX_AGREEMENT:
-        raise LocalizationError(
-            f"the recording's boxes contradict the transform: they confirm {100 * share:.0f} % of the "
-            f"{predicted} sightings of the {len(matched)} matched map objects it predicts, below "
-            f"{100 * MIN_BOX_AGREEMENT:.0f} %")
+    share, predicted = confirm_by_boxes(seq, loc, map_objects, moved.poses_tum[:, 1:])
     doc = loc.as_dict()
     doc["box_agreement"] = {"share": share, "predicted": predicted}
     if refine:

@@ -315,7 +315,7 @@ class DriftBoxFactor(Factor):
     """A detected box seen from a drifting odometry: the camera pose T_wc at time t is data,
     its correction K(t) is interpolated between two knot variables (``jaxlie.SE3``) with
     the weight w = (t − t_a)/(t_b − t_a) (data), and the landmark is the third variable
-    (``drift_box_residual``: the inverse box model). ``spdslam.mapping.correct_drift`` fits
+    (``drift_box_residual``: the inverse box model). The mapping's drift correction (``mapping._drift``) fits
     the knots of a recording's drift to its boxes with it."""
 
     kind = "drift_box"

@@ -13,6 +13,7 @@ from ._association import association_scores as association_scores
 from ._association import merge_tracks as merge_tracks
 from ._association import tracks_from_instances as tracks_from_instances
 from ._initialization import InitializationError as InitializationError
+from ._initialization import MultiFit as MultiFit
 from ._initialization import multi_initialize as multi_initialize
 from ._initialization import svd_initialize as svd_initialize
 from ._initialization import triangulate_rays as triangulate_rays

@@ -137,6 +137,14 @@ class AssociationSettings:
         if not (np.isfinite(self.truncation_margin) and self.truncation_margin >= 0):
             raise ValueError(f"truncation_margin must be >= 0, got {self.truncation_margin!r}")
 
+    @classmethod
+    def of(cls, settings: AssociationSettings | None = None, **overrides) -> AssociationSettings:
+        """``settings`` (default the defaults) with ``overrides`` of its fields: the one way
+        the association's functions take their settings."""
+        if settings is None:
+            return cls(**overrides)
+        return dataclasses.replace(settings, **overrides) if overrides else settings
+
 
 @dataclass(frozen=True)
 class Association:
@@ -296,10 +304,10 @@ class _Scene:
 
     The normal equations are sums over the detections of per-detection terms (``terms``), so
     a fit needs only their sum: the tracker keeps one running sum per tracklet, and fits all
-    the tracklets a frame changes at once (``_fit_sums``).
+    the tracklets a frame changes at once (``fit_sums``).
     """
 
-    # the per-detection arrays (``_terms``), set with setattr
+    # the per-detection arrays (``detection_terms``), set with setattr
     frame: np.ndarray
     box: np.ndarray
     label: np.ndarray
@@ -317,7 +325,7 @@ class _Scene:
 
     def __init__(self, seq: Sequence, s: AssociationSettings):
         dets = seq.detections
-        self._setup(seq.camera, seq.priors, s)
+        self.setup(seq.camera, seq.priors, s)
         n = len(dets)
         self.F = len(seq)
         frame = np.array([d.frame for d in dets], dtype=int).reshape(n)
@@ -336,14 +344,22 @@ class _Scene:
         self.R = quat_to_matrix(poses[:, 3:7]).reshape(self.F, 3, 3)  # R_wc
         self.C = poses[:, :3]
         self.Rz = np.ascontiguousarray(self.R[:, :, 2])  # the optical axes, for depths
-        for name, value in self._terms(frame, box, label).items():
+        for name, value in self.detection_terms(frame, box, label).items():
             setattr(self, name, value)
         self.recT = np.ascontiguousarray(self.rec.T)  # the records by field, for the tracker
         order = np.argsort(self.frame, kind="stable")
         self.by_frame = np.split(order, np.searchsorted(self.frame[order], np.arange(1, self.F)))
-        self._cache: dict = {}  # the batch re-assignment's per-label and per-landmark arrays
+        self.cache: dict = {}  # the batch re-assignment's per-label and per-landmark arrays
 
-    def _setup(self, camera, priors, s: AssociationSettings) -> None:
+    @classmethod
+    def empty(cls, camera, priors, s: AssociationSettings) -> "_Scene":
+        """A scene without frames or detections (the online tracker's, grown frame by frame)."""
+        sc = cls.__new__(cls)
+        sc.setup(camera, priors, s)
+        sc.labels, sc.F = [], 0
+        return sc
+
+    def setup(self, camera, priors, s: AssociationSettings) -> None:
         """The camera, priors and per-class prior radius (what every detection's terms use)."""
         self.camera, self.priors, self.settings = camera, priors, s
         self.fx, self.fy, self.cx, self.cy = (float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
@@ -366,7 +382,7 @@ class _Scene:
                                          float(np.exp(np.mean(np.log(np.asarray(cp.radii))))))
         return self._class_radius[label]
 
-    def _terms(self, frame, box, label) -> dict:
+    def detection_terms(self, frame, box, label) -> dict:
         """The per-detection arrays of detections (frame (n,), box (n, 4), label index (n,))
         whose frames' poses are in ``self.R``, ``self.C``: ray, truncation, prior range,
         the fit's normal-equation terms (class docstring) and what its radii need (``rec``)."""
@@ -434,7 +450,7 @@ class _Scene:
                         np.where(has_h, r_v, np.where(has_w, r_h, med0)))
         return r_h, r_v, ok
 
-    def _fit_sums(self, S, tot, R, sizes, full: bool = True) -> Any:
+    def fit_sums(self, S, tot, R, sizes, full: bool = True) -> Any:
         """The coarse landmarks (class docstring) of k sets of detections at once, from the
         sums S (k, 24) of their terms (unit weights: tot (k,) the numbers of detections)
         and the records ``R`` (9, N) of their detections (``_radii``; ``sizes`` (k,)), as
@@ -471,7 +487,7 @@ class _Scene:
         radii = np.where(ok[:, None], np.stack([r_h, r_v], axis=1), 0.0)
         return _Fits(X, P, np.sqrt(radii[:, 0] * radii[:, 1]), A, plane, ok, radii)
 
-    def _records(self, idx) -> np.ndarray:
+    def records(self, idx) -> np.ndarray:
         """The records (9, N) of detections ``idx`` (``rec``, transposed)."""
         return self.rec[idx].T if self.recT is None else self.recT.take(idx, axis=1)
 
@@ -479,7 +495,7 @@ class _Scene:
         """The coarse landmark of detections ``idx`` (see the class docstring)."""
         idx = np.asarray(idx, dtype=int).reshape(-1)
         S = self.terms[idx].sum(axis=0)
-        fits = self._fit_sums(S[None], np.array([float(idx.size)]), self._records(idx), np.array([idx.size]))
+        fits = self.fit_sums(S[None], np.array([float(idx.size)]), self.records(idx), np.array([idx.size]))
         return fits.one(0, self.planes)
 
     def fit_groups(self, groups) -> _Fits:
@@ -487,7 +503,7 @@ class _Scene:
         groups = [np.asarray(g, dtype=int).reshape(-1) for g in groups]
         sizes = np.array([g.size for g in groups], dtype=int)
         cat = np.concatenate(groups) if groups else np.zeros(0, int)
-        return self._fit_sums(self.sums(cat, sizes), sizes.astype(float), self._records(cat), sizes)
+        return self.fit_sums(self.sums(cat, sizes), sizes.astype(float), self.records(cat), sizes)
 
     def sums(self, cat: np.ndarray, sizes: np.ndarray) -> np.ndarray:
         """The sums (k, 24) of the terms of k consecutive groups of detections ``cat``."""
@@ -502,7 +518,7 @@ class _Scene:
         frames B of a block of ``local_centres`` and its Toeplitz matrix (B, B + 2D) of
         weights g(i + D − r), frame i of the block, detection row r of its window."""
         key = ("window", window)
-        if key not in self._cache:
+        if key not in self.cache:
 
             def weights(d):
                 w = d / window
@@ -518,8 +534,8 @@ class _Scene:
             # the most frames whose products (B × (B + 2D)) @ ((B + 2D) × 19) BLAS keeps to one thread
             B = max(1, int((math.sqrt((2 * D + 1) ** 2 + 4 * _BLAS_ONE_THREAD / 19) - (2 * D + 1)) / 2))
             toeplitz = weights(np.arange(B)[:, None] + D - np.arange(B + 2 * D)[None, :])
-            self._cache[key] = (table, D, B, toeplitz)
-        return self._cache[key]
+            self.cache[key] = (table, D, B, toeplitz)
+        return self.cache[key]
 
     def local_centres(self, idx, fit: _Fit, frames, window: float) -> np.ndarray:
         """Centres (m, 3) of the landmark of ``idx`` seen at each of ``frames`` (m,): the fit
@@ -633,7 +649,7 @@ class _Scene:
 
 # the most multiply-adds (m·n·k) of a matrix product that OpenBLAS keeps to one thread
 _BLAS_ONE_THREAD = 65536 * 4
-# the 18 distinct of the 24 terms of a detection (``_Scene._terms``: the 3×3 matrices are
+# the 18 distinct of the 24 terms of a detection (``_Scene.detection_terms``: the 3×3 matrices are
 # symmetric), and the 24 from them
 _DISTINCT = np.array([0, 1, 2, 4, 5, 8, 9, 10, 11, 12, 13, 14, 16, 17, 20, 21, 22, 23])
 _ALL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5, 6, 7, 8, 9, 10, 11, 10, 12, 13, 11, 13, 14, 15, 16, 17])
@@ -715,8 +731,8 @@ class _Tracking:
         """New landmarks of tracklets ``ts`` from all their detections (running sums S)."""
         sizes = self.size[ts]
         cat = np.concatenate([self._members[t][:k] for t, k in zip(ts.tolist(), sizes.tolist())])
-        self.X[ts], self.P[ts], self.ok[ts] = sc._fit_sums(
-            self.S[ts], sizes.astype(float), sc._records(cat), sizes, full=False)
+        self.X[ts], self.P[ts], self.ok[ts] = sc.fit_sums(
+            self.S[ts], sizes.astype(float), sc.records(cat), sizes, full=False)
 
 
 def _track_frame(sc: _Scene, s: AssociationSettings, st: _Tracking, f: int, dets: np.ndarray,
@@ -850,7 +866,7 @@ def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]
     sizes = np.array([g.size for g in groups], dtype=int)
     cat = np.concatenate(groups) if N else np.zeros(0, int)
     S = _grown(sc.sums(cat, sizes), cap)  # the sums of the terms of each track
-    fits = sc._fit_sums(S[:N], sizes.astype(float), sc._records(cat), sizes)
+    fits = sc.fit_sums(S[:N], sizes.astype(float), sc.records(cat), sizes)
     X, radii, radius, ok = (_grown(a, cap) for a in (fits.X, fits.radii, fits.radius, fits.ok))
     cov = np.zeros((cap, 3, 3))
     cov[:N][fits.ok] = np.linalg.inv(fits.info[fits.ok])
@@ -882,7 +898,7 @@ def _merge(sc: _Scene, groups: list, s: AssociationSettings) -> tuple[list, int]
         groups.append(np.sort(np.concatenate([groups[a], groups[b]])))
         S[new] = S[a] + S[b]
         size = np.array([groups[-1].size])
-        fit = sc._fit_sums(S[new : new + 1], size.astype(float), sc._records(groups[-1]), size)
+        fit = sc.fit_sums(S[new : new + 1], size.astype(float), sc.records(groups[-1]), size)
         X[new], radii[new], radius[new], ok[new] = fit.X[0], fit.radii[0], fit.radius[0], fit.ok[0]
         label[new] = label[a]
         if ok[new]:
@@ -924,16 +940,16 @@ def _reassign(sc: _Scene, groups: list, s: AssociationSettings) -> list:
     rows, cols, vals = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros(0)]  # the allowed pairs
     for j, i in enumerate(keep.tolist()):
         g = np.asarray(groups[i], dtype=int)
-        if ("label", labs[j]) not in sc._cache:
+        if ("label", labs[j]) not in sc.cache:
             di = np.flatnonzero(sc.label == labs[j])
-            sc._cache["label", labs[j]] = (di,) + tuple(np.unique(sc.frame[di], return_inverse=True))
-        di, frames, inv = sc._cache["label", labs[j]]
+            sc.cache["label", labs[j]] = (di,) + tuple(np.unique(sc.frame[di], return_inverse=True))
+        di, frames, inv = sc.cache["label", labs[j]]
         key = ("iou", s.window, g.tobytes())
-        if key not in sc._cache:  # the IoU with each detection of the label
+        if key not in sc.cache:  # the IoU with each detection of the label
             X = sc.local_centres(g, fits.one(i, sc.planes), frames, s.window)
             boxes, vis = sc.project(X, fits.P[i], frames)
-            sc._cache[key] = np.where(vis[inv], box_iou(boxes[inv], sc.box[di]), 0.0)
-        iou = sc._cache[key]
+            sc.cache[key] = np.where(vis[inv], box_iou(boxes[inv], sc.box[di]), 0.0)
+        iou = sc.cache[key]
         hit = np.flatnonzero(iou >= s.iou_gate)
         rows.append(di[hit])
         cols.append(np.full(hit.size, j))
@@ -945,18 +961,18 @@ def _reassign(sc: _Scene, groups: list, s: AssociationSettings) -> list:
     hard = np.isin(sc.frame[r], sc.frame[r[clash]])
     owner[r[~hard]] = c[~hard]
     if hard.any():  # per frame, on the IoU of its detections (rows) with every landmark
-        if "row" not in sc._cache:
-            sc._cache["row"] = np.zeros(n, int)
+        if "row" not in sc.cache:
+            sc.cache["row"] = np.zeros(n, int)
             for dets in sc.by_frame:
-                sc._cache["row"][dets] = np.arange(dets.size)
+                sc.cache["row"][dets] = np.arange(dets.size)
         at = np.flatnonzero(hard)
         at = at[np.argsort(sc.frame[r[at]], kind="stable")]
         cuts = np.flatnonzero(np.diff(sc.frame[r[at]])) + 1
         for sel in np.split(at, cuts):
             dets = sc.by_frame[sc.frame[r[sel[0]]]]
             iou_f, allowed = np.zeros((dets.size, L)), np.zeros((dets.size, L), bool)
-            iou_f[sc._cache["row"][r[sel]], c[sel]] = v[sel]
-            allowed[sc._cache["row"][r[sel]], c[sel]] = True
+            iou_f[sc.cache["row"][r[sel]], c[sel]] = v[sel]
+            allowed[sc.cache["row"][r[sel]], c[sel]] = True
             rr, cc = _hungarian(1.0 - iou_f, allowed)
             owner[dets[rr]] = cc
     order = np.argsort(owner, kind="stable")  # each landmark's detections, ascending
@@ -987,11 +1003,7 @@ def associate_detailed(seq: Sequence, settings: AssociationSettings | None = Non
     ``overrides`` of :class:`AssociationSettings`) tune it.
     """
     t0 = time.perf_counter()
-    if settings is None:
-        settings = AssociationSettings(**overrides)
-    elif overrides:
-        settings = dataclasses.replace(settings, **overrides)
-    s = settings
+    s = AssociationSettings.of(settings, **overrides)
     sc = _Scene(seq, s)
     tracklets = _tracklets(sc, s)
     groups = [g for g in tracklets if g.size >= s.min_detections]
@@ -1073,14 +1085,9 @@ class OnlineTracker:
 
     def __init__(self, camera, priors=None, settings: AssociationSettings | None = None,
                  fit_window: int = 200, **overrides):
-        s = settings or AssociationSettings(**overrides)
-        if settings is not None and overrides:
-            s = dataclasses.replace(settings, **overrides)
+        s = AssociationSettings.of(settings, **overrides)
         self.settings, self.fit_window = s, int(fit_window)
-        sc = _Scene.__new__(_Scene)
-        sc._setup(camera, priors, s)
-        sc.labels, sc.F = [], 0
-        self._sc = sc
+        self._sc = _Scene.empty(camera, priors, s)
         self._lab: dict = {}
         self._dets, self._frames = _Grow(), _Grow()
         self._state = _Tracking(keep_fits=True)
@@ -1111,7 +1118,7 @@ class OnlineTracker:
                 sc.labels.append(lab)
         idx = np.array([self._lab[lab] for lab in labels], dtype=int)
         start = self._dets.n
-        self._dets.add(**sc._terms(np.full(len(boxes), f), boxes, idx))
+        self._dets.add(**sc.detection_terms(np.full(len(boxes), f), boxes, idx))
         self._sync()
         dets = np.arange(start, self._dets.n)
         st = self._state
@@ -1222,9 +1229,7 @@ def merge_tracks(tracks, seq: Sequence, settings: AssociationSettings | None = N
     same label, no shared frame, log-map shape distance, centre distance and joint
     reprojection within the gates of ``settings``. Returns new tracks numbered by first
     frame; each track's boxes must be detections of ``seq``."""
-    s = settings if settings is not None else AssociationSettings(**overrides)
-    if settings is not None and overrides:
-        s = dataclasses.replace(settings, **overrides)
+    s = AssociationSettings.of(settings, **overrides)
     sc = _Scene(seq, s)
     groups, _ = _merge(sc, _detection_indices(tracks, seq), s)
     groups = [g[np.argsort(sc.frame[g], kind="stable")] for g in groups if g.size]

@@ -18,6 +18,9 @@ out of both fits.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -37,6 +40,7 @@ from ..geometry.se3 import as_pose, stack
 from ..solver import stored_jit
 
 __all__ = [
+    "MultiFit",
     "TILT_SIGMA",
     "InitializationError",
     "multi_initialize",
@@ -187,14 +191,16 @@ def _multi_model(theta, frame, has_plane):
     return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
 
 
-def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, shape,
-               tilt_w):
+def _multi_fit(theta0, frame, has_plane, views, camera, prior, shape, tilt_w):
     """LM on the box residuals of the constrained model, batched over the starts ``theta0``
     (upright, α = β = 0): with ``tilt_w`` > 0 the tilt (α, β) is free under a prior of weight
-    ``tilt_w`` (1/σ) towards upright, with 0 it is held at 0 (the upright model). ``mask``
-    (k, 4) weights each box edge (0: padding or truncated). Returns per start the cost and
-    the fitted ellipsoid's (P, centre)."""
+    ``tilt_w`` (1/σ) towards upright, with 0 it is held at 0 (the upright model). ``views``:
+    (poses, boxes, mask), ``mask`` (k, 4) weighting each box edge (0: padding or truncated);
+    ``prior``: (sorted log radii, weight). Returns per start the cost and the fitted
+    ellipsoid's (P, centre)."""
     box_of = project_cuboid_box if shape == "cuboid" else project_box
+    poses, boxes, mask = views
+    prior_log, prior_w = prior
 
     def residual(theta):
         e = _multi_model(theta, frame, has_plane)
@@ -239,9 +245,8 @@ def _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, 
 
 
 def _fit_of(shape: str):
-    def fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w, tilt_w):
-        return _multi_fit(theta0, frame, has_plane, poses, boxes, mask, camera, prior_log, prior_w,
-                          shape, tilt_w)
+    def fit(theta0, frame, has_plane, views, camera, prior, tilt_w):
+        return _multi_fit(theta0, frame, has_plane, views, camera, prior, shape, tilt_w)
 
     return fit
 
@@ -250,33 +255,45 @@ def _fit_of(shape: str):
 _MULTI_FIT = {s: stored_jit(_fit_of(s), f"frontend.multi_fit {s}") for s in OBJECT_SHAPES}
 
 
-def multi_initialize(
-    boxes,
-    poses,
-    camera: Camera,
-    up,
-    support_plane=None,
-    prior_radii=None,
-    prior_sigma: float = 0.2,
-    min_views: int = 2,
-    shape: str = "ellipsoid",
-    truncation_margin: float | None = None,
-    tilt_sigma: float | None = TILT_SIGMA,
-) -> Ellipsoid:
+@dataclass(frozen=True)
+class MultiFit:
+    """What the Quadric-Multi fit (``multi_initialize``) assumes beyond the boxes: the class
+    size prior ``prior_radii`` (semi-axes, any order; the sorted log radii with σ
+    ``prior_sigma``), the silhouette ``shape`` (``OBJECT_SHAPES``), ``truncation_margin``
+    (px: box edges within it of the image border are ignored) and ``tilt_sigma`` (rad,
+    the prior towards upright; None holds the axes upright)."""
+
+    prior_radii: Any = None
+    prior_sigma: float = 0.2
+    shape: str = "ellipsoid"
+    truncation_margin: float | None = None
+    tilt_sigma: float | None = TILT_SIGMA
+
+    def __post_init__(self):
+        if self.shape not in OBJECT_SHAPES:
+            raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {self.shape!r}")
+        t = self.tilt_sigma
+        if t is not None and not (np.isfinite(t) and t > 0):
+            raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {t!r}")
+
+
+def multi_initialize(boxes, poses, camera: Camera, up, support_plane=None, fit: MultiFit = MultiFit(),
+                     min_views: int = 2) -> Ellipsoid:
     """Multi-constraint ("Quadric-Multi") initial ellipsoid: one axis along ``up``, resting on
     ``support_plane`` (a·x + b·y + c·z + d = 0) when one is given, with the class size prior
-    ``prior_radii`` (semi-axes, any order; sorted log radii, σ = ``prior_sigma``) when given.
+    of ``fit`` (``MultiFit``) when it has one.
 
     Unknowns: the centre on the plane (2, or 3 without a plane), the yaw about ``up`` and the
     three radii (the centre sits one vertical radius above the plane). They are fitted to the
     boxes (inverse box model, 2 px) by LM from several yaws; the centre and radii start from
     the rays through the box centres and the box sizes. Needs ``min_views`` ≥ 2 views;
     of more than :data:`MULTI_FIT_VIEWS`, that many evenly spread over the track are used.
-    ``shape="cuboid"`` fits the box of the circumscribed cuboid (box-like objects) instead of
-    the ellipsoid's; the result is the cuboid's inscribed ellipsoid (radii = half-extents).
-    With ``truncation_margin`` (px) box edges within it of the image border are ignored.
+    ``fit.shape="cuboid"`` fits the box of the circumscribed cuboid (box-like objects)
+    instead of the ellipsoid's; the result is the cuboid's inscribed ellipsoid (radii =
+    half-extents). With ``fit.truncation_margin`` (px) box edges within it of the image
+    border are ignored.
 
-    Each start is upright (one axis along ``up``); with ``tilt_sigma`` (rad, default
+    Each start is upright (one axis along ``up``); with ``fit.tilt_sigma`` (rad, default
     ``TILT_SIGMA``) the tilt is free under a prior of that σ towards upright, so that the
     axes end where the boxes put them rather than snapped to ``up``; None holds them upright.
     """
@@ -286,15 +303,37 @@ def multi_initialize(
         boxes, poses = boxes[pick], [poses[i] for i in pick]
     if up is None:
         raise ValueError("multi-constraint initialisation needs the up direction")
-    if shape not in OBJECT_SHAPES:
-        raise ValueError(f"shape must be one of {', '.join(OBJECT_SHAPES)}, got {shape!r}")
-    keep = _keep(boxes, camera, truncation_margin)
+    keep = _keep(boxes, camera, fit.truncation_margin)
     if not keep.any():
         raise InitializationError("every box edge is truncated by the image border")
     frame = _plane_frame(up, support_plane)
+    starts = _multi_starts(boxes, poses, camera, keep, frame, support_plane is not None)
+    pad = MULTI_FIT_VIEWS - len(boxes)
+    poses_b = stack(poses + [poses[0]] * pad)
+    boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
+    mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
+    if fit.prior_radii is None:
+        prior_log, prior_w = np.zeros(3), 0.0
+    else:
+        prior_log, prior_w = np.sort(np.log(np.asarray(fit.prior_radii, dtype=float))), 1.0 / fit.prior_sigma
+    frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
+    tilt_w = 0.0 if fit.tilt_sigma is None else 1.0 / float(fit.tilt_sigma)
+    costs, Ps, centers = _MULTI_FIT[fit.shape](
+        jnp.asarray(starts), frame_j, jnp.asarray(support_plane is not None),
+        (poses_b, jnp.asarray(boxes_b), jnp.asarray(mask)), camera, (jnp.asarray(prior_log), prior_w), tilt_w)
+    costs = np.asarray(costs)
+    if not np.any(np.isfinite(costs)):
+        raise InitializationError("the constrained fit diverged from every start")
+    best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
+    return Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
+
+
+def _multi_starts(boxes, poses, camera: Camera, keep, frame, on_plane: bool) -> list:
+    """The fit's starts θ = (centre in the plane's frame, log radii, yaw, tilt), one per
+    yaw of ``_YAW_STARTS``: the centre from the rays through the box centres, the radii from
+    the box sizes at that depth (whole boxes when there are two, a truncated box's centre
+    and size are biased), resting on the plane when ``on_plane``."""
     e1, e2, n, w0 = frame
-    # the start comes from whole boxes when there are enough (a truncated box's centre and
-    # size are biased), else from every box
     whole = keep.all(axis=1)
     start = whole if whole.sum() >= 2 else np.ones(len(boxes), bool)
     origins, dirs, Rs = _box_rays(boxes[start], [T for T, u in zip(poses, start) if u], camera)
@@ -308,31 +347,7 @@ def multi_initialize(
     r_h = max(half_w, 1e-3)
     r_v = max(half_h, 1e-3)
     w = c0 @ n
-    if support_plane is not None:
+    if on_plane:
         r_v = max(0.5 * (r_v + max(w - w0, 1e-3)), 1e-3)
-    starts = []
-    for psi in _YAW_STARTS:
-        starts.append(
-            [c0 @ e1, c0 @ e2, w, np.log(r_h * np.sqrt(_START_ASPECT)),
-             np.log(r_h / np.sqrt(_START_ASPECT)), np.log(r_v), psi, 0.0, 0.0]
-        )
-    pad = MULTI_FIT_VIEWS - len(boxes)
-    poses_b = stack(poses + [poses[0]] * pad)
-    boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
-    mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
-    if prior_radii is None:
-        prior_log, prior_w = np.zeros(3), 0.0
-    else:
-        prior_log, prior_w = np.sort(np.log(np.asarray(prior_radii, dtype=float))), 1.0 / prior_sigma
-    frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
-    args = (frame_j, jnp.asarray(support_plane is not None), poses_b, jnp.asarray(boxes_b),
-            jnp.asarray(mask), camera, jnp.asarray(prior_log), prior_w)
-    if tilt_sigma is not None and not (np.isfinite(tilt_sigma) and tilt_sigma > 0):
-        raise ValueError(f"tilt_sigma must be a positive angle (rad) or None, got {tilt_sigma!r}")
-    tilt_w = 0.0 if tilt_sigma is None else 1.0 / float(tilt_sigma)
-    costs, Ps, centers = _MULTI_FIT[shape](jnp.asarray(starts), *args, tilt_w)
-    costs = np.asarray(costs)
-    if not np.any(np.isfinite(costs)):
-        raise InitializationError("the constrained fit diverged from every start")
-    best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
-    return Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
+    return [[c0 @ e1, c0 @ e2, w, np.log(r_h * np.sqrt(_START_ASPECT)), np.log(r_h / np.sqrt(_START_ASPECT)),
+             np.log(r_v), psi, 0.0, 0.0] for psi in _YAW_STARTS]

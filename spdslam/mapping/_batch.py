@@ -13,7 +13,7 @@ composes the steps (``_run``), each inside ``step(name)`` (docs/core.md draws th
         incremental                ``replayed_start``: the frames through the online mapper
                                    first, the poses the optimisation starts from, its objects
                                    and, with automatic association, its tracks
-    → _map: associate_tracks(ctx, …)  Association: tracks and how they were made
+    → _map: associate_tracks(ctx, …)  RunTracks: tracks and how they were made
           → initialize(ctx, …)     Initialization: initial ellipsoids, the views that see
                                    them, failures and notes
           → correct_drift          knots fitted to the boxes (``drift_interval``)
@@ -35,7 +35,7 @@ whole problem is a ``MappingError`` naming the step.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import jaxlie
@@ -48,10 +48,17 @@ from ..io import MapObject, Sequence, without_class_table
 from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ._context import SequenceContext
 from ._drift import correct_drift
-from ._graph import build_graph, mapping_sigmas, object_factors, trajectory_noise_note, with_robust_by_type
+from ._graph import (
+    build_graph,
+    initial_values,
+    mapping_sigmas,
+    object_factors,
+    trajectory_noise_note,
+    with_robust_by_type,
+)
 from ._keyframes import parse_keyframes, select_keyframes
 from ._loops import close_loops
-from ._methods import Method, robust_kernel
+from ._methods import Method
 from ._odometry import absolute_sigma, check_trajectory, walk_covariances
 from ._online import replayed_start
 from ._run import (
@@ -162,8 +169,7 @@ def stretch_objects(mapped: "_Mapped", stretches: list) -> list:
     there; degenerate ones are left out): every stretch's objects in one optimisation with
     the poses held, each started from the run's estimate of it."""
     ctx, method, s = mapped.ctx, mapped.method, mapped.sigmas
-    robust = robust_kernel(method.robust, method.robust_k)
-    stage = "inverse" if method.box_model == "semi-then-inverse" else method.box_model
+    stage = method.replace(box_model="inverse" if method.box_model == "semi-then-inverse" else method.box_model)
     factors: list = []
     values = Values()
     keys: list = []
@@ -179,7 +185,7 @@ def stretch_objects(mapped: "_Mapped", stretches: list) -> list:
                 continue
             key = m * big + int(tr.id)
             part = Track(key, tr.label, tr.frames[inside], tr.boxes[inside])
-            factors += object_factors(ctx, part, mapped.landmarks[tr.id], method, stage, s, robust, mapped.planes)
+            factors += object_factors(ctx, part, mapped.landmarks[tr.id], stage, s, mapped.planes)
             values[L(key)] = mapped.landmarks[tr.id]
             frames.update(int(f) for f in part.frames)
             mine.append((key, tr))
@@ -232,176 +238,257 @@ class _Mapper:
                     self.first_notes, hold_note)
 
 
+@dataclass
+class _Pass:
+    """One mapping pass (``_map``): the sequence, settings and what each stage leaves for
+    the next, in the order the stages set it."""
+
+    seq: Sequence
+    run: RunSettings
+    method: Method
+    ctx: SequenceContext
+    mode: str  # the association: given, instances or auto
+    say: Callable[[str], Any]
+    sigmas: dict  # the run's sigma overrides (a drift correction's bound added)
+    in_use: dict  # mapping_sigmas of the sequence as given
+    walk: Any  # walk_covariances on a free trajectory without a bound on each pose, else None
+    checks: list = field(default_factory=list)  # check_trajectory of each proposed trajectory
+    start: Any = None  # replayed_start's answer (initial_poses incremental)
+    fallback: str | None = None  # why the replay's start was not used
+    association: Any = None
+    front: Any = None  # Initialization
+    landmarks: dict = field(default_factory=dict)
+    drift: Any = None  # DriftCorrection
+    start_poses: Any = None  # (F, 7) where the optimisation starts the poses
+    solve: Any = None  # Optimised
+    optimizer: Any = None
+    planes: Any = None
+    labels: dict = field(default_factory=dict)  # the front end's objects {id: label}, merged or not
+
+    @property
+    def box_stages(self) -> list:
+        return ["semi", "inverse"] if self.method.box_model == "semi-then-inverse" else [self.method.box_model]
+
+    def note(self, text: str) -> None:
+        """A note after the initialisation's, said as it is made."""
+        self.front.notes.append(text)
+        self.say(text)
+
+
 def _map(seq: Sequence, run: RunSettings, tracks, verbose: bool, progress, first_notes: list,
          hold_note: str | None = None) -> _Mapped:
-    method, support_planes = run.method, run.support_planes
-    sigmas, min_views, hold_trajectory = dict(run.sigma), run.min_views, run.hold_trajectory
-    associate = None if run.associate is None else str(run.associate)
-    max_iterations, tolerance = run.max_iterations, run.tolerance
+    """One mapping pass over ``seq`` with ``run``: named stages over one ``_Pass``."""
+    p = _open(seq, run, tracks, progress)
+    _associate(p, tracks)
+    _initialise(p, first_notes, hold_note)
+    _correct_drift(p)
+    _start_solve(p, verbose, progress)
+    for stage in p.box_stages:
+        _optimise(p, stage, f"{stage} boxes")
+    _estimate_planes(p)
+    _merge_duplicates(p)
+    _check_joint(p)
+    return _result(p)
+
+
+def _open(seq: Sequence, run: RunSettings, tracks, progress) -> _Pass:
     say = progress or (lambda message: None)
     with step("association"):
         ctx = SequenceContext.of(seq)
-        mode = "given" if tracks is not None else str(associate or default_association(seq))
-    method = method.resolved(mode == "auto")
-    replay = run.initial_poses == InitialPoses.INCREMENTAL
-    in_use = mapping_sigmas(ctx, sigmas)
-    unbounded = absolute_sigma(in_use) is None
-    walk = walk_covariances(ctx.wxyz_xyz, in_use, seq.segments) if unbounded and not hold_trajectory else None
-    checks: list = []
-    start, fallback = None, None
+        mode = "given" if tracks is not None else str(run.associate or default_association(seq))
+    in_use = mapping_sigmas(ctx, dict(run.sigma))
+    free = absolute_sigma(in_use) is None and not run.hold_trajectory
+    walk = walk_covariances(ctx.wxyz_xyz, in_use, seq.segments) if free else None
+    return _Pass(seq, run, run.method.resolved(mode == "auto"), ctx, mode, say, dict(run.sigma), in_use, walk)
 
-    def replay_from(given):
-        """The replay's start (``replayed_start``), or None and a note when it failed on numbers
-        or moved the poses further than the odometry can have drifted."""
-        say(f"incremental initialisation: {len(seq)} frames through the online mapper")
-        with step("incremental initialisation"):
-            try:
-                got = replayed_start(seq, given, run.replace(method=method), say)
-            except OBJECT_ERRORS as e:  # the replay is a better start, never a reason to fail the run
-                why = (f"incremental initialisation failed ({type(e).__name__}: {e}): the optimisation "
-                       "starts from the input poses")
-                say(why)
-                return None, why
-        if walk is not None:
-            check = check_trajectory("incremental initialisation", ctx.wxyz_xyz, got.poses, walk)
-            checks.append(check)
-            if not check.accepted:
-                say(check.note())
-                return None, check.note()
-        return got, None
 
-    if replay and mode == "auto" and seq.detections:  # the online tracker associates on the corrected poses
-        start, fallback = replay_from(None)
+def _replay(p: _Pass, given) -> None:
+    """The replay's start (``replayed_start``), or a note (``fallback``) when it failed on
+    numbers or moved the poses further than the odometry can have drifted."""
+    p.say(f"incremental initialisation: {len(p.seq)} frames through the online mapper")
+    with step("incremental initialisation"):
+        try:
+            got = replayed_start(p.seq, given, p.run.replace(method=p.method), p.say)
+        except OBJECT_ERRORS as e:  # the replay is a better start, never a reason to fail the run
+            p.fallback = (f"incremental initialisation failed ({type(e).__name__}: {e}): the optimisation "
+                          "starts from the input poses")
+            p.say(p.fallback)
+            return
+    if p.walk is not None:
+        check = check_trajectory("incremental initialisation", p.ctx.wxyz_xyz, got.poses, p.walk)
+        p.checks.append(check)
+        if not check.accepted:
+            p.fallback = check.note()
+            p.say(p.fallback)
+            return
+    p.start = got
+
+
+def _associate(p: _Pass, tracks) -> None:
+    """The tracks (``associate_tracks``); with ``initial_poses`` incremental the replay,
+    before the association when it is automatic (the online tracker's tracks, made on the
+    corrected poses), else after it, on its tracks."""
+    replay = p.run.initial_poses == InitialPoses.INCREMENTAL
+    if replay and p.mode == "auto" and p.seq.detections:
+        _replay(p, None)
     with step("association"):
-        say(f"association: {len(seq.detections)} detections in {len(seq)} frames")
-        association = associate_tracks(ctx, tracks, associate, found=None if start is None else start.tracks)
-    say(f"association: {len(association.tracks)} tracks ({association.record.get('mode', 'given')})")
-    if replay and mode != "auto" and association.tracks:
-        start, fallback = replay_from(association.tracks)
+        p.say(f"association: {len(p.seq.detections)} detections in {len(p.seq)} frames")
+        associate = None if p.run.associate is None else str(p.run.associate)
+        p.association = associate_tracks(p.ctx, tracks, associate, found=None if p.start is None else p.start.tracks)
+    p.say(f"association: {len(p.association.tracks)} tracks ({p.association.record.get('mode', 'given')})")
+    if replay and p.mode != "auto" and p.association.tracks:
+        _replay(p, p.association.tracks)
+
+
+def _initialise(p: _Pass, first_notes: list, hold_note: str | None) -> None:
+    """The objects' first estimates (``initialize``; the replay's where it made them) and
+    the notes that open the run's: the screening's, the trajectory's, the replay's."""
+    start = p.start
     with step("initialisation"):
-        init_ctx = ctx if start is None else SequenceContext.of(dataclasses.replace(seq, poses_tum=to_tum(
+        ctx = p.ctx if start is None else SequenceContext.of(dataclasses.replace(p.seq, poses_tum=to_tum(
             jaxlie.SE3(start.poses))))  # type: ignore[arg-type]
-        front = initialize(init_ctx, association, method, min_views, support_planes)
+        front = initialize(ctx, p.association, p.method, p.run.min_views, p.run.support_planes)
         notes = list(first_notes)
-        notes.append((hold_note or "trajectory held at the input poses") if hold_trajectory
-                      else trajectory_noise_note(ctx, sigmas))
+        notes.append((hold_note or "trajectory held at the input poses") if p.run.hold_trajectory
+                     else trajectory_noise_note(p.ctx, p.sigmas))
         if start is not None:
             replayed = {k: v for k, v in start.landmarks.items() if k in front.ellipsoids}
             front.ellipsoids.update({k: as_ellipsoid(v) for k, v in replayed.items()})
-            moved = np.linalg.norm(start.poses[:, 4:] - ctx.wxyz_xyz[:, 4:], axis=1)
+            moved = np.linalg.norm(start.poses[:, 4:] - p.ctx.wxyz_xyz[:, 4:], axis=1)
             notes.append(f"incremental initialisation (the frames replayed through the online mapper first): "
                          f"cameras moved by {1e3 * np.median(moved):.4g} mm median, {1e3 * np.max(moved):.4g} mm "
                          f"most; {len(replayed)} of {len(front.ellipsoids)} objects from the replay")
-        if fallback is not None:
-            notes.append(fallback)
-        front = dataclasses.replace(front, notes=notes + front.notes)
-    say(front.notes[len(first_notes)])
-    say(f"initialisation: {len(front.ellipsoids)} objects, {len(front.failed)} not initialised")
+        if p.fallback is not None:
+            notes.append(p.fallback)
+        p.front = dataclasses.replace(front, notes=notes + front.notes)
+    p.say(p.front.notes[len(first_notes)])
+    p.say(f"initialisation: {len(p.front.ellipsoids)} objects, {len(p.front.failed)} not initialised")
+    p.landmarks = {k: as_landmark(e, p.method) for k, e in p.front.ellipsoids.items()}
 
-    landmarks = {k: as_landmark(e, method) for k, e in front.ellipsoids.items()}
+
+def _correct_drift(p: _Pass) -> None:
+    """Knots fitted to the boxes (``drift_interval``) on a trajectory without a bound on
+    each pose; the corrected trajectory, checked against the walk, replaces the input."""
+    if p.run.hold_trajectory or not p.run.drift_interval > 0 or not p.landmarks:
+        return
     drift = None
-    if not hold_trajectory and run.drift_interval > 0 and landmarks:
-        with step("drift correction"):
-            s = mapping_sigmas(ctx, sigmas)
+    with step("drift correction"):
+        s = mapping_sigmas(p.ctx, p.sigmas)
+        if np.isinf(s["absolute_translation"]) and np.isinf(s["absolute_rotation"]):
+            p.say(f"drift correction: knots about {p.run.drift_interval:g} s apart")
+            lm = LevenbergMarquardt(max_iterations=p.run.max_iterations, relative_tolerance=p.run.tolerance)
+            drift = correct_drift(p.ctx, p.front.tracks, p.landmarks, p.method, s, p.run.drift_interval,
+                                  p.front.planes, lm)
+        else:
+            p.front.notes.append("no drift correction: the trajectory has a bound on each pose "
+                                 "(trajectory_absolute_sigma)")
+    if drift is not None and p.walk is not None:
+        moved = SequenceContext.of(dataclasses.replace(p.seq, poses_tum=drift.poses_tum)).wxyz_xyz
+        check = check_trajectory("drift correction", p.ctx.wxyz_xyz, moved, p.walk)
+        p.checks.append(check)
+        if not check.accepted:
+            p.note(check.note())
             drift = None
-            if np.isinf(s["absolute_translation"]) and np.isinf(s["absolute_rotation"]):
-                say(f"drift correction: knots about {run.drift_interval:g} s apart")
-                drift = correct_drift(ctx, front.tracks, landmarks, method, s, run.drift_interval, front.planes,
-                                      max_iterations, tolerance)
-            else:
-                front.notes.append("no drift correction: the trajectory has a bound on each pose "
-                                   "(trajectory_absolute_sigma)")
-        if drift is not None and walk is not None:
-            check = check_trajectory("drift correction", ctx.wxyz_xyz,
-                                     SequenceContext.of(dataclasses.replace(seq, poses_tum=drift.poses_tum)).wxyz_xyz,
-                                     walk)
-            checks.append(check)
-            if not check.accepted:
-                front.notes.append(check.note())
-                say(front.notes[-1])
-                drift = None
-        if drift is not None:
-            seq = dataclasses.replace(seq, poses_tum=drift.poses_tum)
-            ctx = SequenceContext.of(seq)
-            sigmas = {**sigmas, "absolute_translation": float(drift.bound[0]),
-                      "absolute_rotation": float(drift.bound[3])}
-            landmarks.update(drift.landmarks)
-            front.notes.append(drift.note())
-            say(front.notes[-1])
-    values = Values()
-    start_poses = ctx.wxyz_xyz if start is None else start.poses
-    for i, T in enumerate(start_poses):
-        values[X(i)] = jaxlie.SE3(T)
-    for k, lm in landmarks.items():
-        values[L(k)] = lm
-    stages = ["semi", "inverse"] if method.box_model == "semi-then-inverse" else [method.box_model]
+    if drift is not None:
+        p.seq = dataclasses.replace(p.seq, poses_tum=drift.poses_tum)
+        p.ctx = SequenceContext.of(p.seq)
+        p.sigmas = {**p.sigmas, "absolute_translation": float(drift.bound[0]),
+                    "absolute_rotation": float(drift.bound[3])}
+        p.landmarks.update(drift.landmarks)
+        p.note(drift.note())
+        p.drift = drift
+
+
+def _start_solve(p: _Pass, verbose: bool, progress) -> None:
+    """The values the optimisation starts from, the LM solver and the keys it holds."""
+    p.start_poses = p.ctx.wxyz_xyz if p.start is None else p.start.poses
+    values = initial_values(p.start_poses, p.landmarks)
 
     def each_iteration(rec):
-        say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
-            f"({'accepted' if rec.accepted else 'rejected'}, {'Δ' if rec.radius else 'λ'} {rec.damping:.2g})")
+        p.say(f"LM iteration {rec.iteration}: cost {rec.cost:.6g} "
+              f"({'accepted' if rec.accepted else 'rejected'}, {'Δ' if rec.radius else 'λ'} {rec.damping:.2g})")
 
-    optimizer = LevenbergMarquardt(max_iterations=max_iterations, verbose=verbose,
-                                   relative_tolerance=tolerance,
-                                   callback=each_iteration if progress else None)
-    fixed = [X(i) for i in range(len(ctx.poses))] if hold_trajectory else []
-    solve = Optimised(values=values, fixed=fixed)
-    planes = front.planes
-    made: dict = {}  # box factors per track, across this run's graphs (build_graph's reuse)
+    p.optimizer = LevenbergMarquardt(max_iterations=p.run.max_iterations, verbose=verbose,
+                                     relative_tolerance=p.run.tolerance,
+                                     callback=each_iteration if progress else None)
+    fixed = [X(i) for i in range(len(p.ctx.poses))] if p.run.hold_trajectory else []
+    p.solve = Optimised(values=values, fixed=fixed)
+    p.planes = p.front.planes
 
-    def optimise(stage: str, what: str) -> dict:
-        """The graph of the current tracks, landmarks and planes, optimised: the landmarks."""
-        with step("graph"):
-            graph = build_graph(ctx, front.tracks, landmarks, method, stage, sigmas, front.measured,
-                                planes, odometry=not solve.fixed, reuse=made)
-        say(f"optimisation ({what}): {len(solve.values)} variables, {len(graph)} factors")
-        with step(f"optimisation ({what})"):
-            solve.add(graph, optimizer.optimize(graph, solve.values, fixed=solve.fixed))
-        return {k: solve.values[L(k)] for k in landmarks}
 
-    for stage in stages:
-        landmarks = optimise(stage, f"{stage} boxes")
-    if (support_planes == "optimised" and method.support_plane and ctx.up is not None
-            and not ctx.support_planes() and landmarks):
-        with step("support planes"):
-            estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in landmarks.items()}, ctx.up)
-        if len(estimated.planes):
-            planes = estimated
-            front.notes.append(planes_note(planes, ctx.up, "optimised"))
-            landmarks = optimise(stages[-1], "with the estimated support planes")
+def _optimise(p: _Pass, stage: str, what: str) -> None:
+    """The graph of the current tracks, landmarks and planes (``build_graph``), optimised;
+    the landmarks where it ended."""
+    with step("graph"):
+        graph = build_graph(p.ctx, p.front.tracks, p.landmarks, p.method.replace(box_model=stage), p.sigmas,
+                            p.front.measured, p.planes, odometry=not p.solve.fixed)
+    p.say(f"optimisation ({what}): {len(p.solve.values)} variables, {len(graph)} factors")
+    with step(f"optimisation ({what})"):
+        p.solve.add(graph, p.optimizer.optimize(graph, p.solve.values, fixed=p.solve.fixed))
+    p.landmarks = {k: p.solve.values[L(k)] for k in p.landmarks}
 
-    labels = {tr.id: tr.label for tr in front.tracks}  # the front end's objects, merged or not
-    if association.record.get("mode") == "auto":  # instance ids are trusted as given
-        with step("duplicates"):
-            pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in landmarks.items()},
-                                           front.tracks)
-            if pairs:
-                front = merge_duplicates(front, landmarks, pairs)
-                gone = {L(d) for _, d in pairs}
-                solve.values = Values({k: v for k, v in solve.values.items() if k not in gone})
+
+def _estimate_planes(p: _Pass) -> None:
+    """Support planes estimated from the optimised objects (``support_planes="optimised"``),
+    then the objects optimised again on them."""
+    if not (p.run.support_planes == "optimised" and p.method.support_plane and p.ctx.up is not None
+            and not p.ctx.support_planes() and p.landmarks):
+        return
+    with step("support planes"):
+        estimated = estimate_support_planes({k: as_ellipsoid(v) for k, v in p.landmarks.items()}, p.ctx.up)
+    if len(estimated.planes):
+        p.planes = estimated
+        p.front.notes.append(planes_note(estimated, p.ctx.up, "optimised"))
+        _optimise(p, p.box_stages[-1], "with the estimated support planes")
+
+
+def _merge_duplicates(p: _Pass) -> None:
+    """Objects of automatic association that are one object (``overlapping_duplicates``)
+    merged, then optimised again; instance ids are trusted as given."""
+    p.labels = {tr.id: tr.label for tr in p.front.tracks}
+    if p.association.record.get("mode") != "auto":
+        return
+    with step("duplicates"):
+        pairs = overlapping_duplicates({k: as_ellipsoid(v) for k, v in p.landmarks.items()}, p.labels,
+                                       {tr.id: len(tr.frames) for tr in p.front.tracks})
         if pairs:
-            landmarks = optimise(stages[-1], f"after merging {len(pairs)} duplicate objects")
+            p.front = merge_duplicates(p.front, p.landmarks, pairs)
+            gone = {L(d) for _, d in pairs}
+            p.solve.values = Values({k: v for k, v in p.solve.values.items() if k not in gone})
+    if pairs:
+        _optimise(p, p.box_stages[-1], f"after merging {len(pairs)} duplicate objects")
 
-    if walk is not None:  # the joint optimisation moved the poses: no further than the odometry allows
-        final = np.stack([np.asarray(solve.values[X(i)].wxyz_xyz) for i in range(len(ctx.poses))])
-        check = check_trajectory("the joint optimisation", ctx.wxyz_xyz, final, walk)
-        checks.append(check)
-        if not check.accepted:
-            front.notes.append(check.note())
-            say(front.notes[-1])
-            for i, T in enumerate(start_poses):
-                solve.values[X(i)] = jaxlie.SE3(T)
-            solve.fixed = [X(i) for i in range(len(ctx.poses))]
-            landmarks = optimise(stages[-1], "with the poses held where it started")
 
-    say("uncertainty: marginal covariances of the objects")
-    given = not solve.fixed and unbounded
+def _check_joint(p: _Pass) -> None:
+    """The poses the joint optimisation moved, against the odometry's walk; refused: the
+    objects optimised again with the poses held where it started."""
+    if p.walk is None:
+        return
+    n = len(p.ctx.poses)
+    final = np.stack([np.asarray(p.solve.values[X(i)].wxyz_xyz) for i in range(n)])
+    check = check_trajectory("the joint optimisation", p.ctx.wxyz_xyz, final, p.walk)
+    p.checks.append(check)
+    if check.accepted:
+        return
+    p.note(check.note())
+    for i, T in enumerate(p.start_poses):
+        p.solve.values[X(i)] = jaxlie.SE3(T)
+    p.solve.fixed = [X(i) for i in range(n)]
+    _optimise(p, p.box_stages[-1], "with the poses held where it started")
+
+
+def _result(p: _Pass) -> _Mapped:
+    """The ``MapResult`` (``map_result``) and what later steps read of the pass."""
+    p.say("uncertainty: marginal covariances of the objects")
+    unbounded = absolute_sigma(p.in_use) is None
+    given = not p.solve.fixed and unbounded
     with step("result"):
-        result = map_result(method, solve, labels, front.ellipsoids, seq.timestamps, front.failed,
-                            front.notes, association.record, priors=ctx.priors, given_poses=given)
+        result = map_result(p.method, p.solve, p.labels, p.front.ellipsoids, p.seq.timestamps, p.front.failed,
+                            priors=p.ctx.priors, given_poses=given)
+        result = dataclasses.replace(result, notes=list(p.front.notes), association=p.association.record)
     if unbounded:
-        start_name = "held" if hold_trajectory else ("incremental" if start is not None else "input")
-        result = dataclasses.replace(result, trajectory={"start": start_name, "checks": [c.as_dict() for c in checks]})
-    if drift is not None:  # the sigmas of the corrected trajectory's graph
-        in_use = mapping_sigmas(ctx, sigmas)
-    return _Mapped(result, ctx, front.tracks, {k: solve.values[L(k)] for k in landmarks}, method,
-                   in_use, planes, min_views, max_iterations)
+        start = "held" if p.run.hold_trajectory else ("incremental" if p.start is not None else "input")
+        result = dataclasses.replace(result, trajectory={"start": start, "checks": [c.as_dict() for c in p.checks]})
+    in_use = mapping_sigmas(p.ctx, p.sigmas) if p.drift is not None else p.in_use  # the corrected graph's
+    return _Mapped(result, p.ctx, p.front.tracks, dict(p.landmarks), p.method, in_use, p.planes,
+                   p.run.min_views, p.run.max_iterations)

@@ -3,7 +3,7 @@ the up direction and support planes, the class priors and each class's silhouett
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import jaxlie
@@ -23,7 +23,8 @@ class SequenceContext:
     ``wxyz_xyz`` (F, 7): the trajectory T_wc as jaxlie's SE(3) parameters, converted once from
     the TUM rows; ``poses``: one ``jaxlie.SE3`` per frame (views of those rows); ``up`` (unit,
     or None) and ``planes`` (support planes with unit normals facing up, or None): the
-    priors' one rule (``Priors.up_and_planes``).
+    priors' one rule (``Priors.up_and_planes``); ``box_factors``: the store of the box
+    factors built on this context.
     """
 
     seq: Sequence
@@ -31,6 +32,9 @@ class SequenceContext:
     poses: list
     up: np.ndarray | None
     planes: np.ndarray | None
+    #: the box factors made of each track in this context (``build_graph``), so that the
+    #: builds of one run make a track's once
+    box_factors: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def of(cls, seq: Sequence) -> "SequenceContext":

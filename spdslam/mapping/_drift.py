@@ -83,11 +83,12 @@ class DriftCorrection:
 
 
 def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method, s: dict, interval: float,
-                  planes=None, max_iterations: int = 100, tolerance: float = 1e-6) -> DriftCorrection | None:
+                  planes=None, optimizer: LevenbergMarquardt | None = None) -> DriftCorrection | None:
     """The drift correction of the trajectory of ``ctx`` (module docstring) from the boxes of
     ``tracks`` whose objects are in ``landmarks`` {id: landmark} and seen as ellipsoids
     (cuboid-shaped objects take no part), with the run's sigmas ``s``
-    (``mapping_sigmas``). None when no object takes part."""
+    (``mapping_sigmas``), solved by ``optimizer`` (default: LM's defaults). None when no
+    object takes part."""
     t = np.asarray(ctx.seq.timestamps, dtype=float)
     knot_times, j, w = drift_knots(t, interval)
     m = len(knot_times) - 1
@@ -103,7 +104,7 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
         factors.append(DriftBoxFactor.many([K(a) for a in j[f]], [K(a + 1) for a in j[f]], L(tr.id),
                                            ctx.wxyz_xyz[f], w[f], boxes, ctx.camera, sigma=sigma, robust=robust,
                                            truncation_margin=method.margin))
-        factors += object_factors(ctx, tr, landmarks[tr.id], method, "inverse", s, robust, planes, boxes=False)
+        factors += object_factors(ctx, tr, landmarks[tr.id], method, s, planes, boxes=False)
         used[tr.id] = landmarks[tr.id]
     if not used:
         return None
@@ -122,7 +123,7 @@ def correct_drift(ctx: SequenceContext, tracks, landmarks: dict, method: Method,
     for k, lm in used.items():
         values[L(k)] = lm
     graph = NonlinearFactorGraph(with_robust_by_type(factors, method))
-    res = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance).optimize(graph, values)
+    res = (optimizer or LevenbergMarquardt()).optimize(graph, values)
     knots = [res.values[K(i)] for i in range(m + 1)]
     K_all = np.stack([np.asarray(k.wxyz_xyz) for k in knots])
     Ka, Kb = jaxlie.SE3(K_all[j]), jaxlie.SE3(K_all[j + 1])  # type: ignore[arg-type]

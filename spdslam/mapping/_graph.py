@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import jaxlie
 import numpy as np
 
 from ..factors import (
@@ -51,7 +52,7 @@ from ..factors import (
     robust_groups,
 )
 from ..geometry import as_ellipsoid
-from ..solver import L, NonlinearFactorGraph, X
+from ..solver import L, NonlinearFactorGraph, Values, X
 from ._context import SequenceContext, as_context, object_shape
 from ._methods import (
     DEFAULT_MAPPING_SIGMAS,
@@ -64,7 +65,7 @@ from ._methods import (
 from ._noise import estimate_step_sigma
 from ._odometry import odometry_factors
 
-__all__ = ["OBJECT_FACTORS", "ObjectFactorRule", "ObjectInputs", "box_factors",
+__all__ = ["OBJECT_FACTORS", "ObjectFactorRule", "ObjectInputs", "box_factors", "initial_values",
            "build_graph", "mapping_sigmas", "measured_objects", "measurement_factors",
            "object_factors", "support_plane", "trajectory_noise_note", "with_robust_by_type"]
 
@@ -287,31 +288,34 @@ def box_factors(ctx: SequenceContext, track, method: Method, box_model: str, s: 
                             robust=robust, truncation_margin=method.margin)]
 
 
-def object_factors(ctx: SequenceContext, track, landmark, method: Method, box_model: str,
-                    s: dict, robust, planes=None, boxes: bool = True, reuse: dict | None = None
-                    ) -> list:
-    """The box factors of the track (``boxes``; taken from ``reuse`` when an earlier build
-    made them for the same track object and settings) and the object's own factors."""
-    key = L(track.id)
+def object_factors(ctx: SequenceContext, track, landmark, method: Method, s: dict, planes=None,
+                   boxes: bool = True) -> list:
+    """The box factors of the track (``boxes``; ``method.box_model``, "inverse" or "semi";
+    made once per track object and settings in a context, ``SequenceContext.box_factors``)
+    and the object's own factors (``OBJECT_FACTORS``)."""
     shape = object_shape(method, ctx.priors, track.label)
-    out = []
-    if boxes:
-        memo: tuple | None = (id(track), id(ctx), box_model, robust, method.margin, shape,
-                              tuple(sorted(s.items())))
-        try:
-            hit = None if reuse is None else reuse.get(memo)
-        except TypeError:  # a setting that cannot be a key: build afresh, keep nothing
-            memo, hit, reuse = None, None, None
-        if hit is not None and hit[0] is track and hit[1] is ctx:
-            out = list(hit[2])
-        else:
-            out = box_factors(ctx, track, method, box_model, s, robust)
-            if reuse is not None:  # the track and context kept alive, so their ids stay theirs
-                reuse[memo] = (track, ctx, tuple(out))
-    obj = ObjectInputs(ctx, track, key, landmark, method, shape, s, planes)
+    out = _box_factors_once(ctx, track, method, s, shape) if boxes else []
+    obj = ObjectInputs(ctx, track, L(track.id), landmark, method, shape, s, planes)
     for rule in OBJECT_FACTORS.values():
         if rule.uses(method):
             out += rule.make(obj)
+    return out
+
+
+def _box_factors_once(ctx: SequenceContext, track, method: Method, s: dict, shape: str) -> list:
+    """``box_factors``, taken from the context's store when an earlier build made them for
+    the same track object and settings (factors are immutable; a rebuild after merging two
+    tracks remakes only the merged one's)."""
+    robust = robust_kernel(method.robust, method.robust_k)
+    memo = (id(track), method.box_model, robust, method.margin, shape, tuple(sorted(s.items())))
+    try:
+        hit = ctx.box_factors.get(memo)
+    except TypeError:  # a setting that cannot be a key: build afresh, keep nothing
+        return box_factors(ctx, track, method, method.box_model, s, robust)
+    if hit is not None and hit[0] is track:
+        return list(hit[1])
+    out = box_factors(ctx, track, method, method.box_model, s, robust)
+    ctx.box_factors[memo] = (track, tuple(out))  # the track kept alive, so that its id stays its own
     return out
 
 
@@ -336,26 +340,42 @@ def with_robust_by_type(factors: list, method: Method) -> list:
     return [f.with_robust(by_kind[f.kind]) if f.kind in by_kind else f for f in factors]
 
 
-def build_graph(seq, tracks, landmarks: dict, method: Method, box_model: str,
-                sigmas: dict | None = None, measured: dict | None = None,
-                planes=None, odometry: bool = True, reuse: dict | None = None
-                ) -> NonlinearFactorGraph:
+def initial_values(poses, landmarks: dict, keys=None) -> Values:
+    """The ``Values`` an optimisation starts from: each of ``keys`` (default X(i) of every
+    pose, then L(k) of every landmark, in order), X(i) the pose ``poses[i]`` (a
+    ``jaxlie.SE3`` or its wxyz_xyz row), L(k) the landmark value ``landmarks[k]``."""
+    if keys is None:
+        keys = [X(i) for i in range(len(poses))] + [L(k) for k in landmarks]
+    values = Values()
+    for key in keys:
+        if key.chr == "l":
+            values[key] = landmarks[key.index]
+        else:
+            T = poses[key.index]
+            values[key] = T if isinstance(T, jaxlie.SE3) else jaxlie.SE3(np.asarray(T))  # type: ignore[arg-type]
+    return values
+
+
+def build_graph(seq, tracks, landmarks: dict, method: Method, sigmas: dict | None = None,
+                measured: dict | None = None, planes=None, odometry: bool = True) -> NonlinearFactorGraph:
     """The factor graph of a sequence (a ``Sequence`` or a ``SequenceContext``) for the
-    landmarks {id: landmark value} of the tracks, with the "inverse" or "semi" box model
-    (module docstring); ``measured`` the measured ellipsoids per object id (default: by
-    instance id); ``planes`` the estimated ``frontend.SupportPlanes`` (each object on its
-    own plane, or on none) instead of the priors' planes; ``odometry=False`` leaves out the
-    trajectory's factors (poses held fixed by the caller). ``reuse``: a dict the caller keeps
-    across the builds of one run, so that a track's box factors are made once (factors are
-    immutable; a rebuild after merging two tracks remakes only the merged one's)."""
+    landmarks {id: landmark value} of the tracks, with ``method.box_model``, "inverse" or
+    "semi" (module docstring; "semi-then-inverse" is two graphs, one per stage:
+    ``method.replace(box_model=stage)``); ``measured`` the measured ellipsoids per object id
+    (default: by instance id); ``planes`` the estimated ``frontend.SupportPlanes`` (each
+    object on its own plane, or on none) instead of the priors' planes; ``odometry=False``
+    leaves out the trajectory's factors (poses held fixed by the caller). A track's box
+    factors are made once per ``SequenceContext``: the builds of one run on one context
+    share them."""
+    if method.box_model not in ("inverse", "semi"):
+        raise ValueError(f"build_graph: box model {method.box_model!r} is one graph per stage: build each "
+                         "with method.replace(box_model='semi') or 'inverse'")
     ctx = as_context(seq)
     s = mapping_sigmas(ctx, sigmas)
-    robust = robust_kernel(method.robust, method.robust_k)
     factors = odometry_factors(ctx.wxyz_xyz, ctx.seq.segments, s) if odometry else []
     for tr in tracks:
         if tr.id in landmarks:
-            factors += object_factors(ctx, tr, landmarks[tr.id], method, box_model, s, robust,
-                                       planes, reuse=reuse)
+            factors += object_factors(ctx, tr, landmarks[tr.id], method, s, planes)
     measured = measured_objects(ctx) if measured is None else measured
-    factors += measurement_factors(ctx, measured, landmarks, s, robust)
+    factors += measurement_factors(ctx, measured, landmarks, s, robust_kernel(method.robust, method.robust_k))
     return NonlinearFactorGraph(with_robust_by_type(factors, method))

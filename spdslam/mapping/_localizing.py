@@ -23,7 +23,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..geometry import as_ellipsoid
 from ..io import MapObject
 from ._online import OnlineMap, OnlineMapper
 from ._reuse import (
@@ -83,24 +82,7 @@ class LocalizingMapper(OnlineMapper):
         self.localize_seconds = 0.0
         self._tried_with = 0
         self._first_new_id = max(ids) + 1
-
-    def add_frame(self, timestamp, pose=None, *, odometry=None, detections=(), ellipsoids=()):
-        """``OnlineMapper.add_frame``, then a try at localising when the map gained objects
-        (module docstring); in the background the worker tries instead, on each map it
-        publishes, so that a try never holds up a frame."""
-        rec = super().add_frame(timestamp, pose, odometry=odometry, detections=detections,
-                                ellipsoids=ellipsoids)
-        if not self.background and self._due(len(self.landmarks), len(self)):
-            self._step({k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())},
-                       len(self))
-        return rec
-
-    def _publish(self, n: int, figures) -> None:
-        """``OnlineMapper._publish``; in the background (the worker's thread), then a try
-        at localising on the map just published, of frames 0 … n − 1."""
-        super()._publish(n, figures)
-        if self.background and self._due(len(self._published.objects), n):
-            self._step(self._published.objects, n)
+        self.watch(self._due, self._step)  # in the caller's thread after each frame, or the worker's
 
     def _due(self, count: int, frames: int) -> bool:
         """Whether to try: at least three objects, and more than at the last try, or a

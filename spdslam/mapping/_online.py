@@ -49,7 +49,6 @@ from typing import Any, Callable, Iterable
 
 import jaxlie
 import numpy as np
-import scipy.sparse
 
 from ..factors import LandmarkPriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
@@ -57,6 +56,7 @@ from ..geometry import as_ellipsoid
 from ..geometry.se3 import as_pose, from_tum, to_tum
 from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence, without_class_table
 from ..solver import (
+    FixedLagSmoother,
     L,
     LevenbergMarquardt,
     NonlinearFactorGraph,
@@ -65,11 +65,13 @@ from ..solver import (
     X,
     ensure_compilation_cache,
     group_kernels,
+    padded_sizes_above,
 )
 from ._context import SequenceContext, camera_axes_of
 from ._graph import (
     box_factors,
     build_graph,
+    initial_values,
     mapping_sigmas,
     measurement_factors,
     object_factors,
@@ -81,24 +83,24 @@ from ._run import (
     Optimised,
     as_landmark,
     drop_rarely_detected,
+    in_front_views,
     initialize_objects,
     map_result,
-    nesting_depths,
-    wholly_in_front,
+    overlapping_duplicates,
+    too_few_views,
 )
 from ._settings import (
     Associate,
     InitialPoses,
     OnlineSettings,
     RunSettings,
-    as_settings,
+    as_online_settings,
     default_association,
 )
 
 __all__ = ["OnlineMapper", "FrameRecord", "OnlineMap", "ReplayedStart", "replay", "replayed_start", "run_online"]
 
 #: ``OnlineSettings``' fields, taken by ``OnlineMapper`` and ``run_online`` as keywords.
-ONLINE_FIELDS = tuple(f.name for f in dataclasses.fields(OnlineSettings))
 
 
 @dataclass(frozen=True)
@@ -170,22 +172,6 @@ class _Poses:
         return self.n
 
 
-def _padded_size(n: int) -> int:
-    """The smallest of 2ᵏ and 3·2ᵏ⁻¹ (k ≥ 3: 8, 12, 16, 24, 32, 48, …) that is ≥ max(n, 8)."""
-    n = max(int(n), 8)
-    p = 1 << int(np.ceil(np.log2(n)))
-    return p * 3 // 4 if p >= 16 and p * 3 // 4 >= n else p
-
-
-def _padded_sizes_above(n: int, factor: int) -> list:
-    """The sizes of ``_padded_size``'s grid above n, up to ``factor``·n."""
-    out, k = [], _padded_size(n + 1)
-    while k <= factor * n:
-        out.append(k)
-        k = _padded_size(k + 1)
-    return out
-
-
 def _detection(d, frame: int, timestamp: float) -> Detection:
     """A ``Detection`` of this frame from a Detection or (label, box[, score[, instance]])."""
     if isinstance(d, Detection):
@@ -234,12 +220,7 @@ class OnlineMapper:
     def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
                  association: AssociationSettings | None = None, name: str = "online",
                  compilation_cache: bool = True, **settings):
-        given = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
-        if given:
-            if isinstance(method, RunSettings) or "online" in settings:
-                raise TypeError(f"online settings given twice: {', '.join(given)} and a RunSettings or online")
-            settings["online"] = given
-        run = as_settings(method, settings)
+        run = as_online_settings(method, settings)
         online = run.online or OnlineSettings()
         run = run.replace(online=online, associate=run.associate or Associate.AUTO)
         self.settings, self.online = run, online
@@ -261,7 +242,7 @@ class OnlineMapper:
         self._segments: list = []  # the frames that start a later segment (add_frame's new_segment)
         self._user_sigmas = sigmas
         self._robust = robust_kernel(method.robust, method.robust_k)
-        self._optimizer = LevenbergMarquardt(max_iterations=online.iterations)
+        self._smoother = FixedLagSmoother(LevenbergMarquardt(max_iterations=online.iterations), self._floor)
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
         self._screen = run.screen
@@ -302,7 +283,21 @@ class OnlineMapper:
         self._worker: threading.Thread | None = None
         self._error: BaseException | None = None
         self._published = OnlineMap({}, np.zeros((0, 8)))
+        self._watchers: list = []
         self._prime()
+
+    def watch(self, due: Callable[[int, int], bool], look: Callable[[dict, int], Any]) -> None:
+        """Attach a collaborator that looks at the map as it grows (relocalisation against a
+        saved map: ``LocalizingMapper``): ``due(objects, frames)`` says whether to look at a
+        map of that many objects over that many frames, ``look(objects, frames)`` gets its
+        objects {id: (label, Ellipsoid)}. In the caller's thread after each frame, or in the
+        background in the worker's thread on each map it publishes (never holding up a frame)."""
+        self._watchers.append((due, look))
+
+    def _notify(self, count: int, frames: int, objects: Callable[[], dict]) -> None:
+        for due, look in self._watchers:
+            if due(count, frames):
+                look(objects(), frames)
 
     @staticmethod
     def _prime() -> None:
@@ -324,11 +319,12 @@ class OnlineMapper:
         first frame: ``sequence`` (a synthetic room, ``synthetic.make_room_sequence``, or a
         recording of the same kind) is replayed through a mapper of this one's method and
         settings (its priors; the sequence's labels renamed to their classes), then
-        discarded (``finish`` is not run); this mapper is unchanged. Programs are kept per factor kind and padded
-        size (2ᵏ and 3·2ᵏ⁻¹, ``_padding``), so those compiled here serve any sequence whose
-        fixed-lag problems reach the same sizes; each kind's programs are also compiled for
-        the sizes of two more doublings of the largest size the replay reached. Returns the seconds it took;
-        ``progress(frame, frames)`` after each frame."""
+        discarded (``finish`` is not run); this mapper is unchanged. Programs are kept per
+        factor kind and padded size (2ᵏ and 3·2ᵏ⁻¹, ``solver.padded_size``), so those compiled
+        here serve any sequence whose fixed-lag problems reach the same sizes; each kind's
+        programs are also compiled for the sizes of two more doublings of the largest size the
+        replay reached. Returns the seconds it took; ``progress(frame, frames)`` as
+        ``replay``'s."""
         t0 = time.perf_counter()
         # this mapper's priors (they decide which factors exist: class size and shape priors,
         # the trajectory's noise model), with the sequence's labels renamed to its classes
@@ -343,15 +339,12 @@ class OnlineMapper:
         by_frame: dict = {}
         for d in sequence.detections:
             by_frame.setdefault(d.frame, []).append(dataclasses.replace(d, label=rename.get(d.label, d.label)))
-        for i in range(len(sequence)):
-            twin.add_frame(sequence.timestamps[i], sequence.poses_tum[i], detections=by_frame.get(i, ()))
-            if progress:
-                progress(i + 1, len(sequence))
+        replay(sequence, twin, by_frame, {}, progress)
         # each factor kind's programs for the sizes of the next two doublings of its
         # largest, which a longer or busier recording reaches
         for gk in group_kernels():
             if gk.sizes:
-                gk.compile_sizes(_padded_sizes_above(max(gk.sizes), 4))
+                gk.compile_sizes(padded_sizes_above(max(gk.sizes), 4))
         return time.perf_counter() - t0
 
     def add_frame(self, timestamp: float, pose: Any = None, *, odometry: Any = None,
@@ -377,6 +370,7 @@ class OnlineMapper:
             self.records.append(rec)
             if due:
                 self._publish(len(self), figures)
+            self._notify(len(self.landmarks), len(self), self._objects)
             return self.records[-1]
         with self._lock:
             due = False
@@ -508,6 +502,9 @@ class OnlineMapper:
         for i in range(self._used, n):
             self.records[i] = dataclasses.replace(self.records[i], lag=now - self._arrival[i])
         self._used = n
+        if self.background:
+            published = self._published
+            self._notify(len(published.objects), n, lambda: published.objects)
 
     def _raise_worker_error(self) -> None:
         if self._error is not None:
@@ -571,8 +568,12 @@ class OnlineMapper:
 
     def _could_start(self, k) -> bool:
         n = len(self._views.get(k, ()))
-        need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
-        return n >= need and n >= 1.5 * self._tried.get(k, 0)
+        return n >= self._views_needed() and n >= 1.5 * self._tried.get(k, 0)
+
+    def _views_needed(self) -> int:
+        """The views a track needs before it is an object: ``min_views``, and with automatic
+        association the detections the batch association keeps a track for."""
+        return max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
 
     def _context(self) -> SequenceContext:
         """The context of the frames so far, with the current estimates as the poses."""
@@ -594,7 +595,7 @@ class OnlineMapper:
                 self._tried[k] = len(tr.frames)
                 continue
             e = init[k]
-            ok = wholly_in_front(e, camera_axes_of(self._est.array[tr.frames]))
+            ok, note = in_front_views(e, camera_axes_of(self._est.array[tr.frames]), k)
             if ok.sum() < self.min_views:
                 self._tried[k] = len(tr.frames)
                 continue
@@ -604,9 +605,8 @@ class OnlineMapper:
             self._views[k] = [v for v, good in zip(self._views[k], ok) if good]
             self._pending[k] = self._box_factors(k, self._views[k])
             self._pending_meas[k] = self._measurement(k, self._measured.get(k, []))
-            if not ok.all():
-                self.notes.append(f"object {k}: {int((~ok).sum())} of {ok.size} views dropped "
-                                  "(the initial ellipsoid is not wholly in front of the camera there)")
+            if note:
+                self.notes.append(note)
 
     def _join(self, keep, drop) -> None:
         """Track ``drop``'s views join object ``keep`` (``drop`` is no object)."""
@@ -620,32 +620,15 @@ class OnlineMapper:
         self._tried.pop(drop, None)
 
     def _merge_duplicates(self, active) -> None:
-        """Objects of ``active`` that are one object with another (automatic association):
-        the same label and each centre inside the other's ellipsoid (``nesting_depths`` < 1,
-        ``overlapping_duplicates``' rule, checked for the objects of the window against all); the one with more views is
-        kept and the other's views join it."""
+        """Objects of ``active`` that are one object with another (automatic association;
+        ``overlapping_duplicates``, the batch run's rule, for the objects of the window
+        against all): the one with more views is kept and the other's views join it."""
         if self._tracker is None or len(self.landmarks) < 2:
             return
-        ids = sorted(self.landmarks)
-        D = nesting_depths([as_ellipsoid(self.landmarks[k]) for k in ids])
-        labels = [self._label(k) for k in ids]
-        where = {k: i for i, k in enumerate(ids)}
-        gone: set = set()
-        for a in sorted(active):
-            if a in gone or a not in where:
-                continue
-            i = where[a]
-            depth = D[i]
-            for j in np.argsort(depth):
-                b = ids[j]
-                if depth[j] >= 1.0:
-                    break
-                if b in gone or labels[j] != labels[i]:
-                    continue
-                keep, drop = (a, b) if len(self._views[a]) >= len(self._views[b]) else (b, a)
-                self._merge(keep, drop)
-                gone.add(drop)
-                break
+        ells = {k: as_ellipsoid(v) for k, v in self.landmarks.items()}
+        labels = {k: self._label(k) for k in ells}
+        for keep, drop in overlapping_duplicates(ells, labels, {k: len(self._views[k]) for k in ells}, active):
+            self._merge(keep, drop)
 
     def _merge(self, keep, drop) -> None:
         """Object ``drop`` is object ``keep``: its views join it, its landmark and prior go."""
@@ -685,8 +668,8 @@ class OnlineMapper:
         marginal prior (``with_prior``)."""
         out = [fac for _, fac in items]
         if with_object:
-            out += object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method,
-                                   self.method.box_model, self._sigmas, self._robust, boxes=False)
+            out += object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method, self._sigmas,
+                                  boxes=False)
         if with_prior and k in self._prior:
             out.append(self._prior[k])
         return out
@@ -708,20 +691,18 @@ class OnlineMapper:
             self._marginalise(start)
             return 0, 0, 0
         graph = NonlinearFactorGraph(factors)
-        values = Values()
         keys = {key for f in factors for key in f.keys}
-        for key in keys:
-            values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
+        values = initial_values(self._est, self.landmarks, keys)
         fixed = [key for key in keys if key.chr == "x" and (key.index < start or self.hold_poses)]
         if start > 0:
             fixed.append(X(start - 1))
         fixed = sorted(set(fixed) & keys, key=lambda k: k.index)
-        res = self._optimizer.optimize(graph, values, fixed, rows=self._padding(factors, values))
+        res = self._smoother.optimize(graph, values, fixed)
         for key in keys:
             if key.chr == "l":
                 self.landmarks[key.index] = res.values[key]
             elif key.index >= start:
-                self._est._a[key.index] = np.asarray(res.values[key].wxyz_xyz)
+                self._est.array[key.index] = np.asarray(res.values[key].wxyz_xyz)
         if self._tracker is not None:
             for k in active:
                 e = as_ellipsoid(self.landmarks[k])
@@ -731,17 +712,12 @@ class OnlineMapper:
         free = len(keys) - len(fixed)
         return len(factors), free, res.iterations
 
-    def _padding(self, factors, values) -> dict:
-        """Rows to pad each factor kind and variable type to: the size of the grid 2ᵏ,
-        3·2ᵏ⁻¹ at or above the count (and a floor per kind), so that each kind compiles at
-        most two programs per doubling of its count (a few per run, all of them reached on
-        the way up) and pads at most a third of its rows; a problem that shrinks goes back to
-        a smaller shape, which costs less per solve."""
-        counts = Counter(f.kind for f in factors)
-        counts.update(type(values[k]).__name__ for k in values)
-        return {name: _padded_size(max(c, 4 * self.window if "box" in name else
-                                       self.window + self.every + 8 if name in ("between", "SE3") else 16))
-                for name, c in counts.items()}
+    def _floor(self, name: str) -> int:
+        """The fewest rows the smoother pads a factor kind or variable type to: the boxes of a
+        full window, the odometry and poses of a window and a batch of frames, 16 else."""
+        if "box" in name:
+            return 4 * self.window
+        return self.window + self.every + 8 if name in ("between", "SE3") else 16
 
     def _marginalise(self, start: int) -> None:
         """The box and measurement factors of frames before ``start`` become the objects'
@@ -757,23 +733,11 @@ class OnlineMapper:
         for k, items in old.items():
             factors += self._object_graph(k, items, with_prior=True, with_object=False)
         factors = with_robust_by_type(factors, self.method)
-        values = Values()
-        for key in {key for f in factors for key in f.keys}:
-            values[key] = self.landmarks[key.index] if key.chr == "l" else self._est[key.index]
+        values = initial_values(self._est, self.landmarks, {key for f in factors for key in f.keys})
         poses = [key for key in values if key.chr == "x"]  # type: ignore[attr-defined]  # Symbol keys
-        problem = Problem(NonlinearFactorGraph(factors), values, poses,
-                          rows=self._padding(factors, values))
-        h, g, _, _, finite = problem.linearize(problem.vars)
-        sp = problem.sparse_pattern()
-        H = scipy.sparse.csc_matrix((h, sp["indices"], sp["indptr"]), shape=(problem.n, problem.n)).toarray()
-        H = H + H.T - np.diag(np.diag(H))
-        where = {key: (ti, j) for ti, tkeys in enumerate(problem.type_keys) for j, key in enumerate(tkeys)}
+        blocks, finite = self._smoother.marginalize(factors, values, poses, [L(k) for k in old])
         for k in old:
-            ti, j = where[L(k)]
-            o = int(problem.offsets[ti][j])
-            d = problem.tspecs[ti].dim
-            Hk, gk = H[o:o + d, o:o + d], g[o:o + d]
-            prior = self._prior_from(Hk, gk) if finite else None
+            prior = FixedLagSmoother.prior_from(*blocks[L(k)]) if finite else None
             if prior is None:
                 self.notes.append(f"object {k}: the views before frame {start} could not be "
                                   "summarised (non-finite); they are dropped")
@@ -783,26 +747,17 @@ class OnlineMapper:
             self._pending[k] = [v for v in self._pending.get(k, []) if v[0] >= start]
             self._pending_meas[k] = [v for v in self._pending_meas.get(k, []) if v[0] >= start]
 
-    @staticmethod
-    def _prior_from(H, g):
-        """(offset o = −H⁺g, W with WᵀW = H) of the quadratic ½δᵀHδ + gᵀδ, or None."""
-        H = 0.5 * (H + H.T)
-        if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
-            return None
-        w, V = np.linalg.eigh(H)
-        keep = w > 1e-10 * max(w[-1], 1e-300)
-        w = np.where(keep, w, 0.0)
-        inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
-        return -(V * inv) @ (V.T @ g), np.sqrt(w)[:, None] * V.T
-
     # --- output ----------------------------------------------------------------------------
     def _snapshot(self, n: int) -> OnlineMap:
         """The map of the current state, frames 0 … n − 1 (covariances: none)."""
         est = self._est.array[:n]
         rows = to_tum(jaxlie.SE3(est)) if len(est) else np.zeros((0, 7))  # type: ignore[arg-type]
         poses = np.c_[np.asarray(self._timestamps[:n]), rows]
-        objects = {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
-        return OnlineMap(objects, poses, frames=n)
+        return OnlineMap(self._objects(), poses, frames=n)
+
+    def _objects(self) -> dict:
+        """The objects now, {id: (label, Ellipsoid)}."""
+        return {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
 
     def current_map(self, covariances: bool = False) -> OnlineMap:
         """The map now (``OnlineMap``; in the background: the last one published, which
@@ -823,6 +778,17 @@ class OnlineMapper:
             cov = {key.index: c for key, c in marginal_covariances(
                 self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
         return OnlineMap(objects, poses, cov, frames=self._used)
+
+    @property
+    def estimates(self) -> np.ndarray:
+        """The current pose estimates, (F, 7) jaxlie ``wxyz_xyz`` in the order the frames came."""
+        return self._est.array.copy()
+
+    def tracks(self) -> list[Track]:
+        """The tracks of the objects seen so far that the batch association would keep (at
+        least ``AssociationSettings.min_detections`` views)."""
+        need = self._assoc_settings.min_detections
+        return [self._track(k) for k in sorted(self._views) if len(self._views[k]) >= need]
 
     def sequence(self) -> Sequence:
         """The frames so far as a ``Sequence`` (input poses, detections, measured ellipsoids)."""
@@ -848,7 +814,27 @@ class OnlineMapper:
         if not len(self):
             raise ValueError("no frames were added")
         seq = self.sequence()
-        ctx = SequenceContext.of(seq)
+        tracks, landmarks, rare = self._final_objects()
+        notes = list(self.notes)
+        if self.hold_poses:
+            notes.append("the poses follow the odometry (no bound on each pose: the boxes do not move them)")
+        optimizer = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance)
+        solved, trajectory = self._final_solve(seq, tracks, landmarks, notes, optimizer if final_batch else None,
+                                               say)
+        failed, short, need = self._unmapped(rare)
+        labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
+        notes += [f"{short} tentative tracks with fewer than {need} detections discarded"] if short else []
+        if self._screened:
+            notes.append(screen_summary(self._screened, self._n_detections))
+        record = {"mode": "online-" + self.associate}
+        unbounded = absolute_sigma(self._sigmas) is None
+        result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
+                            failed, priors=seq.priors, given_poses=unbounded and not solved.fixed)
+        return dataclasses.replace(result, notes=notes, association=record, trajectory=trajectory)
+
+    def _final_objects(self) -> tuple[list, dict, dict]:
+        """(tracks, landmarks, dropped) of the final batch: the objects now, less those the
+        batch run's rule for spurious automatic tracks drops ({id: why})."""
         landmarks = dict(self.landmarks)
         tracks = [self._track(k) for k in sorted(landmarks)]
         rare = {}
@@ -858,24 +844,23 @@ class OnlineMapper:
             for k in rare:
                 landmarks.pop(k)
             tracks = [tr for tr in tracks if tr.id in landmarks]
+        return tracks, landmarks, rare
+
+    def _final_solve(self, seq: Sequence, tracks: list, landmarks: dict, notes: list, optimizer, say
+                     ) -> tuple[Optimised, dict]:
+        """The final batch (``optimizer``; None: the online estimates as they are) over every
+        frame and view, its trajectory checked against the odometry's walk (refused: solved
+        again with the poses held); (what was solved, map.json's ``trajectory``)."""
+        ctx = SequenceContext.of(seq)
         measured = {k: self._measured[k] for k in landmarks if k in self._measured}
-        unbounded = absolute_sigma(self._sigmas) is None
-        hold, notes = self.hold_poses, list(self.notes)
-        if hold:
-            notes.append("the poses follow the odometry (no bound on each pose: the boxes do not move them)")
+        unbounded, hold = absolute_sigma(self._sigmas) is None, self.hold_poses
         fixed = [X(i) for i in range(len(self))] if hold else []
-        graph = build_graph(ctx, tracks, landmarks, self.method, self.method.box_model,
-                            self._user_sigmas, measured, odometry=not hold)
-        values = Values()
-        for i in range(len(self)):
-            values[X(i)] = self._est[i]
-        for k, lm in landmarks.items():
-            values[L(k)] = lm
-        optimizer = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance)
-        say(f"{'final batch optimisation' if final_batch else 'online map'}: {len(values)} "
+        graph = build_graph(ctx, tracks, landmarks, self.method, self._user_sigmas, measured, odometry=not hold)
+        values = initial_values(self._est, landmarks)
+        say(f"{'final batch optimisation' if optimizer is not None else 'online map'}: {len(values)} "
             f"variables, {len(graph)} factors")
         trajectory: dict = {}
-        if final_batch:
+        if optimizer is not None:
             res = optimizer.optimize(graph, values, fixed=fixed)
             if unbounded and not hold:  # no further than the odometry can have drifted
                 est = np.stack([np.asarray(res.values[X(i)].wxyz_xyz) for i in range(len(self))])
@@ -885,16 +870,22 @@ class OnlineMapper:
                 if not check.accepted:
                     notes.append(check.note())
                     fixed = [X(i) for i in range(len(self))]
-                    graph = build_graph(ctx, tracks, landmarks, self.method, self.method.box_model,
-                                        self._user_sigmas, measured, odometry=False)
+                    graph = build_graph(ctx, tracks, landmarks, self.method, self._user_sigmas, measured,
+                                        odometry=False)
                     res = optimizer.optimize(graph, values, fixed=fixed)
             values = res.values
         else:
             res = _Unchanged(graph, values)  # type: ignore[assignment]  # the figures only
         if unbounded:
             trajectory["start"] = "held" if fixed else "input"
+        return Optimised(values=values, graph=graph, result=res, iterations=res.iterations,
+                         initial_cost=res.initial_cost, fixed=fixed), trajectory
+
+    def _unmapped(self, rare: dict) -> tuple[dict, int, int]:
+        """(failed {id: why}, tentative tracks discarded, the detections a track needs): the
+        tracks that are no object, and why."""
         failed = {**self.failed, **rare}
-        need = max(self.min_views, self._assoc_settings.min_detections if self._tracker else 1)
+        need = self._views_needed()
         short = 0
         for k in self._views:
             if k in self.landmarks:
@@ -902,19 +893,10 @@ class OnlineMapper:
             if len(self._views[k]) < need and self._tracker is not None:
                 short += 1  # a tentative track, discarded as the batch association does
             elif len(self._views[k]) < self.min_views:
-                failed.setdefault(k, f"{len(self._views[k])} views, needs at least {self.min_views}")
+                failed.setdefault(k, too_few_views(len(self._views[k]), self.min_views))
             else:
                 failed.setdefault(k, "not initialised: the boxes do not give an ellipsoid in front of the cameras")
-        labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
-        notes += [f"{short} tentative tracks with fewer than {need} detections discarded"] if short else []
-        if self._screened:
-            notes.append(screen_summary(self._screened, self._n_detections))
-        record = {"mode": "online-" + self.associate}
-        solved = Optimised(values=values, graph=graph, result=res, iterations=res.iterations,
-                           initial_cost=res.initial_cost, fixed=fixed)
-        result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
-                            failed, notes, record, priors=seq.priors, given_poses=unbounded and not fixed)
-        return dataclasses.replace(result, trajectory=trajectory)
+        return failed, short, need
 
 
 class _Unchanged:
@@ -939,10 +921,7 @@ def run_online(seq: Sequence, method: str | Method | RunSettings = "multi-spd", 
     ``online.background``, how a live mapper runs). ``progress(message)`` every 100
     frames."""
     say = progress or (lambda message: None)
-    online = {k: settings.pop(k) for k in ONLINE_FIELDS if k in settings}
-    if online:
-        settings["online"] = online
-    run = as_settings(method, settings)
+    run = as_online_settings(method, settings)
     if not run.class_table:
         seq = without_class_table(seq)
     if run.associate is None:
@@ -1027,9 +1006,6 @@ def replayed_start(seq: Sequence, tracks, run: RunSettings, progress=None) -> Re
     mapper.wait()
     order = np.argsort(np.asarray(seq.timestamps), kind="stable")
     poses = np.empty((len(order), 7))
-    poses[order] = mapper._est.array
-    found = None
-    if tracks is None:  # the tracks the batch association would keep (AssociationSettings.min_detections)
-        need = mapper._assoc_settings.min_detections
-        found = [mapper._track(k) for k in sorted(mapper._views) if len(mapper._views[k]) >= need]
+    poses[order] = mapper.estimates
+    found = mapper.tracks() if tracks is None else None
     return ReplayedStart(poses, dict(mapper.landmarks), found)

@@ -81,6 +81,8 @@ REFINE_CENTER_SIGMA = 1e-4
 REFINE_SHAPE_SIGMA = 1e-4
 #: Pairings and solves of ``refine_localization``.
 REFINE_ROUNDS = 2
+#: The IoU at which a recording's box pairs with a map object's projection.
+REFINE_MIN_IOU = 0.3
 #: The key of the frame variable in ``refine_localization``'s graph.
 FRAME_KEY = Symbol("f", 0)
 #: A transform is refused when the recording's boxes confirm fewer than this share of the
@@ -503,10 +505,24 @@ def box_agreement(seq, objects, poses_tum, min_iou: float = 0.3) -> tuple[float,
     return float(seen[inside].mean()), n
 
 
-def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
-                        poses_tum=None, min_iou: float = 0.3, rounds: int = REFINE_ROUNDS,
-                        refine_scale: bool = False, center_sigma: float = REFINE_CENTER_SIGMA,
-                        shape_sigma: float = REFINE_SHAPE_SIGMA) -> Localization:
+def confirm_by_boxes(seq, loc: Localization, map_objects, poses_tum) -> tuple[float, int]:
+    """(share, predicted) of ``box_agreement`` of the recording ``seq`` with the map objects
+    ``loc`` matched, seen from ``poses_tum`` (the recording's poses moved into the map's
+    frame); ``LocalizationError`` when the boxes contradict the transform (confirm fewer
+    than ``MIN_BOX_AGREEMENT`` of the sightings it predicts)."""
+    matched = {int(b) for _, b in loc.matches}
+    share, predicted = box_agreement(seq, [o for o in map_objects if int(o.id) in matched], poses_tum)
+    if predicted and not share >= MIN_BOX_AGREEMENT:
+        raise LocalizationError(
+            f"the recording's boxes contradict the transform: they confirm {100 * share:.0f} % of the "
+            f"{predicted} sightings of the {len(matched)} matched map objects it predicts, below "
+            f"{100 * MIN_BOX_AGREEMENT:.0f} %")
+    return share, predicted
+
+
+def refine_localization(seq, seq_objects, map_objects, loc: Localization, *, poses_tum=None,
+                        refine_scale: bool = False,
+                        floors: tuple[float, float] = (REFINE_CENTER_SIGMA, REFINE_SHAPE_SIGMA)) -> Localization:
     """``loc`` refined with the recording's boxes against the matched map objects (module
     docstring, step 5): the recording ``seq`` (its detections), its objects ``seq_objects``
     (for the centre residuals) and the map's; ``poses_tum`` the recording's camera poses, one
@@ -517,13 +533,10 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     of the objects' layout unless ``refine_scale`` (a ``geometry.Sim3`` frame then): on
     fr2_desk the boxes fix it no better than the layout does (docs/map-reuse.md); its
     variance and the rest of the covariance are then kept apart.
-    ``center_sigma`` (m) and ``shape_sigma``: the floors of the σ that hold the map's objects."""
+    ``floors``: (centre m, shape) the floors of the σ that hold the map's objects."""
     import jaxlie
 
-    from ..factors import DEFAULT_TRUNCATION_MARGIN, FrameBoxFactor, LandmarkPriorFactor
     from ..geometry import Sim3
-    from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values
-    from ._methods import AUTO_BOX_KERNEL, DEFAULT_MAPPING_SIGMAS, robust_kernel
 
     by_id = {int(o.id): o for o in map_objects}
     mine = {int(o.id): o for o in seq_objects}
@@ -533,55 +546,18 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     rows = np.c_[seq.timestamps, seq.poses_tum] if poses_tum is None else np.asarray(poses_tum, float)
     if rows.shape != (len(seq), 8):
         raise ValueError(f"refine_localization: {len(seq)} frames but poses of shape {rows.shape}")
-    frames = np.array([d.frame for d in seq.detections])
-    boxes = np.stack([np.asarray(d.box, float) for d in seq.detections])
-    # the recording's camera poses, jaxlie's wxyz_xyz (TUM rows are xyz, then xyzw)
-    q = rows[:, 1:].copy()
-    q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
     scaled = loc.sim3 and not refine_scale  # the recording pre-scaled, a rigid frame refined
     s0 = float(loc.scale) if scaled else 1.0
-    wxyz_xyz = np.c_[q[:, 6], q[:, 3:6], s0 * q[:, :3]][frames]
-    sigma = inverse_box_sigma(boxes, DEFAULT_MAPPING_SIGMAS)
-    robust = robust_kernel(*AUTO_BOX_KERNEL)
     frame: Any = Sim3.from_matrix(loc.T_map_sequence, loc.scale) if loc.sim3 and not scaled \
         else jaxlie.SE3.from_matrix(loc.T_map_sequence)
-    ells = {o.id: o.ellipsoid for o in matched}
-    before = after = None
-    res: Any = None
-    n_boxes = 0
-    for _ in range(max(int(rounds), 1)):
-        T_now = np.asarray(frame.as_matrix(), float)
-        s_now = float(frame.scale) if isinstance(frame, Sim3) else s0
-        d, k, iou = _paired_detections(seq, [ells[o.id] for o in matched], [o.label for o in matched],
-                                      transform_poses_tum(rows, T_now, s_now)[:, 1:], min_iou)
-        if before is None:
-            before = float(np.median(iou)) if len(iou) else None
-        seen = sorted({int(matched[j].id) for j in k})
-        if len(seen) < 3:
-            return replace(loc, notes=[*loc.notes, f"not refined with the boxes: {len(seen)} matched "
-                                       "object(s) have a box that overlaps their projection"])
-        graph = NonlinearFactorGraph()
-        keys = [L(int(matched[j].id)) for j in k]
-        graph.add(FrameBoxFactor.many(FRAME_KEY, keys, wxyz_xyz[d], boxes[d], seq.camera, sigma=sigma[d],
-                                      robust=robust, truncation_margin=DEFAULT_TRUNCATION_MARGIN))
-        values = Values({FRAME_KEY: frame})
-        for oid in seen:
-            o = by_id[oid]
-            u = o.uncertainty or {}
-            sc = max(float(u.get("center_sigma_max", 0.0) or 0.0), center_sigma)
-            sr = max(2.0 * float(np.max(u.get("log_radius_sigma", [0.0]))), shape_sigma)
-            if not (np.isfinite(sc) and np.isfinite(sr)):
-                sc, sr = max(sc, 1.0) if np.isfinite(sc) else 1.0, 1.0
-            graph.add(LandmarkPriorFactor(L(oid), o.ellipsoid, sigma=np.r_[np.full(6, sr), np.full(3, sc)]))
-            values[L(oid)] = ells[oid]
-        res = LevenbergMarquardt().optimize(graph, values)
-        frame = res.values[FRAME_KEY]
-        ells.update({oid: res.values[L(oid)] for oid in seen})
-        n_boxes = len(d)
+    fit = _refine_frame(seq, rows, matched, frame, s0, floors)
+    if isinstance(fit, str):
+        return replace(loc, notes=[*loc.notes, fit])
+    frame, res, before, seen, n_boxes = fit
     T = np.asarray(frame.as_matrix(), float)
     s_new = float(frame.scale) if isinstance(frame, Sim3) else s0
     _, _, iou = _paired_detections(seq, [o.ellipsoid for o in matched], [o.label for o in matched],
-                                  transform_poses_tum(rows, T, s_new)[:, 1:], min_iou)
+                                  transform_poses_tum(rows, T, s_new)[:, 1:], REFINE_MIN_IOU)
     after = float(np.median(iou)) if len(iou) else None
     try:
         cov_r = np.asarray(res.marginal_covariances([FRAME_KEY])[FRAME_KEY], dtype=float)
@@ -603,6 +579,59 @@ def refine_localization(seq, seq_objects, map_objects, loc: Localization, *,
     return replace(loc, T_map_sequence=T, scale=s_new, covariance=cov,
                    residuals=resid if len(resid) == len(loc.residuals) else loc.residuals,
                    notes=[*loc.notes, note])
+
+
+def _refine_frame(seq, rows: np.ndarray, matched: list, frame, s0: float, floors: tuple[float, float]):
+    """``REFINE_ROUNDS`` rounds of pairing the recording's boxes (cameras ``rows`` moved by
+    ``frame``, pre-scaled by ``s0``) with the projected ``matched`` map objects and fitting
+    the frame to them, the objects held by priors (σ no smaller than ``floors``): (frame,
+    the last LM result, the median IoU before, the ids seen, boxes used), or why not (str)."""
+    from ..factors import DEFAULT_TRUNCATION_MARGIN, FrameBoxFactor, LandmarkPriorFactor
+    from ..geometry import Sim3
+    from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values
+    from ._methods import AUTO_BOX_KERNEL, DEFAULT_MAPPING_SIGMAS, robust_kernel
+
+    by_id = {int(o.id): o for o in matched}
+    frames = np.array([d.frame for d in seq.detections])
+    boxes = np.stack([np.asarray(d.box, float) for d in seq.detections])
+    # the recording's camera poses, jaxlie's wxyz_xyz (TUM rows are xyz, then xyzw)
+    q = rows[:, 1:].copy()
+    q[:, 3:7] /= np.linalg.norm(q[:, 3:7], axis=1, keepdims=True)
+    wxyz_xyz = np.c_[q[:, 6], q[:, 3:6], s0 * q[:, :3]][frames]
+    sigma = inverse_box_sigma(boxes, DEFAULT_MAPPING_SIGMAS)
+    robust = robust_kernel(*AUTO_BOX_KERNEL)
+    ells = {o.id: o.ellipsoid for o in matched}
+    before, res, n_boxes, seen = None, None, 0, []
+    for _ in range(max(int(REFINE_ROUNDS), 1)):
+        T_now = np.asarray(frame.as_matrix(), float)
+        s_now = float(frame.scale) if isinstance(frame, Sim3) else s0
+        d, k, iou = _paired_detections(seq, [ells[o.id] for o in matched], [o.label for o in matched],
+                                      transform_poses_tum(rows, T_now, s_now)[:, 1:], REFINE_MIN_IOU)
+        if before is None:
+            before = float(np.median(iou)) if len(iou) else None
+        seen = sorted({int(matched[j].id) for j in k})
+        if len(seen) < 3:
+            return (f"not refined with the boxes: {len(seen)} matched object(s) have a box that overlaps "
+                    "their projection")
+        graph = NonlinearFactorGraph()
+        keys = [L(int(matched[j].id)) for j in k]
+        graph.add(FrameBoxFactor.many(FRAME_KEY, keys, wxyz_xyz[d], boxes[d], seq.camera, sigma=sigma[d],
+                                      robust=robust, truncation_margin=DEFAULT_TRUNCATION_MARGIN))
+        values = Values({FRAME_KEY: frame})
+        for oid in seen:
+            o = by_id[oid]
+            u = o.uncertainty or {}
+            sc = max(float(u.get("center_sigma_max", 0.0) or 0.0), floors[0])
+            sr = max(2.0 * float(np.max(u.get("log_radius_sigma", [0.0]))), floors[1])
+            if not (np.isfinite(sc) and np.isfinite(sr)):
+                sc, sr = max(sc, 1.0) if np.isfinite(sc) else 1.0, 1.0
+            graph.add(LandmarkPriorFactor(L(oid), o.ellipsoid, sigma=np.r_[np.full(6, sr), np.full(3, sc)]))
+            values[L(oid)] = ells[oid]
+        res = LevenbergMarquardt().optimize(graph, values)
+        frame = res.values[FRAME_KEY]
+        ells.update({oid: res.values[L(oid)] for oid in seen})
+        n_boxes = len(d)
+    return frame, res, before, seen, n_boxes
 
 
 def transform_ellipsoid(e: Ellipsoid, T: np.ndarray, scale: float = 1.0) -> Ellipsoid:

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..frontend import (
     InitializationError,
+    MultiFit,
     SupportPlanes,
     Track,
     association_scores,
@@ -54,7 +55,7 @@ from ._settings import Associate, PlaneSource, default_association
 __all__ = [
     "ASSOCIATIONS",
     "OBJECT_ERRORS",
-    "Association",
+    "RunTracks",
     "Initialization",
     "MapResult",
     "MappingError",
@@ -68,6 +69,8 @@ __all__ = [
     "map_result",
     "merge_duplicates",
     "merged_track",
+    "in_front_views",
+    "too_few_views",
     "nesting_depths",
     "object_quality",
     "planes_note",
@@ -151,7 +154,7 @@ class MapResult:
 
 
 @dataclass(frozen=True)
-class Association:
+class RunTracks:
     """The tracks of a run and the record of how they were made: {"mode": "instances" |
     "auto" | "given"}, with automatic association's scores against the ids when they exist."""
 
@@ -159,7 +162,7 @@ class Association:
     record: dict
 
 
-def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None) -> Association:
+def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None) -> RunTracks:
     """``tracks`` when given; else ``associate="instances"`` (group by the instance ids),
     ``"auto"`` (``frontend.associate``, which ignores the ids; ``found``: tracks an automatic
     association already made, the replay's online tracker's, recorded as
@@ -167,14 +170,14 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None)
     automatic otherwise."""
     seq = as_context(ctx).seq
     if tracks is not None:
-        return Association(list(tracks), {"mode": "given"})
+        return RunTracks(list(tracks), {"mode": "given"})
     if associate not in (None, *ASSOCIATIONS):
         raise ValueError(f"associate must be one of {', '.join(ASSOCIATIONS)}, got {associate!r}")
     has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
     if associate is None:
         associate = str(default_association(seq))
     if associate == "instances":
-        return Association(tracks_from_instances(seq), {"mode": "instances"})
+        return RunTracks(tracks_from_instances(seq), {"mode": "instances"})
     record = {"mode": "auto"}
     if found is None:
         found = auto_associate(seq)
@@ -182,7 +185,7 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None)
         record["associated_on"] = "incremental poses"
     if has_ids:
         record.update(_record_scores(found, seq))
-    return Association(list(found), record)
+    return RunTracks(list(found), record)
 
 
 def _record_scores(tracks, seq) -> dict:
@@ -211,6 +214,12 @@ class Initialization:
     planes: SupportPlanes | None = None
 
 
+def too_few_views(views: int, min_views: int) -> str:
+    """Why an object of ``views`` views is not mapped when it needs ``min_views``: the batch
+    run's and the online mapper's one gate."""
+    return f"{views} views, needs at least {min_views}"
+
+
 def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
                        planes: SupportPlanes | None = None):
     """Initial ellipsoids from the boxes: ({id: Ellipsoid}, failures {id: reason}, notes).
@@ -230,7 +239,7 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
     for tr in tracks:
         Ts = [ctx.poses[i] for i in tr.frames]
         if len(tr.frames) < min_views:
-            failed[tr.id] = f"{len(tr.frames)} views, needs at least {min_views}"
+            failed[tr.id] = too_few_views(len(tr.frames), min_views)
             continue
         try:
             if use_multi:
@@ -243,12 +252,9 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
                         plane = support_plane(priors, svd_initialize(
                             tr.boxes, Ts, ctx.camera, truncation_margin=method.margin))
                 cp = ctx.class_prior(tr.label)
-                e = multi_initialize(
-                    tr.boxes, Ts, ctx.camera, ctx.up, plane,
-                    None if cp is None else cp.radii, 0.2 if cp is None else max(cp.sigma, 0.05),
-                    shape=object_shape(method, priors, tr.label),
-                    truncation_margin=method.margin,
-                )
+                fit = MultiFit(None if cp is None else cp.radii, 0.2 if cp is None else max(cp.sigma, 0.05),
+                               object_shape(method, priors, tr.label), method.margin)
+                e = multi_initialize(tr.boxes, Ts, ctx.camera, ctx.up, plane, fit)
             else:
                 e = svd_initialize(tr.boxes, Ts, ctx.camera, truncation_margin=method.margin)
         except InitializationError as err:
@@ -469,12 +475,9 @@ def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=(
             kept.append(tr)
             continue
         R, C = ctx.camera_axes
-        ok = wholly_in_front(init[tr.id], (R[tr.frames], C[tr.frames]))
-        if not ok.all():
-            notes.append(
-                f"object {tr.id}: {int((~ok).sum())} of {ok.size} views dropped (the initial "
-                "ellipsoid is not wholly in front of the camera there)"
-            )
+        ok, note = in_front_views(init[tr.id], (R[tr.frames], C[tr.frames]), tr.id)
+        if note:
+            notes.append(note)
         if ok.sum() < min_views and tr.id not in keep:
             failed[tr.id] = f"only {int(ok.sum())} views see the initial ellipsoid in front"
             continue
@@ -482,7 +485,7 @@ def _drop_invisible(ctx: SequenceContext, tracks, init, notes, min_views, keep=(
     return kept, failed
 
 
-def initialize(ctx, association: Association, method: Method, min_views: int = 3,
+def initialize(ctx, association: RunTracks, method: Method, min_views: int = 3,
                support_planes: str = "priors") -> Initialization:
     """The front end of a run: initial ellipsoids from the boxes, or from an object's
     measured ellipsoids when its boxes do not give one (manual association only), then the
@@ -573,28 +576,41 @@ def nesting_depths(ellipsoids) -> np.ndarray:
     return D
 
 
-def overlapping_duplicates(ellipsoids: dict, tracks) -> list:
-    """Pairs (kept, merged) of objects that are one object mapped twice: the same label and
-    each centre inside the other's ellipsoid (``nesting_depths`` < 1). Each object is in at
-    most one pair; the most deeply nested pair first; the object with more detections is
-    kept. A collapsed object (P singular or not finite) is in no pair."""
-    by_id = {tr.id: tr for tr in tracks}
-    ids = sorted(k for k in ellipsoids if k in by_id)
+def overlapping_duplicates(ellipsoids: dict, labels: dict, views: dict, among=None) -> list:
+    """Pairs (kept, merged) of objects that are one object mapped twice: the same label
+    (``labels`` {id: label}) and each centre inside the other's ellipsoid (``nesting_depths``
+    < 1). Each object is in at most one pair; the most deeply nested pair first; the object
+    with more views (``views`` {id: count}; the smaller id on a tie) is kept. ``among``: only
+    pairs with one of these objects (the online mapper's window). A collapsed object (P
+    singular or not finite) is in no pair. The batch run and the online mapper both merge by
+    this rule."""
+    ids = sorted(k for k in ellipsoids if k in labels)
     D = nesting_depths([ellipsoids[k] for k in ids])
-    pairs = []
-    for i, a in enumerate(ids):
-        for j in range(i + 1, len(ids)):
-            b = ids[j]
-            if by_id[a].label == by_id[b].label and D[i, j] < 1.0:
-                pairs.append((float(D[i, j]), a, b))
+    lab = np.array([str(labels[k]) for k in ids])
+    near = np.triu((D < 1.0) & (lab[:, None] == lab[None, :]), 1)
+    if among is not None:
+        window = set(among)
+        mine = np.array([k in window for k in ids], dtype=bool)
+        near &= mine[:, None] | mine[None, :]
+    pairs = sorted((float(D[i, j]), ids[i], ids[j]) for i, j in zip(*np.nonzero(near)))
     out, used = [], set()
-    for _, a, b in sorted(pairs):
+    for _, a, b in pairs:
         if a in used or b in used:
             continue
         used |= {a, b}
-        keep, drop = (a, b) if len(by_id[a].frames) >= len(by_id[b].frames) else (b, a)
-        out.append((keep, drop))
+        out.append((a, b) if views[a] >= views[b] else (b, a))
     return out
+
+
+def in_front_views(e, axes, k) -> tuple[np.ndarray, str | None]:
+    """Which views see the initial ellipsoid ``e`` of object ``k`` wholly in front (cameras
+    ``axes``: (R_wc, centres)), and the note that says how many do not (None: all do): the
+    views a batch run and the online mapper keep."""
+    ok = wholly_in_front(e, axes)
+    if ok.all():
+        return ok, None
+    return ok, (f"object {k}: {int((~ok).sum())} of {ok.size} views dropped (the initial ellipsoid is not "
+                "wholly in front of the camera there)")
 
 
 def merged_track(keep: Track, drop: Track) -> Track:
@@ -664,11 +680,12 @@ class Optimised:
 
 
 def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, timestamps,
-               failed: dict, notes: list, association: dict, priors=None, given_poses: bool = False) -> MapResult:
+               failed: dict, priors=None, given_poses: bool = False) -> MapResult:
     """The ``MapResult`` of a run's optimisations ``solved``: the objects L(id) of ``labels``
     {id: label} in its values with their uncertainty (``mapped_uncertainty``), each checked
     (``object_quality``) and those that fail it moved to ``failed``; the poses X(0…) as TUM
-    rows with ``timestamps``; ``initial`` {id: Ellipsoid} the front end's objects.
+    rows with ``timestamps``; ``initial`` {id: Ellipsoid} the front end's objects. The
+    caller adds the run's notes and association record.
     ``given_poses`` (a trajectory without a bound on each pose): the check reads each object's
     uncertainty given the cameras (every pose held), as the marginal then holds the
     odometry's random walk since the first pose, which grows with the time from it whatever
@@ -697,7 +714,7 @@ def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, t
         iterations=solved.iterations,
         initial_cost=res.final_cost if solved.initial_cost is None else solved.initial_cost,
         final_cost=res.final_cost, converged=res.converged, reason=res.reason, failed=failed,
-        notes=list(notes), association=association, costs=cost_by_factor(graph, values, res),
+        costs=cost_by_factor(graph, values, res),
     )
 
 

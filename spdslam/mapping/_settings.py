@@ -19,10 +19,14 @@ from typing import Any, Mapping
 from ..factors import DEFAULT_TRUNCATION_MARGIN
 from ._keyframes import parse_keyframes
 from ._methods import (
+    AUTO_BOX_KERNEL,
     BOX_MODELS,
+    DEFAULT_MAPPING_SIGMAS,
     METHODS,
     OBJECT_SHAPE_CHOICES,
     PARAMETERIZATIONS,
+    ROBUST_CHOICES,
+    ROBUST_KERNELS,
     Method,
     check_sigma,
     parse_robust,
@@ -36,8 +40,11 @@ __all__ = [
     "RUN_OVERRIDES",
     "RUN_SETTING_NAMES",
     "RunSettings",
+    "SETTINGS",
     "SettingsError",
+    "SettingsReference",
     "InitialPoses",
+    "as_online_settings",
     "as_settings",
     "default_association",
     "setting_help",
@@ -392,6 +399,48 @@ def setting_help(name: str) -> str:
         if f.name == rest:
             return f.metadata["help"]
     raise KeyError(name)
+
+
+@dataclass(frozen=True)
+class SettingsReference:
+    """What the settings are, for the tools that list, parse or document them (the CLI's
+    options and help, a batch manifest's keys): ``run_names`` the fields of ``RunSettings``,
+    ``method_fields`` those of ``Method`` (each a run's override), ``overrides`` {name: help}
+    of the overrides ``spdslam run`` offers, ``sigmas`` {name: default} of the ``sigma``
+    overrides, the robust kernels (``robust_choices`` with "auto", ``robust_kernels``,
+    ``auto_box_kernel``: (kernel, threshold) that "auto" puts on the box factors);
+    ``help(name)`` a setting's help text."""
+
+    run_names: tuple
+    method_fields: tuple
+    overrides: Mapping
+    sigmas: Mapping
+    robust_choices: tuple
+    robust_kernels: tuple
+    auto_box_kernel: tuple
+
+    @staticmethod
+    def help(name: str) -> str:
+        return setting_help(name)
+
+
+#: The one reference to the settings (``SettingsReference``).
+SETTINGS = SettingsReference(RUN_SETTING_NAMES, METHOD_FIELDS, MappingProxyType(RUN_OVERRIDES),
+                             MappingProxyType(DEFAULT_MAPPING_SIGMAS), tuple(ROBUST_CHOICES),
+                             tuple(ROBUST_KERNELS), tuple(AUTO_BOX_KERNEL))
+
+
+def as_online_settings(method, settings: dict) -> RunSettings:
+    """``as_settings`` for the online mapper: the fields of ``OnlineSettings`` may be given
+    flat among ``settings`` (``window=10``), collected into its ``online`` (given twice, with
+    a ``RunSettings`` or an ``online``: ``TypeError``)."""
+    names = {f.name for f in dataclasses.fields(OnlineSettings)}
+    given = {k: v for k, v in settings.items() if k in names}
+    if given:
+        if isinstance(method, RunSettings) or "online" in settings:
+            raise TypeError(f"online settings given twice: {', '.join(given)} and a RunSettings or online")
+        settings = {**{k: v for k, v in settings.items() if k not in names}, "online": given}
+    return as_settings(method, settings)
 
 
 def as_settings(method, settings: dict) -> RunSettings:

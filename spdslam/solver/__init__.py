@@ -10,7 +10,9 @@ loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
 ``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
 problems of one structure in one jitted loop (``_batched``). ``enable_compilation_cache`` /
 ``ensure_compilation_cache`` (``_cache``) turn on JAX's persistent compilation cache;
-``stored_jit`` (``_stored``) keeps spdslam's own compiled programs on disk between processes. Imports
+``stored_jit`` (``_stored``) keeps spdslam's own compiled programs on disk between processes.
+``FixedLagSmoother`` (``_smoother``) is the online mapper's window solve and marginalisation,
+beside the batch optimisers. Imports
 only ``spdslam.geometry`` and ``spdslam.factors``.
 """
 
@@ -47,6 +49,9 @@ from ._optimizers import OptimizationResult as OptimizationResult
 from ._optimizers import Optimizer as Optimizer
 from ._problem import Problem as Problem
 from ._problem import group_kernels as group_kernels
+from ._smoother import FixedLagSmoother as FixedLagSmoother
+from ._smoother import padded_size as padded_size
+from ._smoother import padded_sizes_above as padded_sizes_above
 from ._stored import StoredProgram as StoredProgram
 from ._stored import stored_jit as stored_jit
 from ._values import Values as Values
