@@ -236,3 +236,20 @@ def test_a_broken_entry_point_is_named(monkeypatch):
     monkeypatch.setattr(_formats, "_ENTRY_POINTS_LOADED", False)
     with pytest.raises(ImportError, match="entry point 'broken' .no_such_module_here. failed to load"):
         formats()
+
+
+def test_a_file_is_written_whole_or_left_as_it_was(tmp_path):
+    from spdslam.io import write_file_atomically
+
+    path = tmp_path / "metrics.json"
+    path.write_text("old")
+
+    def broken(tmp):
+        tmp.write_text("half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_file_atomically(path, broken)
+    assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["metrics.json"]
+    assert write_file_atomically(path, lambda tmp: tmp.write_text("new")) == 3
+    assert path.read_text() == "new" and [p.name for p in tmp_path.iterdir()] == ["metrics.json"]

@@ -1,6 +1,6 @@
-"""The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``check``, ``evaluate``, ``import``,
-``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top layer: it may import every other
-package."""
+"""The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``localize``, ``merge``, ``check``,
+``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top
+layer: it may import every other package."""
 
 from typing import TYPE_CHECKING
 

@@ -1,4 +1,5 @@
-"""The sequence commands: ``run``, ``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view`` and ``warmup``.
+"""The sequence commands: ``run``, ``localize``, ``merge``, ``evaluate``, ``import``,
+``compare``, ``batch``, ``demo``, ``view`` and ``warmup``.
 
 Their choices and help come from the factor registry (robust-kernel groups), the mapping
 (methods, models, the sigma table, the settings' defaults and help) and the format registry,
@@ -9,7 +10,6 @@ factor type, method or format fails tests/test_cli.py until the copy is renewed.
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import typer
@@ -29,7 +29,8 @@ from ._app import (
 from ._help import FACTS, formats_help, setting
 from ._simulate import split_option
 
-__all__ = ["run", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup", "DEMO_MARKER"]
+__all__ = ["run", "localize", "merge", "evaluate", "import_", "compare", "batch", "demo", "view", "warmup",
+           "DEMO_MARKER"]
 
 _SIGMA_HELP = (
     "Override a sigma, NAME=VALUE, repeatable (e.g. inverse_box=3); NAME one of "
@@ -485,7 +486,7 @@ def evaluate(
     import numpy as np
 
     from ..evaluation import evaluate_run, report_markdown, shown
-    from ..io import MapFormatError, SequenceFormatError, dumps_strict, read_map, read_tum
+    from ..io import MapFormatError, SequenceFormatError, dumps_strict, read_map, read_tum, write_file_atomically
 
     seq = _load_sequence(sequence)
     try:
@@ -512,9 +513,7 @@ def evaluate(
         fail(f"{folder / 'map.json'}: expected a map written by spdslam run, got {type(e).__name__}: {e}")
     try:
         for name, text in texts.items():
-            tmp = folder / f".{name}.tmp"
-            tmp.write_text(text, encoding="utf-8")
-            os.replace(tmp, folder / name)
+            write_file_atomically(folder / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
     except OSError as e:
         fail(f"{folder}: cannot write {name}: {e.strerror or e}")
     for r in metrics.get("objects", []):

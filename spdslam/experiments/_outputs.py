@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluation import dumps_strict
+from ..io import write_file_atomically
 from ._study import StudyResult, history_labels
 from ._summary import CSV_COLUMNS, summarize, table_markdown
 
@@ -66,9 +67,7 @@ def write_outputs(result: StudyResult, out: Path) -> dict:
     summary = summarize(result)
 
     def atomic(name: str, write):
-        tmp = out / f".{name}.tmp"
-        write(tmp)
-        tmp.replace(out / name)
+        write_file_atomically(out / name, write)
 
     def csv(path):
         with open(path, "w") as f:

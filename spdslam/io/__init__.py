@@ -88,5 +88,6 @@ from ._sequence import Priors as Priors
 from ._sequence import Sequence as Sequence
 from ._sequence import without_class_table as without_class_table
 from ._writers import tum_text as tum_text
+from ._writers import write_file_atomically as write_file_atomically
 from ._writers import write_folder_atomically as write_folder_atomically
 from ._writers import write_sequence as write_sequence

@@ -123,6 +123,21 @@ def _write_files(seq: Sequence, out: Path, final: Path) -> None:
         (out / "rgb.txt").write_text("".join(lines), encoding="utf-8")
 
 
+def write_file_atomically(path, write):
+    """Run ``write(tmp)`` on a temporary file beside ``path``, then rename it into place, so
+    ``path`` is never half-written; returns what ``write`` returns. On failure the
+    temporary file is removed and ``path`` is as it was."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        out = write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return out
+
+
 def write_folder_atomically(folder, write, overwrite: bool = False):
     """Run ``write(tmp)`` on a temporary folder beside ``folder``, then rename it into place,
     so ``folder`` is never half-written; returns what ``write`` returns. An existing
