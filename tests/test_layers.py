@@ -320,8 +320,13 @@ def private_attribute_reads(path: Path) -> list[str]:
     return out
 
 
+def in_shaped_layers(check) -> list[str]:
+    """What ``check`` finds in every module of ``SHAPED``."""
+    return [b for layer in SHAPED for path in sorted((PKG / layer).glob("*.py")) for b in check(path)]
+
+
 def test_no_object_in_mapping_or_frontend_reads_another_objects_private_state():
-    bad = [b for layer in SHAPED for path in sorted((PKG / layer).glob("*.py")) for b in private_attribute_reads(path)]
+    bad = in_shaped_layers(private_attribute_reads)
     assert not bad, "reads of another object's private state:\n" + "\n".join(bad)
 
 
@@ -366,7 +371,7 @@ def oversized_functions(path: Path) -> list[str]:
 
 
 def test_no_function_in_mapping_or_frontend_is_over_80_lines_or_8_parameters():
-    bad = [b for layer in SHAPED for path in sorted((PKG / layer).glob("*.py")) for b in oversized_functions(path)]
+    bad = in_shaped_layers(oversized_functions)
     assert not bad, "functions to split:\n" + "\n".join(bad)
 
 
