@@ -45,6 +45,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from spdslam.evaluation import absolute_trajectory_error
+from spdslam.geometry.se3 import from_tum
 from spdslam.experiments import localize_sequence
 from spdslam.io import read_sequence
 from spdslam.mapping import LocalizationError, RunSettings, run_online, run_sequence
@@ -55,11 +56,8 @@ RECORDINGS = {"fr2": ROOT / "../shared/data/tum_fr2_desk", "office": ROOT / "../
 
 
 def matrices(rows) -> np.ndarray:
-    rows = np.asarray(rows, float)
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(rows[:, 3:7]).as_matrix()
-    T[:, :3, 3] = rows[:, :3]
-    return T
+    """(F, 4, 4) T_wc of TUM rows ``tx ty tz qx qy qz qw``."""
+    return np.asarray(from_tum(rows).as_matrix())
 
 
 def ate_mm(rows, seq) -> float:

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from spdslam.evaluation import absolute_trajectory_error
 from spdslam.geometry import Ellipsoid
+from spdslam.geometry.se3 import from_tum
 from spdslam.io import MapObject, write_sequence
 from spdslam.mapping import LocalizationError, OnlineMapper, RunSettings, SequenceContext, SettingsError, build_graph, localize_objects, run_online, run_sequence
 from spdslam.mapping._graph import mapping_sigmas
@@ -33,11 +34,7 @@ def _ate(rows, seq) -> float:
 
 
 def _matrices(rows) -> np.ndarray:
-    rows = np.asarray(rows, float)
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3, :3] = Rotation.from_quat(rows[:, 3:7]).as_matrix()
-    T[:, :3, 3] = rows[:, :3]
-    return T
+    return np.asarray(from_tum(rows).as_matrix())
 
 
 @pytest.fixture(scope="module")
