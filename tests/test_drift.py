@@ -225,12 +225,73 @@ def test_the_online_mapper_follows_the_odometry_of_a_drifting_trajectory(driftin
     batch, is the input's; with ``initial_poses="input"`` the boxes move them as before."""
     result, _ = run_online(drifting, "multi-spd")
     np.testing.assert_allclose(result.poses_tum[:, 1:], drifting.poses_tum, atol=1e-9)
-    assert result.trajectory["start"] == "held"
+    assert result.trajectory["start"] == "loops"  # no loop verified: the input, exactly
+    assert not any(lp["status"] == "verified" for lp in result.trajectory["loop_closure"]["loops"])
     assert any("the poses follow the odometry" in n for n in result.notes)
+    assert any(n.startswith("loop closure") for n in result.notes)
     m = OnlineMapper(drifting.camera, drifting.priors, "multi-spd")
-    assert m.hold_poses
+    assert m.hold_poses and m.loop_closure is not None
     free = OnlineMapper(drifting.camera, drifting.priors, "multi-spd", initial_poses="input")
-    assert not free.hold_poses
+    assert not free.hold_poses and free.loop_closure is None
+    replayed = OnlineMapper(drifting.camera, drifting.priors, "multi-spd", initial_poses="incremental")
+    assert replayed.hold_poses and replayed.loop_closure is None
+
+
+def _slowed(seq, factor):
+    """``seq`` with its time stretched by ``factor`` (more submaps of the same frames)."""
+    t = seq.timestamps[0] + factor * (seq.timestamps - seq.timestamps[0])
+    return replace(seq, timestamps=t, detections=[replace(d, timestamp=t[d.frame]) for d in seq.detections],
+                   groundtruth_tum=np.c_[t, seq.groundtruth_tum[:, 1:]])
+
+
+def test_online_candidates_are_the_batch_candidates_of_each_new_submap(truth):
+    """The online loop closure tries, for each submap once it is complete, the revisits the
+    batch's rule finds between it and the earlier ones: together, the batch's candidates."""
+    from spdslam.mapping._loops import candidates, submaps_of
+
+    seq = _slowed(drifted_sequence(truth, 0.002, np.radians(0.3), 1), 5.0)
+    seq = replace(seq, priors=seq.priors.replace(trajectory_sigma=[0.002, np.radians(0.3)]))
+    ctx = SequenceContext.of(seq)
+    s = mapping_sigmas(ctx, {})
+    subs = submaps_of(seq.timestamps, 5.0)
+    every = candidates(ctx, subs, s)
+    assert every, "the slowed room comes back to its start: a candidate revisit"
+    by_submap = [c for li in range(len(subs)) for c in candidates(ctx, subs, s, later=[li])]
+    assert sorted(by_submap) == sorted(every)
+    assert candidates(ctx, subs, s, later=[]) == []
+
+
+def test_a_closed_loop_corrects_the_online_map_and_the_final_batch_holds_it(drifting):
+    """Once the online loop closure accepts a corrected trajectory, ``current_map`` gives
+    it (later frames follow the odometry from its last frame) with each object moved by the
+    correction at the middle of its views, and ``finish`` holds the poses there; map.json's
+    ``trajectory`` says the loops did it."""
+    m = OnlineMapper(drifting.camera, drifting.priors, "multi-spd", every=5)
+    by_frame = {}
+    for d in drifting.detections:
+        by_frame.setdefault(d.frame, []).append(d)
+    from spdslam.mapping._online import replay
+
+    replay(drifting, m, by_frame, {})
+    before = m.current_map()
+    assert before.objects
+    F = len(m)
+    q = np.asarray(from_tum(drifting.poses_tum).wxyz_xyz)
+    twist = jaxlie.SE3.exp(np.r_[0.05, -0.02, 0.0, 0.0, 0.0, np.radians(2.0)])
+    half = F // 2  # the closure covered the first half; the rest follows the odometry
+    m.loop_closure.poses = np.asarray((twist @ jaxlie.SE3(q[:half])).wxyz_xyz)
+    after = m.current_map()
+    C = np.asarray(twist.as_matrix())
+    want = np.asarray((twist @ jaxlie.SE3(q)).as_matrix())
+    np.testing.assert_allclose(_matrices(after.poses_tum[:, 1:]), want, atol=1e-9)
+    for k, (label, e) in before.objects.items():
+        moved = after.objects[k][1]
+        np.testing.assert_allclose(moved.center, C[:3, :3] @ e.center + C[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(moved.P, C[:3, :3] @ e.P @ C[:3, :3].T, atol=1e-9)
+    result = m.finish()
+    np.testing.assert_allclose(_matrices(result.poses_tum[:, 1:]), want, atol=1e-9)
+    assert result.trajectory["start"] == "loops"
+    assert {"loop_closure", "checks"} <= set(result.trajectory)
 
 
 def test_a_joined_recording_replayed_online_has_no_odometry_across_the_join():

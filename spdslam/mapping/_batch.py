@@ -41,23 +41,21 @@ from typing import Any, Callable
 import jaxlie
 import numpy as np
 
-from ..frontend import Track, estimate_support_planes, screen_detections
+from ..frontend import estimate_support_planes, screen_detections
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import to_tum
-from ..io import MapObject, Sequence, without_class_table
-from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
+from ..io import Sequence, without_class_table
+from ..solver import L, LevenbergMarquardt, Values, X
 from ._context import SequenceContext
 from ._drift import correct_drift
 from ._graph import (
     build_graph,
     initial_values,
     mapping_sigmas,
-    object_factors,
     trajectory_noise_note,
-    with_robust_by_type,
 )
 from ._keyframes import parse_keyframes, select_keyframes
-from ._loops import close_loops
+from ._loops import HeldMap, close_loops, stretch_objects
 from ._methods import Method
 from ._odometry import absolute_sigma, check_trajectory, walk_covariances
 from ._online import replayed_start
@@ -67,18 +65,16 @@ from ._run import (
     Optimised,
     as_landmark,
     associate_tracks,
-    degenerate,
     initialize,
     map_result,
     merge_duplicates,
-    object_uncertainty,
     overlapping_duplicates,
     planes_note,
     step,
 )
 from ._settings import InitialPoses, RunSettings, SettingsError, as_settings, default_association
 
-__all__ = ["run_sequence", "stretch_objects"]
+__all__ = ["run_sequence"]
 
 def run_sequence(
     seq: Sequence,
@@ -146,7 +142,7 @@ def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings
     held = mapper.map(held_run, hold_note="trajectory held at the input poses (no bound on each pose: the boxes "
                                           "do not move the poses; loops closed by the objects do)")
     with step("loop closure"):
-        closure = close_loops(ctx, s, lambda stretches: stretch_objects(held, stretches), say)
+        closure = close_loops(ctx, s, lambda stretches: stretch_objects(held.held, stretches), say)
     if closure.verified:
         corrected = dataclasses.replace(mapper.seq, poses_tum=to_tum(jaxlie.SE3(closure.poses)))  # type: ignore[arg-type]
         say("objects on the corrected poses, held")
@@ -162,62 +158,12 @@ def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings
     return dataclasses.replace(result, notes=notes, trajectory=trajectory)
 
 
-def stretch_objects(mapped: "_Mapped", stretches: list) -> list:
-    """The objects of each stretch (first, last frame) of a run mapped with its poses held
-    (``mapped``), each from that stretch's boxes alone (``MapObject`` s with the track's id
-    and their marginal uncertainty; a stretch's object needs ``min_views`` of its boxes
-    there; degenerate ones are left out): every stretch's objects in one optimisation with
-    the poses held, each started from the run's estimate of it."""
-    ctx, method, s = mapped.ctx, mapped.method, mapped.sigmas
-    stage = method.replace(box_model="inverse" if method.box_model == "semi-then-inverse" else method.box_model)
-    factors: list = []
-    values = Values()
-    keys: list = []
-    frames: set = set()
-    big = 1 + max([tr.id for tr in mapped.tracks], default=0)
-    for m, (a, b) in enumerate(stretches):
-        mine = []
-        for tr in mapped.tracks:
-            if tr.id not in mapped.landmarks:
-                continue
-            inside = (tr.frames >= a) & (tr.frames <= b)
-            if inside.sum() < mapped.min_views:
-                continue
-            key = m * big + int(tr.id)
-            part = Track(key, tr.label, tr.frames[inside], tr.boxes[inside])
-            factors += object_factors(ctx, part, mapped.landmarks[tr.id], stage, s, mapped.planes)
-            values[L(key)] = mapped.landmarks[tr.id]
-            frames.update(int(f) for f in part.frames)
-            mine.append((key, tr))
-        keys.append(mine)
-    if not factors:
-        return [[] for _ in stretches]
-    poses = [X(f) for f in sorted(frames)]
-    for f in sorted(frames):
-        values[X(f)] = ctx.poses[f]
-    graph = NonlinearFactorGraph(with_robust_by_type(factors, method))
-    res = LevenbergMarquardt(max_iterations=mapped.max_iterations).optimize(graph, values, fixed=poses)
-    ids = [key for mine in keys for key, _ in mine if not degenerate(as_ellipsoid(res.values[L(key)]))]
-    spread = object_uncertainty(graph, res.values, ids, poses, res)
-    return [[MapObject(int(tr.id), tr.label, as_ellipsoid(res.values[L(key)]), spread[key])
-             for key, tr in mine if key in spread] for mine in keys]
-
-
 @dataclass(frozen=True)
 class _Mapped:
-    """A batch mapping's result and what later steps read of it: its context, its tracks
-    and final landmarks {id: value}, the method, sigmas, estimated planes, ``min_views`` and
-    the LM budget."""
+    """A batch mapping's result and what the loop closure reads of it (``HeldMap``)."""
 
     result: MapResult
-    ctx: SequenceContext
-    tracks: list
-    landmarks: dict
-    method: Method
-    sigmas: dict
-    planes: Any
-    min_views: int
-    max_iterations: int
+    held: HeldMap
 
 
 @dataclass
@@ -490,5 +436,5 @@ def _result(p: _Pass) -> _Mapped:
         start = "held" if p.run.hold_trajectory else ("incremental" if p.start is not None else "input")
         result = dataclasses.replace(result, trajectory={"start": start, "checks": [c.as_dict() for c in p.checks]})
     in_use = mapping_sigmas(p.ctx, p.sigmas) if p.drift is not None else p.in_use  # the corrected graph's
-    return _Mapped(result, p.ctx, p.front.tracks, dict(p.landmarks), p.method, in_use, p.planes,
-                   p.run.min_views, p.run.max_iterations)
+    return _Mapped(result, HeldMap(p.ctx, p.front.tracks, dict(p.landmarks), p.method, in_use, p.planes,
+                                   p.run.min_views, p.run.max_iterations))

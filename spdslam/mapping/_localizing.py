@@ -62,6 +62,10 @@ class LocalizingMapper(OnlineMapper):
     thread, or in the background (``background=True``) in the worker's, on each map it
     publishes (``localized_at`` then counts the frames that map used)."""
 
+    #: no loop closure: the transform to the saved map is found on the recording's own frame
+    #: (a localised run with loops: not built)
+    closes_loops = False
+
     def __init__(self, map_objects, camera, priors=None, method="multi-spd", *, sim3: bool = False,
                  tolerance: float = 0.15, min_matches: int = ONLINE_MIN_MATCHES, **settings):
         super().__init__(camera, priors, method, **settings)

@@ -47,6 +47,7 @@ input: a back end does not take out drift that it cannot see.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -55,8 +56,13 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..factors import BetweenFactor
-from ..solver import LevenbergMarquardt, NonlinearFactorGraph, Values, X
+from ..frontend import Track
+from ..geometry import as_ellipsoid
+from ..io import MapObject
+from ..solver import L, LevenbergMarquardt, NonlinearFactorGraph, Values, X
 from ._context import SequenceContext
+from ._graph import mapping_sigmas, object_factors, with_robust_by_type
+from ._methods import Method
 from ._odometry import TrajectoryCheck, check_trajectory, odometry_factors, step_sigma, walk_covariances
 from ._reuse import (
     MIN_BOX_AGREEMENT,
@@ -67,10 +73,12 @@ from ._reuse import (
     localize_objects,
     refine_localization,
 )
+from ._run import degenerate, object_uncertainty
 
 __all__ = ["LOOP_ANGLE", "LOOP_MAX_CANDIDATES", "LOOP_MIN_FRAMES", "LOOP_MIN_MATCHES",
-           "LOOP_MIN_SUBMAPS", "LOOP_P", "LOOP_RADIUS", "LOOP_SIGMA_FLOOR", "LOOP_SUBMAP_SECONDS", "Loop",
-           "LoopClosure", "close_loops", "loop_covariance", "solve_pose_graph", "submaps_of"]
+           "LOOP_MIN_SUBMAPS", "LOOP_P", "LOOP_RADIUS", "LOOP_SIGMA_FLOOR", "LOOP_SUBMAP_SECONDS", "HeldMap", "Loop",
+           "LoopClosure", "OnlineLoopClosure", "close_loops", "loop_covariance", "solve_pose_graph",
+           "stretch_objects", "submaps_of"]
 
 #: The length of a submap (s), at most; a recording shorter than ``LOOP_MIN_SUBMAPS`` of them
 #: is cut into that many.
@@ -223,16 +231,20 @@ def _walk_between(q, a: int, b: int, s: dict) -> np.ndarray:
     return walk_covariances(q[a:b + 1], s, start=np.zeros((6, 6)))[-1]
 
 
-def candidates(ctx: SequenceContext, subs: list, s: dict) -> list:
+def candidates(ctx: SequenceContext, subs: list, s: dict, later=None) -> list:
     """The candidate revisits (module docstring, step 2): [(k, l, i, j)] with k < l − 1 the
-    stretches and i, j the closest pair of their frames, the closest first."""
+    stretches and i, j the closest pair of their frames, the closest first; ``later``: only
+    those whose later stretch l is one of these (an online run's new submaps)."""
     R, C = ctx.camera_axes
     z = R[:, :, 2]
     sub = [np.arange(a, b + 1, max(1, (b - a + 1) // 40)) for a, b in subs]  # ≤ ~40 frames a stretch
     sig = step_sigma(s)
     out = []
+    allowed = set(range(len(subs)) if later is None else later)
     for k in range(len(subs)):
         for li in range(k + 2, len(subs)):
+            if li not in allowed:
+                continue
             fa, fb = sub[k], sub[li]
             n = max(int(fb[0] - fa[-1]), 1)
             if np.sqrt(n) * sig[3] < LOOP_MIN_WALK:
@@ -438,27 +450,30 @@ def solve_pose_graph(ctx: SequenceContext, s: dict, loops: list, progress=None) 
     return poses, loops
 
 
-def close_loops(ctx: SequenceContext, s: dict, map_stretches: Callable, progress: Callable | None = None,
-                seconds: float | None = None) -> LoopClosure:
-    """The trajectory of ``ctx`` corrected by the loops its objects close (module docstring),
-    with the run's sigmas ``s`` (``mapping_sigmas``; the step σ of the walk) and
-    ``map_stretches([(first, last), …]) -> [objects, …]`` mapping each stretch alone with its
-    poses held (``io.MapObject`` s in the input's frame)."""
-    say = progress or (lambda message: None)
-    subs = submaps_of(ctx.seq.timestamps, seconds)
-    q = ctx.wxyz_xyz
-    cands = candidates(ctx, subs, s)
-    say(f"loop closure: {len(subs)} submaps, {len(cands)} candidate revisits")
-    F = len(q)
-    pairs = []  # each revisit's two stretches, a submap's length, centred on its closest frames
+def _pairs(subs: list, cands: list, F: int) -> list:
+    """Each candidate revisit's two stretches, a submap's length each, centred on its
+    closest frames: [((first, last) earlier, (first, last) later, (i, j))]."""
+    pairs = []
     for k, li, i, j in cands:
         h = max((subs[k][1] - subs[k][0]) // 2, (subs[li][1] - subs[li][0]) // 2, 1)
         pairs.append(((max(0, i - h), min(F - 1, i + h)), (max(0, j - h), min(F - 1, j + h)), (i, j)))
+    return pairs
+
+
+def _tried(ctx: SequenceContext, s: dict, pairs: list, map_stretches: Callable) -> list:
+    """Steps 3–4 of the module docstring: each pair's stretches mapped alone, each loop
+    verified (``Loop``, before the confirmation by another place)."""
     needed = sorted({w for ea, la, _ in pairs for w in (ea, la)})
     mapped = map_stretches(needed) if needed else []
     stretch = {w: (ctx.seq.subset(np.arange(w[0], w[1] + 1)), objs) for w, objs in zip(needed, mapped)}
-    loops: list = [_verify(ctx, stretch, ea, la, fr, s) for ea, la, fr in pairs]
-    loops = _confirmed(q, loops, s)
+    return [_verify(ctx, stretch, ea, la, fr, s) for ea, la, fr in pairs]
+
+
+def _closed(ctx: SequenceContext, s: dict, tried: list, subs: list, say: Callable) -> LoopClosure:
+    """Step 5 of the module docstring on the ``tried`` loops: those another place confirms
+    (``_confirmed``) in the pose graph, its trajectory checked against the odometry."""
+    q = ctx.wxyz_xyz
+    loops = _confirmed(q, tried, s)
     for lp in loops:
         say(lp.describe())
     if not any(lp.status == "verified" for lp in loops):
@@ -473,3 +488,163 @@ def close_loops(ctx: SequenceContext, s: dict, map_stretches: Callable, progress
                  for lp in loops]
         return LoopClosure(q, loops, check, subs)
     return LoopClosure(poses, loops, check, subs)
+
+
+def close_loops(ctx: SequenceContext, s: dict, map_stretches: Callable, progress: Callable | None = None,
+                seconds: float | None = None) -> LoopClosure:
+    """The trajectory of ``ctx`` corrected by the loops its objects close (module docstring),
+    with the run's sigmas ``s`` (``mapping_sigmas``; the step σ of the walk) and
+    ``map_stretches([(first, last), …]) -> [objects, …]`` mapping each stretch alone with its
+    poses held (``io.MapObject`` s in the input's frame; ``stretch_objects``)."""
+    say = progress or (lambda message: None)
+    subs = submaps_of(ctx.seq.timestamps, seconds)
+    cands = candidates(ctx, subs, s)
+    say(f"loop closure: {len(subs)} submaps, {len(cands)} candidate revisits")
+    tried = _tried(ctx, s, _pairs(subs, cands, len(ctx.wxyz_xyz)), map_stretches)
+    return _closed(ctx, s, tried, subs, say)
+
+
+@dataclass(frozen=True)
+class HeldMap:
+    """Objects mapped with the poses held at ``ctx``'s (the batch run's first pass, or an
+    online run's map on the odometry): the tracks, the landmarks {id: value}, the method, the
+    sigmas, the support planes, ``min_views`` and the LM budget (``stretch_objects``)."""
+
+    ctx: SequenceContext
+    tracks: list
+    landmarks: dict
+    method: Method
+    sigmas: dict
+    planes: Any
+    min_views: int
+    max_iterations: int
+
+
+def stretch_objects(mapped: HeldMap, stretches: list) -> list:
+    """The objects of each stretch (first, last frame) of a run mapped with its poses held
+    (``mapped``), each from that stretch's boxes alone (``MapObject`` s with the track's id
+    and their marginal uncertainty; a stretch's object needs ``min_views`` of its boxes
+    there; degenerate ones are left out): every stretch's objects in one optimisation with
+    the poses held, each started from the run's estimate of it."""
+    ctx, method, s = mapped.ctx, mapped.method, mapped.sigmas
+    stage = method.replace(box_model="inverse" if method.box_model == "semi-then-inverse" else method.box_model)
+    factors: list = []
+    values = Values()
+    keys: list = []
+    frames: set = set()
+    big = 1 + max([tr.id for tr in mapped.tracks], default=0)
+    for m, (a, b) in enumerate(stretches):
+        mine = []
+        for tr in mapped.tracks:
+            if tr.id not in mapped.landmarks:
+                continue
+            inside = (tr.frames >= a) & (tr.frames <= b)
+            if inside.sum() < mapped.min_views:
+                continue
+            key = m * big + int(tr.id)
+            part = Track(key, tr.label, tr.frames[inside], tr.boxes[inside])
+            factors += object_factors(ctx, part, mapped.landmarks[tr.id], stage, s, mapped.planes)
+            values[L(key)] = mapped.landmarks[tr.id]
+            frames.update(int(f) for f in part.frames)
+            mine.append((key, tr))
+        keys.append(mine)
+    if not factors:
+        return [[] for _ in stretches]
+    poses = [X(f) for f in sorted(frames)]
+    for f in sorted(frames):
+        values[X(f)] = ctx.poses[f]
+    graph = NonlinearFactorGraph(with_robust_by_type(factors, method))
+    res = LevenbergMarquardt(max_iterations=mapped.max_iterations).optimize(graph, values, fixed=poses)
+    ids = [key for mine in keys for key, _ in mine if not degenerate(as_ellipsoid(res.values[L(key)]))]
+    spread = object_uncertainty(graph, res.values, ids, poses, res)
+    return [[MapObject(int(tr.id), tr.label, as_ellipsoid(res.values[L(key)]), spread[key])
+             for key, tr in mine if key in spread] for mine in keys]
+
+
+class OnlineLoopClosure:
+    """The loop closure of an online run (``OnlineMapper`` on a trajectory without a bound on
+    each pose, its poses held at the odometry): the batch's steps (module docstring) on the
+    frames so far, attached with ``OnlineMapper.watch``. Each time a submap
+    (``LOOP_SUBMAP_SECONDS``) and the one after it are complete, the candidate revisits of
+    that submap to the earlier ones (``candidates``' rules) are mapped from the mapper's
+    tracks with the poses held (``stretch_objects``) and verified (``_verify``); every loop
+    tried so far then goes through the confirmation by another place, the pose graph and the
+    check against the odometry (``_closed``), as in the batch. An accepted closure gives the
+    corrected poses of the frames it covered (``corrections``: later frames follow the
+    odometry from the last of them); a refused one keeps the last accepted. ``finish``
+    tries the submaps left at the end. Read through the mapper's public state
+    (``sequence``, ``tracks``, ``landmarks``, ``timestamps``)."""
+
+    def __init__(self, mapper, progress: Callable | None = None, seconds: float = LOOP_SUBMAP_SECONDS):
+        self.mapper, self.seconds = mapper, float(seconds)
+        self.say = progress or (lambda message: None)
+        self.tried: list = []  # every loop tried so far, before the confirmation
+        self.tried_through = -1  # the last submap whose revisits were tried
+        self.closure: LoopClosure | None = None  # the last closure computed (accepted or not)
+        self.poses: np.ndarray | None = None  # the last accepted corrected poses (F', 7)
+        self.seconds_spent, self.tries = 0.0, 0
+        mapper.watch(self.due, self.look)
+
+    def _ready(self, timestamps, final: bool) -> int:
+        """The last submap whose revisits can be tried: the one before the last complete
+        one (its stretches reach half a submap into the next), every one at the end."""
+        t = np.asarray(timestamps, float)
+        if len(t) < 2:
+            return -1
+        if final:
+            return len(submaps_of(t, self.seconds)) - 1
+        return int(np.floor((t[-1] - t[0]) / self.seconds)) - 2
+
+    def due(self, count: int, frames: int) -> bool:
+        return self._ready(self.mapper.timestamps[:frames], False) > self.tried_through
+
+    def look(self, objects: dict | None = None, frames: int | None = None, final: bool = False) -> None:
+        """Try the revisits of the submaps ready since the last look (``final``: all left)."""
+        t0 = time.perf_counter()
+        mapper = self.mapper
+        seq = mapper.sequence()
+        ready = self._ready(seq.timestamps, final)
+        if ready <= self.tried_through or not len(seq):
+            return
+        ctx = SequenceContext.of(seq)
+        s = mapping_sigmas(ctx, dict(mapper.settings.sigma))
+        subs = submaps_of(seq.timestamps, self.seconds)
+        new = range(self.tried_through + 1, ready + 1)
+        self.tried_through = ready
+        cands = candidates(ctx, subs, s, later=new)
+        self.tries += 1
+        if cands:
+            held = HeldMap(ctx, mapper.tracks(), dict(mapper.landmarks), mapper.method, s, None, mapper.min_views,
+                           mapper.settings.max_iterations)
+            self.say(f"loop closure: {len(cands)} candidate revisits of submaps {new.start}–{new.stop - 1}")
+            self.tried += _tried(ctx, s, _pairs(subs, cands, len(seq)), lambda w: stretch_objects(held, w))
+            if any(lp.status == "verified" for lp in self.tried):
+                self.closure = _closed(ctx, s, list(self.tried), subs, self.say)
+                if self.closure.verified:
+                    self.poses = self.closure.poses
+        self.seconds_spent += time.perf_counter() - t0
+
+    def corrections(self, wxyz_xyz) -> np.ndarray | None:
+        """C (F, 4, 4) with T_corrected = C T_input for the input poses ``wxyz_xyz`` (F, 7):
+        from the accepted closure for the frames it covered, the last of those after; None
+        before a closure is accepted."""
+        if self.poses is None:
+            return None
+        q = np.asarray(wxyz_xyz, float)
+        n = min(len(self.poses), len(q))
+        C = np.empty((len(q), 4, 4))
+        C[:n] = np.asarray((jaxlie.SE3(self.poses[:n]) @ jaxlie.SE3(q[:n]).inverse()).as_matrix())  # type: ignore[arg-type]
+        C[n:] = C[n - 1]
+        return C
+
+    def notes(self) -> list:
+        """The closure's notes (``LoopClosure.notes``), or a line saying none was tried or
+        verified."""
+        if self.closure is not None:
+            return self.closure.notes()
+        return [f"loop closure (online): {len(self.tried)} candidate revisits, none verified; the trajectory is "
+                "the input's"]
+
+    def as_dict(self) -> dict:
+        out = self.closure.as_dict() if self.closure is not None else {"loops": [lp.as_dict() for lp in self.tried]}
+        return {**out, "online": {"tries": self.tries, "seconds": self.seconds_spent}}

@@ -18,7 +18,11 @@ have factors not yet marginalised. On a trajectory without a bound on each pose 
 odometry) the poses are held at the odometry instead (``hold_poses``; the boxes of a real
 detector do not fix a camera better than the odometry over a minute, and the window's free
 poses once followed them metres away on a real recording, docs/drift.md) unless
-``initial_poses="input"`` frees them; ``finish`` then holds them too. The odometry factors
+``initial_poses="input"`` frees them; ``finish`` then holds them too. Held there, the loops
+the objects close correct them (``loop_closure``, ``_loops.OnlineLoopClosure``: the batch's
+verification and pose graph on the frames so far, each time a submap is complete; in the
+worker with ``background``): ``current_map`` gives the corrected trajectory and objects, and
+``finish`` holds the poses at it. The odometry factors
 are ``_odometry.odometry_factors``' (the batch graph's), with the segments of a joined
 recording (``add_frame``'s ``new_segment``). Factors: the odometry between consecutive frames of the
 window (the first one from the frame before it, whose pose is held fixed; a prior on the
@@ -77,8 +81,10 @@ from ._graph import (
     object_factors,
     with_robust_by_type,
 )
+from ._loops import OnlineLoopClosure
 from ._methods import Method, robust_kernel
 from ._odometry import absolute_sigma, check_trajectory, odometry_factors, walk_covariances
+from ._reuse import transform_ellipsoid
 from ._run import (
     Optimised,
     as_landmark,
@@ -86,6 +92,7 @@ from ._run import (
     in_front_views,
     initialize_objects,
     map_result,
+    merged_tracks,
     overlapping_duplicates,
     too_few_views,
 )
@@ -191,6 +198,10 @@ def _detection(d, frame: int, timestamp: float) -> Detection:
 class OnlineMapper:
     """Incremental object mapping (module docstring).
 
+    ``loop_closure``: on a trajectory without a bound on each pose, with ``initial_poses``
+    auto or loops, the loops its objects close (``OnlineLoopClosure``, attached by
+    ``watch``); ``current_map`` and ``finish`` give the trajectory and objects it corrected.
+
     ``camera``, ``priors``: as a ``Sequence``'s. ``method``: the run's ``RunSettings`` (its
     ``online`` the fixed-lag settings, ``OnlineSettings()`` when None), or a name of
     ``METHODS`` (or a ``Method``; SPD or RTS landmarks) with ``settings``: the keywords of
@@ -216,6 +227,9 @@ class OnlineMapper:
     worker is idle; ``finish`` waits first. An error in the worker is raised by the next
     ``add_frame``, ``wait`` or ``finish``.
     """
+
+    #: whether a mapper of this class closes loops (``loop_closure``)
+    closes_loops = True
 
     def __init__(self, camera, priors=None, method: str | Method | RunSettings = "multi-spd", *,
                  association: AssociationSettings | None = None, name: str = "online",
@@ -284,6 +298,10 @@ class OnlineMapper:
         self._error: BaseException | None = None
         self._published = OnlineMap({}, np.zeros((0, 8)))
         self._watchers: list = []
+        #: on a trajectory whose poses are held at the odometry (``initial_poses`` auto or
+        #: loops): the loops the objects close as the frames come (``OnlineLoopClosure``)
+        self.loop_closure = OnlineLoopClosure(self) if self.closes_loops and self.hold_poses and \
+            run.start(True) == InitialPoses.LOOPS else None
         self._prime()
 
     def watch(self, due: Callable[[int, int], bool], look: Callable[[dict, int], Any]) -> None:
@@ -498,13 +516,13 @@ class OnlineMapper:
             k = n - 1
             self.records[k] = dataclasses.replace(self.records[k], factors=figures[0],
                                                   variables=figures[1], iterations=figures[2])
-            self._published = self._snapshot(n)
+            snap = self._snapshot(n)
         for i in range(self._used, n):
             self.records[i] = dataclasses.replace(self.records[i], lag=now - self._arrival[i])
         self._used = n
         if self.background:
-            published = self._published
-            self._notify(len(published.objects), n, lambda: published.objects)
+            self._notify(len(snap.objects), n, lambda: snap.objects)  # the mapper's own frame
+            self._published = self._corrected(snap)
 
     def _raise_worker_error(self) -> None:
         if self._error is not None:
@@ -755,6 +773,24 @@ class OnlineMapper:
         poses = np.c_[np.asarray(self._timestamps[:n]), rows]
         return OnlineMap(self._objects(), poses, frames=n)
 
+    def _corrected(self, snap: OnlineMap) -> OnlineMap:
+        """``snap`` with the loop closure's corrections (``OnlineLoopClosure.corrections``):
+        each pose T ↦ C T, each object moved by C at the middle of its views (the frames in
+        between follow the corrected trajectory); ``snap`` itself before a loop closed."""
+        n = snap.frames
+        C = None if self.loop_closure is None else self.loop_closure.corrections(self._est.array[:n])
+        if C is None or not n:
+            return snap
+        T = jaxlie.SE3.from_matrix(C) @ jaxlie.SE3(self._est.array[:n])  # type: ignore[arg-type]
+        poses = np.c_[snap.poses_tum[:, 0], to_tum(T)]
+        objects = {k: (label, transform_ellipsoid(e, C[self._anchor(k, n)])) for k, (label, e) in snap.objects.items()}
+        return dataclasses.replace(snap, objects=objects, poses_tum=poses)
+
+    def _anchor(self, k, n: int) -> int:
+        """The frame at the middle of object k's views among the first n."""
+        frames = sorted(f for f, _ in self._views.get(k, ()) if f < n)
+        return frames[len(frames) // 2] if frames else n - 1
+
     def _objects(self) -> dict:
         """The objects now, {id: (label, Ellipsoid)}."""
         return {k: (self._label(k), as_ellipsoid(v)) for k, v in sorted(self.landmarks.items())}
@@ -768,7 +804,7 @@ class OnlineMapper:
             if not covariances:
                 return self._published
             self.wait()
-        snap = self._snapshot(len(self))
+        snap = self._corrected(self._snapshot(len(self)))
         objects, poses = snap.objects, snap.poses_tum
         cov: dict = {}
         if covariances and self._last_graph is not None and self._last_values is not None:
@@ -778,6 +814,11 @@ class OnlineMapper:
             cov = {key.index: c for key, c in marginal_covariances(
                 self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
         return OnlineMap(objects, poses, cov, frames=self._used)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """The frames' timestamps, in the order they came."""
+        return np.asarray(self._timestamps, float)
 
     @property
     def estimates(self) -> np.ndarray:
@@ -818,9 +859,22 @@ class OnlineMapper:
         notes = list(self.notes)
         if self.hold_poses:
             notes.append("the poses follow the odometry (no bound on each pose: the boxes do not move them)")
+        est = self._est.array
+        if self.loop_closure is not None:
+            self.loop_closure.look(final=True)  # the submaps left at the end
+            notes += self.loop_closure.notes()
+            seq, est, landmarks = self._closed(seq, landmarks)
         optimizer = LevenbergMarquardt(max_iterations=max_iterations, relative_tolerance=tolerance)
         solved, trajectory = self._final_solve(seq, tracks, landmarks, notes, optimizer if final_batch else None,
-                                               say)
+                                               say, est)
+        tracks, landmarks, pairs = self._undoubled(solved, tracks, landmarks, notes)
+        if pairs:  # solved again without the merged objects (the batch run's rule)
+            solved, trajectory = self._final_solve(seq, tracks, landmarks, notes,
+                                                   optimizer if final_batch else None, say, est)
+        if self.loop_closure is not None:
+            check = self.loop_closure.closure.check if self.loop_closure.closure is not None else None
+            trajectory = {**trajectory, "start": "loops", "loop_closure": self.loop_closure.as_dict(),
+                          "checks": trajectory.get("checks", []) + ([] if check is None else [check.as_dict()])}
         failed, short, need = self._unmapped(rare)
         labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
         notes += [f"{short} tentative tracks with fewer than {need} detections discarded"] if short else []
@@ -831,6 +885,38 @@ class OnlineMapper:
         result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
                             failed, priors=seq.priors, given_poses=unbounded and not solved.fixed)
         return dataclasses.replace(result, notes=notes, association=record, trajectory=trajectory)
+
+    def _closed(self, seq: Sequence, landmarks: dict) -> tuple[Sequence, np.ndarray, dict]:
+        """(sequence, pose estimates, landmarks) of the final batch with the loop closure's
+        corrections (``_corrected``): the poses held there are the corrected ones; as they
+        are before a loop closed."""
+        est = self._est.array
+        C = self.loop_closure.corrections(est) if self.loop_closure is not None else None
+        if C is None:
+            return seq, est, landmarks
+        T = jaxlie.SE3.from_matrix(C) @ jaxlie.SE3(est)  # type: ignore[arg-type]
+        n = len(est)
+        moved = {k: as_landmark(transform_ellipsoid(as_ellipsoid(v), C[self._anchor(k, n)]), self.method)
+                 for k, v in landmarks.items()}
+        return dataclasses.replace(seq, poses_tum=to_tum(T)), np.asarray(T.wxyz_xyz), moved
+
+    def _undoubled(self, solved: Optimised, tracks: list, landmarks: dict, notes: list) -> tuple[list, dict, list]:
+        """After the loop closure corrected the poses (automatic association): the objects the
+        drift doubled (seen again after the odometry drifted, mapped again where the drifted
+        poses put them) lie on each other; each such pair (``overlapping_duplicates`` on the
+        final batch's objects, as the batch run) joined (``merged_tracks``). (tracks,
+        landmarks from the solved values, pairs); unchanged when nothing was corrected."""
+        if self.loop_closure is None or self.loop_closure.poses is None or self._tracker is None:
+            return tracks, landmarks, []
+        ells = {k: as_ellipsoid(solved.values[L(k)]) for k in landmarks}
+        pairs = overlapping_duplicates(ells, {tr.id: tr.label for tr in tracks},
+                                       {tr.id: len(tr.frames) for tr in tracks})
+        if not pairs:
+            return tracks, landmarks, []
+        kept = {k: solved.values[L(k)] for k in landmarks}
+        tracks, said = merged_tracks(tracks, kept, pairs)
+        notes += said
+        return tracks, kept, pairs
 
     def _final_objects(self) -> tuple[list, dict, dict]:
         """(tracks, landmarks, dropped) of the final batch: the objects now, less those the
@@ -846,17 +932,18 @@ class OnlineMapper:
             tracks = [tr for tr in tracks if tr.id in landmarks]
         return tracks, landmarks, rare
 
-    def _final_solve(self, seq: Sequence, tracks: list, landmarks: dict, notes: list, optimizer, say
-                     ) -> tuple[Optimised, dict]:
+    def _final_solve(self, seq: Sequence, tracks: list, landmarks: dict, notes: list, optimizer, say,
+                     est: np.ndarray) -> tuple[Optimised, dict]:
         """The final batch (``optimizer``; None: the online estimates as they are) over every
-        frame and view, its trajectory checked against the odometry's walk (refused: solved
-        again with the poses held); (what was solved, map.json's ``trajectory``)."""
+        frame and view from the pose estimates ``est`` (F, 7), its trajectory checked against
+        the odometry's walk (refused: solved again with the poses held); (what was solved,
+        map.json's ``trajectory``)."""
         ctx = SequenceContext.of(seq)
         measured = {k: self._measured[k] for k in landmarks if k in self._measured}
         unbounded, hold = absolute_sigma(self._sigmas) is None, self.hold_poses
         fixed = [X(i) for i in range(len(self))] if hold else []
         graph = build_graph(ctx, tracks, landmarks, self.method, self._user_sigmas, measured, odometry=not hold)
-        values = initial_values(self._est, landmarks)
+        values = initial_values(est, landmarks)
         say(f"{'final batch optimisation' if optimizer is not None else 'online map'}: {len(values)} "
             f"variables, {len(graph)} factors")
         trajectory: dict = {}

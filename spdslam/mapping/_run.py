@@ -67,7 +67,7 @@ __all__ = [
     "initialize_objects",
     "initialize_from_measurements",
     "map_result",
-    "merge_duplicates",
+    "merge_duplicates", "merged_tracks",
     "merged_track",
     "in_front_views",
     "too_few_views",
@@ -622,20 +622,24 @@ def merged_track(keep: Track, drop: Track) -> Track:
     return Track(keep.id, keep.label, frames[order], boxes[order])
 
 
-def merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initialization:
-    """``front`` with each pair's tracks joined (``merged_track``) and the merged object
-    dropped from ``landmarks`` (in place); a note per pair."""
-    by_id = {tr.id: tr for tr in front.tracks}
+def merged_tracks(tracks: list, landmarks: dict, pairs) -> tuple[list, list]:
+    """(``tracks`` with each pair's joined (``merged_track``), a note per pair); the merged
+    object is dropped from ``landmarks`` (in place)."""
+    by_id = {tr.id: tr for tr in tracks}
     gone = {drop for _, drop in pairs}
     for keep, drop in pairs:
         by_id[keep] = merged_track(by_id[keep], by_id[drop])
         landmarks.pop(drop)
-    notes = front.notes + [
-        f"objects {keep} and {drop} ({by_id[keep].label}) are one object: after the optimisation "
-        f"each centre lay inside the other ellipsoid; {drop}'s boxes joined to {keep}"
-        for keep, drop in pairs]
-    tracks = [by_id[tr.id] for tr in front.tracks if tr.id not in gone]
-    return dataclasses.replace(front, tracks=tracks, notes=notes)
+    notes = [f"objects {keep} and {drop} ({by_id[keep].label}) are one object: after the optimisation "
+             f"each centre lay inside the other ellipsoid; {drop}'s boxes joined to {keep}" for keep, drop in pairs]
+    return [by_id[tr.id] for tr in tracks if tr.id not in gone], notes
+
+
+def merge_duplicates(front: Initialization, landmarks: dict, pairs) -> Initialization:
+    """``front`` with each pair's tracks joined and the merged object dropped from
+    ``landmarks`` (in place; ``merged_tracks``); a note per pair."""
+    tracks, notes = merged_tracks(front.tracks, landmarks, pairs)
+    return dataclasses.replace(front, tracks=tracks, notes=front.notes + notes)
 
 
 def planes_note(planes: SupportPlanes, up, source: str) -> str:
