@@ -32,7 +32,12 @@ truncation=True``) and without instance ids.
 
     python3 benchmarks/drift.py [--recordings fr2,office] [--rates 0.0005:0.025,0.001:0.05,0.003:0.15]
         [--seeds 0,1,2] [--online] [--background] [--realtime] [--compare input] [--rooms/--no-rooms]
-        [--localize] [--out FILE] [--against EARLIER.json]
+        [--submap-seconds 5] [--localize] [--out FILE] [--against EARLIER.json]
+
+``--submap-seconds 2.5,5,10``: every recording row again with the loop closure's submaps of
+each length (``LOOP_SUBMAP_SECONDS``), the rows then named by it: how the loops' registration
+error and the drift they measure change with the submap's size (each row's loop errors,
+medians, printed).
 
 ``--against`` compares each row with the same row of an earlier ``--out`` (a refactoring
 must leave them equal to 1e-9).
@@ -54,9 +59,11 @@ from spdslam.experiments import localize_sequence
 from spdslam.geometry.se3 import from_tum
 from spdslam.io import read_sequence
 from spdslam.mapping import LocalizationError, OnlineSettings, RunSettings, run_online, run_sequence
+from spdslam.mapping import _loops as loops
 from spdslam.synthetic import drifted_sequence, make_room_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_SUBMAP = loops.LOOP_SUBMAP_SECONDS
 #: An input ATE below this (mm) is the ground truth itself.
 EXACT_MM = 1e-3
 RECORDINGS = {"fr2": ROOT / "../shared/data/tum_fr2_desk", "office": ROOT / "../shared/data/tum_fr3_long_office"}
@@ -122,6 +129,36 @@ def row_of(seq, result, seconds: float, **more) -> dict:
             "checks": t.get("checks", []), "loop_errors": loop_errors(seq, result)}
 
 
+def recording_rows(a, settings, seconds: float) -> list:
+    """The rows of the real recordings (module docstring) with submaps of ``seconds``."""
+    loops.LOOP_SUBMAP_SECONDS = seconds  # the study's knob: the module's constant, read when a run cuts
+    more = {} if seconds == DEFAULT_SUBMAP else {"submap_seconds": seconds}
+    rows = []
+    for name in (x for x in a.recordings.split(",") if x):
+        base = read_sequence(RECORDINGS[name])
+        for rate in (x for x in a.rates.split(",") if x):
+            st, sr_deg = (float(x) for x in rate.split(":"))
+            for seed in (int(x) for x in a.seeds.split(",") if x):
+                seq = drifted_sequence(base, st, np.radians(sr_deg), seed)
+                modes = ["default", *(["input"] if a.compare == "input" else []), *(["online"] if a.online else []),
+                         *(["online-background"] if a.background else [])]
+                for mode in modes:
+                    t0 = time.perf_counter()
+                    records = None
+                    if mode.startswith("online"):
+                        result, records = run_online(seq, settings.replace(
+                            online=OnlineSettings(background=mode == "online-background", realtime=a.realtime)))
+                    else:
+                        result = run_sequence(seq, settings if mode == "default"
+                                              else settings.replace(initial_poses="input"))
+                    r = row_of(seq, result, time.perf_counter() - t0, recording=name, rate=rate, seed=seed,
+                               mode=mode, **more, **frame_times(records, result))
+                    rows.append(r)
+                    show(r)
+    loops.LOOP_SUBMAP_SECONDS = DEFAULT_SUBMAP
+    return rows
+
+
 def frame_times(records, result) -> dict:
     """An online run's ``add_frame`` times (ms: median, p99, most) and its loop closure's
     tries and seconds; {} for a batch run."""
@@ -134,13 +171,23 @@ def frame_times(records, result) -> dict:
 
 
 def show(r: dict) -> None:
-    what = " ".join(f"{k} {r[k]}" for k in ("recording", "room", "rate", "seed", "mode") if k in r)
+    what = " ".join(f"{k} {r[k]}" for k in ("recording", "room", "rate", "seed", "mode", "submap_seconds") if k in r)
     loops = f"loops {r['loops_found']}/{r['loops_verified']}/{r['loops_rejected']}"
     refused = [c["step"] for c in r["checks"] if not c["accepted"]]
     print(f"{what}: ATE {r['ate_input_mm']:.1f} → {r['ate_mm']:.1f} mm ({r['ratio']:.2f}×), start {r['start']}, "
           f"{loops} (found/verified/rejected), {r['objects']} objects, {r['seconds']:.1f} s"
           + (f"; refused by the check against the odometry: {', '.join(refused)}" if refused else "")
-          + (online_figures(r) if "frame_ms" in r else ""), flush=True)
+          + (online_figures(r) if "frame_ms" in r else "") + error_figures(r), flush=True)
+
+
+def error_figures(r: dict) -> str:
+    """The loops' median drift to measure and median error (rotation), verified or not."""
+    e = r.get("loop_errors") or []
+    if not e:
+        return ""
+    med = {k: float(np.median([x[k] for x in e])) for k in ("drift_deg", "error_deg", "drift_mm", "error_mm")}
+    return (f"; {len(e)} loops measure a drift of {med['drift_deg']:.1f}° ({med['drift_mm']:.0f} mm) to "
+            f"{med['error_deg']:.1f}° ({med['error_mm']:.0f} mm), medians")
 
 
 def online_figures(r: dict) -> str:
@@ -196,6 +243,8 @@ def main() -> None:
     ap.add_argument("--online", action="store_true", help="each drifted recording also through the online mapper")
     ap.add_argument("--background", action="store_true",
                     help="each drifted recording also through the online mapper with its worker thread")
+    ap.add_argument("--submap-seconds", default=str(DEFAULT_SUBMAP),
+                    help="the loop closure's submap length (s), comma-separated: each a run of every recording row")
     ap.add_argument("--realtime", action="store_true",
                     help="the online replays at the recording's own rate (as a camera delivers the frames)")
     ap.add_argument("--compare", default="", help="'input': each drifted recording also with --initial-poses input")
@@ -215,28 +264,9 @@ def main() -> None:
     settings = RunSettings.of("multi-spd")
     if a.localize:
         return write_out(a, {"localize": localize_study(a, settings)})
-    rows, rooms = [], []
-    for name in (x for x in a.recordings.split(",") if x):
-        base = read_sequence(RECORDINGS[name])
-        for rate in (x for x in a.rates.split(",") if x):
-            st, sr_deg = (float(x) for x in rate.split(":"))
-            for seed in (int(x) for x in a.seeds.split(",") if x):
-                seq = drifted_sequence(base, st, np.radians(sr_deg), seed)
-                modes = ["default", *(["input"] if a.compare == "input" else []), *(["online"] if a.online else []),
-                         *(["online-background"] if a.background else [])]
-                for mode in modes:
-                    t0 = time.perf_counter()
-                    records = None
-                    if mode.startswith("online"):
-                        result, records = run_online(seq, settings.replace(
-                            online=OnlineSettings(background=mode == "online-background", realtime=a.realtime)))
-                    else:
-                        result = run_sequence(seq, settings if mode == "default"
-                                              else settings.replace(initial_poses="input"))
-                    r = row_of(seq, result, time.perf_counter() - t0, recording=name, rate=rate, seed=seed,
-                               mode=mode, **frame_times(records, result))
-                    rows.append(r)
-                    show(r)
+    rooms: list = []
+    rows = [r for seconds in (float(x) for x in a.submap_seconds.split(",") if x)
+            for r in recording_rows(a, settings, seconds)]
     failures = dict(outliers=0.1, missed=0.1, truncation=True) if a.room_failures else {}
     for drift in (float(x) for x in a.room_drift.split(",") if x and a.rooms):
         for seed in (int(x) for x in a.room_seeds.split(",") if x):
@@ -269,7 +299,7 @@ def compare_rows(rows: list, earlier: dict) -> dict:
     mode) of an ``earlier`` run of this benchmark; prints and returns the largest relative
     ATE difference, the rows whose counts differ and those the earlier run lacks."""
     def key(r):
-        return r.get("recording", r.get("room")), str(r["rate"]), r["seed"], r["mode"]
+        return r.get("recording", r.get("room")), str(r["rate"]), r["seed"], r["mode"], r.get("submap_seconds")
 
     old = {key(r): r for r in earlier.get("recordings", []) + earlier.get("rooms", [])}
     worst, differ, missing = 0.0, [], []

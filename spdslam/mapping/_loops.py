@@ -575,8 +575,9 @@ class OnlineLoopClosure:
     tries the submaps left at the end. Read through the mapper's public state
     (``sequence``, ``tracks``, ``landmarks``, ``timestamps``)."""
 
-    def __init__(self, mapper, progress: Callable | None = None, seconds: float = LOOP_SUBMAP_SECONDS):
-        self.mapper, self.seconds = mapper, float(seconds)
+    def __init__(self, mapper, progress: Callable | None = None, seconds: float | None = None):
+        self.mapper = mapper
+        self.seconds = float(LOOP_SUBMAP_SECONDS if seconds is None else seconds)
         self.say = progress or (lambda message: None)
         self.tried: list = []  # every loop tried so far, before the confirmation
         self.tried_through = -1  # the last submap whose revisits were tried

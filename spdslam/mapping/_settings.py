@@ -242,7 +242,8 @@ class RunSettings:
         "(trajectory_absolute_sigma: .inf): input (the joint optimisation starts from the input "
         "poses), incremental (the frames replayed through the online mapper first), loops (the "
         "drift taken out by loops closed between submaps, the poses then held at the corrected "
-        "trajectory: the boxes do not move the poses); auto: loops (docs/drift.md)"))
+        "trajectory: the boxes do not move the poses; online, as the frames come); auto: loops "
+        "(docs/drift.md)"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
     class_table: bool = field(default=True, metadata=_help(
