@@ -778,18 +778,27 @@ class OnlineMapper:
         each pose T ↦ C T, each object moved by C at the middle of its views (the frames in
         between follow the corrected trajectory); ``snap`` itself before a loop closed."""
         n = snap.frames
-        C = None if self.loop_closure is None else self.loop_closure.corrections(self._est.array[:n])
-        if C is None or not n:
+        moved = self._correction(n)
+        if moved is None:
             return snap
-        T = jaxlie.SE3.from_matrix(C) @ jaxlie.SE3(self._est.array[:n])  # type: ignore[arg-type]
-        poses = np.c_[snap.poses_tum[:, 0], to_tum(T)]
-        objects = {k: (label, transform_ellipsoid(e, C[self._anchor(k, n)])) for k, (label, e) in snap.objects.items()}
-        return dataclasses.replace(snap, objects=objects, poses_tum=poses)
+        T, move = moved
+        objects = {k: (label, move(k, e)) for k, (label, e) in snap.objects.items()}
+        return dataclasses.replace(snap, objects=objects, poses_tum=np.c_[snap.poses_tum[:, 0], to_tum(T)])
 
-    def _anchor(self, k, n: int) -> int:
-        """The frame at the middle of object k's views among the first n."""
-        frames = sorted(f for f, _ in self._views.get(k, ()) if f < n)
-        return frames[len(frames) // 2] if frames else n - 1
+    def _correction(self, n: int):
+        """The loop closure's correction of the first n frames: (the corrected poses T = C T̂,
+        ``move(k, ellipsoid)``: object k's ellipsoid moved by C at the frame in the middle of
+        its views); None before a loop closed."""
+        C = None if self.loop_closure is None or not n else self.loop_closure.corrections(self._est.array[:n])
+        if C is None:
+            return None
+        T = jaxlie.SE3.from_matrix(C) @ jaxlie.SE3(self._est.array[:n])  # type: ignore[arg-type]
+
+        def move(k, e):
+            frames = sorted(f for f, _ in self._views.get(k, ()) if f < n)
+            return transform_ellipsoid(e, C[frames[len(frames) // 2] if frames else n - 1])
+
+        return T, move
 
     def _objects(self) -> dict:
         """The objects now, {id: (label, Ellipsoid)}."""
@@ -890,15 +899,12 @@ class OnlineMapper:
         """(sequence, pose estimates, landmarks) of the final batch with the loop closure's
         corrections (``_corrected``): the poses held there are the corrected ones; as they
         are before a loop closed."""
-        est = self._est.array
-        C = self.loop_closure.corrections(est) if self.loop_closure is not None else None
-        if C is None:
-            return seq, est, landmarks
-        T = jaxlie.SE3.from_matrix(C) @ jaxlie.SE3(est)  # type: ignore[arg-type]
-        n = len(est)
-        moved = {k: as_landmark(transform_ellipsoid(as_ellipsoid(v), C[self._anchor(k, n)]), self.method)
-                 for k, v in landmarks.items()}
-        return dataclasses.replace(seq, poses_tum=to_tum(T)), np.asarray(T.wxyz_xyz), moved
+        moved = self._correction(len(self))
+        if moved is None:
+            return seq, self._est.array, landmarks
+        T, move = moved
+        objects = {k: as_landmark(move(k, as_ellipsoid(v)), self.method) for k, v in landmarks.items()}
+        return dataclasses.replace(seq, poses_tum=to_tum(T)), np.asarray(T.wxyz_xyz), objects
 
     def _undoubled(self, solved: Optimised, tracks: list, landmarks: dict, notes: list) -> tuple[list, dict, list]:
         """After the loop closure corrected the poses (automatic association): the objects the
