@@ -19,11 +19,11 @@ from pathlib import Path
 import zlib
 
 # SPDSLAM_TEST_XLA_FAST=1 compiles the tests' XLA programs with the backend optimisation off
-# (--xla_backend_optimization_level=0): most run once, so the suite is ~25 % faster. It is
-# not the default: with it, XLA's CPU runtime deadlocked in
+# (--xla_backend_optimization_level=0): most run once, so the suite is ~25 % faster; opt-in.
 # test_factor_jacobians.py::test_jacobian_matches_central_differences[ellipsoid_measurement-spd]
-# (the main thread waiting for a result that no pool thread computes), in two CI runs and in
-# one of two runs of that test file alone here; with XLA's default it has not.
+# hung under it, and later under XLA's default too (CI, 2026-12-06): jaxlib's batched eigh
+# waiting on XLA's intra-op pool from inside it; check_jacobians now keeps each batch below the
+# size at which jaxlib splits it (docs/install.md, "XLA's threads").
 if os.environ.get("SPDSLAM_TEST_XLA_FAST") == "1" and \
         "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
@@ -362,6 +362,11 @@ def _central_differences(residual, values, args, which, h):
     return ((r[:dim] - r[dim:]) / (2 * h)).T
 
 
+#: Configurations per vectorised chunk of ``check_jacobians``: with tangent spaces of at most
+#: 10 dimensions, 32 × 2 × 10 = 640 matrices per LAPACK call.
+CHECK_CHUNK = 32
+
+
 def check_jacobians(residual, values, args, kind=None, symmetric_cols=None, h=1e-6, tol=2e-5):
     """Assert that the tangent Jacobians of ``residual`` (``factors.tangent_jacobians``, by
     forward-mode autodiff through each variable's retraction) match central differences,
@@ -376,7 +381,11 @@ def check_jacobians(residual, values, args, kind=None, symmetric_cols=None, h=1e
         r, J = tangent_jacobians(residual, vals, a)
         return r, J, [_central_differences(residual, vals, a, k, h) for k in range(len(vals))]
 
-    r, J, J_fd = jax.jit(jax.vmap(one))(tuple(values), tuple(args))
+    # In chunks of CHECK_CHUNK configurations (lax.map): each of jaxlib's batched LAPACK calls
+    # then holds ≤ CHECK_CHUNK × 2 × dim matrices, below the 1 482 3×3 eigen-decompositions at
+    # which it splits the batch over XLA's pool and can wait for itself (docs/install.md).
+    r, J, J_fd = jax.jit(lambda v, a: jax.lax.map(lambda va: one(*va), (v, a), batch_size=CHECK_CHUNK))(
+        tuple(values), tuple(args))
     assert np.all(np.isfinite(np.asarray(r))), "NaN/inf residual"
     for k, (Ja, Jn) in enumerate(zip(J, J_fd)):
         Ja, Jn = np.asarray(Ja), np.asarray(Jn)
