@@ -488,17 +488,17 @@ def test_option_errors(kwargs, match):
 
 @pytest.fixture
 def demo_cli(monkeypatch, tmp_path):
-    """(invoke, calls): run ``spdslam demo`` in-process with ``_run_and_write`` recorded
+    """(invoke, calls): run ``spdslam demo`` in-process with ``run_and_write`` recorded
     instead of run."""
     from conftest import cli_runner
 
     from spdslam import cli
-    from spdslam.cli import _sequences
+    from spdslam.cli import _demo
 
     runner = cli_runner()
     calls = []
     monkeypatch.setattr(
-        _sequences, "_run_and_write",
+        _demo, "run_and_write",
         lambda seq, method, out, *a, **k: calls.append((seq, method, out, a)),
     )
 

@@ -2,12 +2,17 @@
 ``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top
 layer: it may import every other package."""
 
+import importlib
 from typing import TYPE_CHECKING
 
-from . import _check, _sequences, _simulate  # noqa: F401  (register the commands)
 from ._app import app as app
 from ._app import fail as fail
-from ._sequences import DEMO_MARKER as DEMO_MARKER
+
+# The commands, registered in the order the help lists them.
+for _module in ("_check", "_simulate", "_run", "_evaluate", "_import", "_batch", "_demo"):
+    importlib.import_module(f"{__name__}.{_module}")
+
+from ._demo import DEMO_MARKER as DEMO_MARKER  # noqa: E402  (after the registration)
 
 #: Names of ``spdslam.solver`` this package lends, imported (with JAX) on first use.
 _SOLVER_NAMES = ("CACHE_ENV", "cache_dir", "enable_compilation_cache")

@@ -2,8 +2,9 @@
 
 A single typer application, :data:`app`. Commands are plain functions registered with
 ``@app.command()`` in the modules of this package (``_app``: ``info``; ``_simulate``:
-``simulate``; ``_check``: ``check``; ``_sequences``: ``run``, ``evaluate``, ``import``,
-``compare``, ``batch``, ``demo``, ``view``, ``warmup``).
+``simulate``; ``_check``: ``check``; ``_run``: ``run``, ``localize``, ``merge``; ``_evaluate``:
+``evaluate``; ``_import``: ``import``; ``_batch``: ``compare``, ``batch``; ``_demo``: ``demo``,
+``view``, ``warmup``; ``_common``: what the sequence commands share).
 Conventions:
 
 * bad user input -> :func:`fail` (one line on stderr, exit status 2);
