@@ -216,12 +216,12 @@ def test_a_mapper_in_the_background_never_holds_up_a_frame_and_catches_up(room, 
     bg._update = held
     returned = [bg.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
                 for i in range(len(room))]  # would never return if add_frame waited for the worker
-    assert len(returned) == len(room) and bg._busy
+    assert len(returned) == len(room) and bg._worker.busy
     assert bg.current_map().frames == 0 and not bg.current_map().objects  # nothing published yet
     opened = time.perf_counter()
     gate.set()
     bg.wait()
-    assert not bg._busy and not bg._queue
+    assert not bg._worker.busy and not bg._worker.queued
     # the frames that waited were taken in at once and optimised once, on the latest window:
     # two optimisations (the held one and the one for all the rest), not one per 10 frames
     solved = [r.frame for r in bg.records if r.factors]

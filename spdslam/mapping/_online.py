@@ -45,9 +45,8 @@ mapped (the batch run's rule, ``MIN_DETECTION_RATE``).
 from __future__ import annotations
 
 import dataclasses
-import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
@@ -55,10 +54,10 @@ import jaxlie
 import numpy as np
 
 from ..factors import LandmarkPriorFactor
-from ..frontend import AssociationSettings, OnlineTracker, Track, screen_frame, screen_summary
+from ..frontend import AssociationSettings, OnlineTracker, Track
 from ..geometry import as_ellipsoid
-from ..geometry.se3 import as_pose, from_tum, to_tum
-from ..io import BUILTIN_CLASSES, Detection, EllipsoidDetection, Sequence, without_class_table
+from ..geometry.se3 import from_tum, to_tum
+from ..io import BUILTIN_CLASSES, Sequence, without_class_table
 from ..solver import (
     FixedLagSmoother,
     L,
@@ -81,6 +80,7 @@ from ._graph import (
     object_factors,
     with_robust_by_type,
 )
+from ._intake import AcceptedFrame, BackgroundWorker, FrameIntake
 from ._loops import OnlineLoopClosure
 from ._methods import Method, robust_kernel
 from ._odometry import absolute_sigma, check_trajectory, odometry_factors, walk_covariances
@@ -142,18 +142,6 @@ class OnlineMap:
     frames: int = 0
 
 
-@dataclass(frozen=True)
-class _Frame:
-    """A frame accepted by ``add_frame``, not yet taken into the mapper's state."""
-
-    index: int
-    timestamp: float
-    pose: np.ndarray  # input T_wc, jaxlie wxyz_xyz
-    detections: list
-    ellipsoids: list
-    new_segment: bool = False
-
-
 class _Poses:
     """The current pose estimates as a growing (F, 7) array of jaxlie parameters, indexable
     as ``SequenceContext.poses`` is (``poses[i]`` a ``jaxlie.SE3``)."""
@@ -177,22 +165,6 @@ class _Poses:
 
     def __len__(self) -> int:
         return self.n
-
-
-def _detection(d, frame: int, timestamp: float) -> Detection:
-    """A ``Detection`` of this frame from a Detection or (label, box[, score[, instance]])."""
-    if isinstance(d, Detection):
-        return dataclasses.replace(d, frame=frame, timestamp=timestamp)
-    try:
-        if isinstance(d, str) or not 2 <= len(d) <= 4 or not isinstance(d[0], str):
-            raise ValueError
-        label, box, *rest = d
-        score = float(rest[0]) if rest else 1.0
-        instance = None if len(rest) < 2 or rest[1] is None else int(rest[1])
-        return Detection(frame, timestamp, box, label, score, instance)
-    except (TypeError, ValueError):
-        raise ValueError(f"frame {frame}: a detection must be a Detection or (label, box "
-                         f"[x1, y1, x2, y2][, score[, instance]]), got {d!r}") from None
 
 
 class OnlineMapper:
@@ -259,9 +231,7 @@ class OnlineMapper:
         self._smoother = FixedLagSmoother(LevenbergMarquardt(max_iterations=online.iterations), self._floor)
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
-        self._screen = run.screen
-        self._screened: dict = {}  # reason -> [(detection number, text)], as the batch run's screen
-        self._n_detections = 0
+        self._intake = FrameIntake(camera, priors, method.margin, run.screen, associate == "instances")
         self._timestamps: list = []
         self._input = _Poses()  # input poses (jaxlie parameters)
         self._est = _Poses()  # current estimates
@@ -284,18 +254,10 @@ class OnlineMapper:
         self._last_graph: NonlinearFactorGraph | None = None
         self._last_values: Values | None = None
         self._since = 0
-        # frames accepted by add_frame (the caller's thread); taken in by _ingest
-        self._accepted = 0
-        self._last_time: float | None = None
-        self._last_input: Any = None  # jaxlie wxyz_xyz of the last frame accepted
         self._arrival: list = []  # perf_counter at each frame's add_frame
         self._used = 0  # frames the last optimisation used (records before it have their lag)
         self.background = online.background
-        self._lock = threading.Lock()
-        self._queue: deque = deque()  # frames accepted while the worker was busy
-        self._busy = False
-        self._worker: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._worker = BackgroundWorker(self._ingest, self._optimise_and_publish)
         self._published = OnlineMap({}, np.zeros((0, 8)))
         self._watchers: list = []
         #: on a trajectory whose poses are held at the odometry (``initial_poses`` auto or
@@ -319,7 +281,7 @@ class OnlineMapper:
 
     @staticmethod
     def _prime() -> None:
-        """Run the pose arithmetic of a frame once (``_accept``, ``_ingest``, ``_associate``):
+        """Run the pose arithmetic of a frame once (``FrameIntake.accept``, ``_ingest``, ``_associate``):
         JAX compiles its small programs on first use (about 0.1 s in a new process), which
         belongs to the mapper's start, not to its first frames."""
         T = from_tum(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]))
@@ -375,10 +337,8 @@ class OnlineMapper:
         a joined recording (``Sequence.segments``): no odometry links it to the frame before,
         and its pose (given, not odometry) is where the segment was placed."""
         t0 = time.perf_counter()
-        self._raise_worker_error()
-        if new_segment and (pose is None or not self._accepted):
-            raise ValueError(f"frame {self._accepted}: a new segment needs a pose and a frame before it")
-        frame = self._accept(timestamp, pose, odometry, detections, ellipsoids, bool(new_segment))
+        self._worker.raise_error()
+        frame = self._intake.accept(timestamp, pose, odometry, detections, ellipsoids, bool(new_segment))
         self._arrival.append(t0)
         if not self.background:
             due = self._ingest(frame)
@@ -390,70 +350,15 @@ class OnlineMapper:
                 self._publish(len(self), figures)
             self._notify(len(self.landmarks), len(self), self._objects)
             return self.records[-1]
-        with self._lock:
-            due = False
-            if self._busy:
-                self._queue.append(frame)
-            else:
-                due = self._ingest(frame)
-            rec = FrameRecord(frame.index, frame.timestamp, time.perf_counter() - t0, len(self.landmarks),
-                              0, 0, 0)
-            self.records.append(rec)
-            if due:
-                self._busy = True
-                self._worker = threading.Thread(target=self._work, name="spdslam-online", daemon=True)
-                self._worker.start()
-        return rec
 
-    def _accept(self, timestamp, pose, odometry, detections, ellipsoids, new_segment: bool = False) -> _Frame:
-        """A checked and screened frame (``add_frame``); changes only what the caller's
-        thread owns (the frames accepted, the screen's counts)."""
-        f = self._accepted
-        t = float(timestamp)
-        if not np.isfinite(t):
-            raise ValueError(f"frame {f}: the timestamp must be finite, got {timestamp!r}")
-        if self._last_time is not None and t <= self._last_time:
-            what = "duplicates" if t == self._last_time else "is before"
-            raise ValueError(f"frame {f}: timestamp {t:.6f} {what} the last frame's "
-                             f"({self._last_time:.6f}); frames must come in increasing time")
-        if (pose is None) == (odometry is None):
-            raise ValueError(f"frame {f}: give a pose or an odometry step, not "
-                             f"{'both' if pose is not None else 'neither'}")
-        if pose is None and self._last_input is None:
-            raise ValueError("the first frame needs a pose (odometry is relative to the previous frame)")
-        T_in = self._pose(odometry if pose is None else pose)
-        if pose is None:
-            T_in = jaxlie.SE3(self._last_input) @ T_in
-        wxyz = np.asarray(T_in.wxyz_xyz, float)
-        if not np.all(np.isfinite(wxyz)):
-            raise ValueError(f"frame {f}: the pose is not finite")
-        dets = [_detection(d, f, t) for d in detections]
-        for i, d in enumerate(dets):
-            b = d.box
-            if not (np.all(np.isfinite(b)) and b[2] > b[0] and b[3] > b[1]):
-                raise ValueError(f"frame {f}: detection {i} has an invalid box {b.tolist()} "
-                                 "(expected finite x1 < x2, y1 < y2)")
-        ellipsoids = list(ellipsoids)
-        for m in ellipsoids:
-            if not isinstance(m, EllipsoidDetection):
-                raise ValueError(f"frame {f}: measured ellipsoids must be EllipsoidDetection, got {m!r}")
-        meas = [dataclasses.replace(m, frame=f, timestamp=t) for m in ellipsoids]
-        if self.associate == "instances":
-            missing = [d for d in dets if d.instance is None]
-            if missing:
-                raise ValueError(f"frame {f}: {len(missing)} detections without an instance id "
-                                 "(association by instance ids needs one on every detection)")
-        if self._screen:  # the batch run's screen (frontend.screen_detections), frame by frame
-            whys = screen_frame(dets, self._ctx0.camera, self._ctx0.priors, self.method.margin)
-            for j, why in enumerate(whys):
-                if why is not None:
-                    self._screened.setdefault(why[0], []).append((self._n_detections + j, why[1]))
-            self._n_detections += len(dets)
-            dets = [d for d, why in zip(dets, whys) if why is None]
-        self._accepted, self._last_time, self._last_input = f + 1, t, wxyz
-        return _Frame(f, t, wxyz, dets, meas, new_segment)
+        def record() -> FrameRecord:  # under the worker's lock, as the frame is taken in or queued
+            self.records.append(FrameRecord(frame.index, frame.timestamp, time.perf_counter() - t0,
+                                            len(self.landmarks), 0, 0, 0))
+            return self.records[-1]
 
-    def _ingest(self, frame: _Frame) -> bool:
+        return self._worker.take(frame, record)
+
+    def _ingest(self, frame: AcceptedFrame) -> bool:
         """Take an accepted frame into the state (pose prediction, association, views);
         returns whether an optimisation is due."""
         f, t, wxyz, dets, meas = (frame.index, frame.timestamp, frame.pose, frame.detections,
@@ -483,29 +388,10 @@ class OnlineMapper:
             return True
         return False
 
-    def _work(self) -> None:
-        """The worker (``background``): optimise, publish, take in every frame that arrived
-        meanwhile; optimise again if one of them made an optimisation due (one for all of
-        them: the latest window), else stop."""
-        try:
-            while True:
-                n = len(self)
-                self._publish(n, self._update())
-                due = False
-                while True:
-                    with self._lock:
-                        if not self._queue:
-                            if not due:
-                                self._busy = False
-                                return
-                            break
-                        frame = self._queue.popleft()
-                    due = self._ingest(frame) or due
-        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
-            with self._lock:
-                self._error = e
-                self._queue.clear()
-                self._busy = False
+    def _optimise_and_publish(self) -> None:
+        """The worker's optimisation (``BackgroundWorker``): the window solved, the map published."""
+        n = len(self)
+        self._publish(n, self._update())
 
     def _publish(self, n: int, figures) -> None:
         """An optimisation that used frames 0 … n − 1 ended: their records get their lag (and,
@@ -524,30 +410,10 @@ class OnlineMapper:
             self._notify(len(snap.objects), n, lambda: snap.objects)  # the mapper's own frame
             self._published = self._corrected(snap)
 
-    def _raise_worker_error(self) -> None:
-        if self._error is not None:
-            e, self._error = self._error, None
-            raise e
-
     def wait(self) -> None:
         """Block until the worker (``background``) has taken in every frame added and run
         the optimisations they were due; raise an error it met. Without a worker: nothing."""
-        while True:
-            with self._lock:
-                worker = self._worker if self._busy else None
-            if worker is None:
-                break
-            worker.join()
-        self._raise_worker_error()
-
-    @staticmethod
-    def _pose(p) -> jaxlie.SE3:
-        if isinstance(p, jaxlie.SE3):
-            return p
-        a = np.asarray(p, float)
-        if a.shape == (7,):
-            return from_tum(a)
-        return as_pose(a)
+        self._worker.wait()
 
     def _associate(self, f: int, dets: list) -> None:
         if not dets:
@@ -887,8 +753,8 @@ class OnlineMapper:
         failed, short, need = self._unmapped(rare)
         labels = {**self._merged, **{k: self._label(k) for k in self.landmarks}}
         notes += [f"{short} tentative tracks with fewer than {need} detections discarded"] if short else []
-        if self._screened:
-            notes.append(screen_summary(self._screened, self._n_detections))
+        screened = self._intake.summary()
+        notes += [screened] if screened else []
         record = {"mode": "online-" + self.associate}
         unbounded = absolute_sigma(self._sigmas) is None
         result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
