@@ -146,24 +146,28 @@ def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings
     if closure.verified:
         corrected = dataclasses.replace(mapper.seq, poses_tum=to_tum(jaxlie.SE3(closure.poses)))  # type: ignore[arg-type]
         say("objects on the corrected poses, held")
-        result = mapper.map(held_run, seq=corrected, hold_note="trajectory held at the poses the loop closure "
-                                                               "corrected").result
+        mapped = mapper.map(held_run, seq=corrected, hold_note="trajectory held at the poses the loop closure "
+                                                               "corrected")
     else:
-        result = held.result
-    notes = list(result.notes)
-    at = len(mapper.first_notes) + 1  # after the screening's and the trajectory's notes
-    notes[at:at] = closure.notes()
+        mapped = held
     trajectory = {"start": "loops", "loop_closure": closure.as_dict(),
                   "checks": [] if closure.check is None else [closure.check.as_dict()]}
-    return dataclasses.replace(result, notes=notes, trajectory=trajectory)
+    return dataclasses.replace(mapped.opened_by(closure.notes()), trajectory=trajectory)
 
 
 @dataclass(frozen=True)
 class _Mapped:
-    """A batch mapping's result and what the loop closure reads of it (``HeldMap``)."""
+    """A batch mapping's result, what the loop closure reads of it (``HeldMap``) and how many
+    of its notes open the run (the screening's and the trajectory's)."""
 
     result: MapResult
     held: HeldMap
+    opening: int
+
+    def opened_by(self, notes: list) -> MapResult:
+        """The result with ``notes`` said right after its opening notes."""
+        kept = list(self.result.notes)
+        return dataclasses.replace(self.result, notes=kept[: self.opening] + list(notes) + kept[self.opening:])
 
 
 @dataclass
@@ -210,6 +214,7 @@ class _Pass:
     optimizer: Any = None
     planes: Any = None
     labels: dict = field(default_factory=dict)  # the front end's objects {id: label}, merged or not
+    opening: int = 0  # how many notes open the run (the screening's, the trajectory's)
 
     @property
     def box_stages(self) -> list:
@@ -307,6 +312,7 @@ def _initialise(p: _Pass, first_notes: list, hold_note: str | None) -> None:
         if p.fallback is not None:
             notes.append(p.fallback)
         p.front = dataclasses.replace(front, notes=notes + front.notes)
+    p.opening = len(first_notes) + 1
     p.say(p.front.notes[len(first_notes)])
     p.say(f"initialisation: {len(p.front.ellipsoids)} objects, {len(p.front.failed)} not initialised")
     p.landmarks = {k: as_landmark(e, p.method) for k, e in p.front.ellipsoids.items()}
@@ -437,4 +443,4 @@ def _result(p: _Pass) -> _Mapped:
         result = dataclasses.replace(result, trajectory={"start": start, "checks": [c.as_dict() for c in p.checks]})
     in_use = mapping_sigmas(p.ctx, p.sigmas) if p.drift is not None else p.in_use  # the corrected graph's
     return _Mapped(result, HeldMap(p.ctx, p.front.tracks, dict(p.landmarks), p.method, in_use, p.planes,
-                                   p.run.min_views, p.run.max_iterations))
+                                   p.run.min_views, p.run.max_iterations), p.opening)
