@@ -82,11 +82,13 @@ def ate_mm(rows, seq) -> float:
 
 
 def loops_of(result) -> dict:
-    """Loops found (candidates), verified and rejected, from the run's ``trajectory`` record."""
+    """Loops found (candidates), verified and rejected, from the run's ``trajectory`` record,
+    and each candidate's frames, status and reason."""
     lc = (result.trajectory or {}).get("loop_closure") or {"loops": []}
     status = [lp["status"] for lp in lc["loops"]]
     return {"loops_found": len(status), "loops_verified": status.count("verified"),
-            "loops_rejected": status.count("rejected")}
+            "loops_rejected": status.count("rejected"),
+            "loops": [{k: lp[k] for k in ("frames", "status", "reason")} for lp in lc["loops"]]}
 
 
 def loop_errors(seq, result) -> list:
