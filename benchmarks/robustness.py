@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from spdslam.evaluation import evaluate_objects
+from spdslam.experiments import association_record
 from spdslam.io import read_sequence
 from spdslam.mapping import METHODS, run_sequence
 from spdslam.synthetic import make_room_sequence
@@ -40,8 +41,9 @@ def one(seq, method="multi-spd", **kw) -> dict:
     s = evaluate_objects(r.objects, seq.objects_gt, by_id=not auto)[1]
     row = {"method": method, **{k: v for k, v in kw.items() if k != "tracks"}, **s,
            "seconds": time.perf_counter() - t}
-    if "precision" in r.association:
-        row["precision"], row["recall"] = r.association["precision"], r.association["recall"]
+    record = association_record(r)
+    if "precision" in record:
+        row["precision"], row["recall"] = record["precision"], record["recall"]
     return row
 
 

@@ -14,10 +14,10 @@ from spdslam.frontend import (
     Track,
     associate,
     associate_detailed,
-    association_scores,
     merge_tracks,
     tracks_from_instances,
 )
+from spdslam.evaluation import association_scores
 from spdslam.geometry import Camera
 from spdslam.synthetic import make_room_sequence
 from spdslam.io import Detection, Sequence, read_sequence

@@ -52,19 +52,24 @@ def test_robust_by_type_sets_the_kernels_of_those_factors(small):
 
 
 def test_run_sequence_association_modes(small):
-    """None picks the ids when every detection has one; auto ignores them and records its
-    precision and recall; a sequence without ids falls back to auto; bad names fail."""
+    """None picks the ids when every detection has one; auto ignores them, and the run's
+    record (``experiments.association_record``, what map.json holds) gets its precision and
+    recall from the evaluation, not from the mapping; a sequence without ids falls back to
+    auto; bad names fail."""
     import dataclasses
+
+    from spdslam.experiments import association_record
 
     assert run_sequence(small, max_iterations=2).association == {"mode": "instances"}
     auto = run_sequence(small, associate="auto", max_iterations=2)
-    a = auto.association
+    assert auto.association == {"mode": "auto"}  # the mapping scores nothing
+    a = association_record(auto)
     assert a["mode"] == "auto" and a["precision"] >= 0.95 and a["recall"] >= 0.95
     assert auto.as_dict()["association"]["mode"] == "auto"
     no_ids = dataclasses.replace(
         small, detections=[dataclasses.replace(d, instance=None) for d in small.detections])
     r = run_sequence(no_ids, max_iterations=2)
-    assert r.association == {"mode": "auto"}  # nothing to score against
+    assert r.association == association_record(r) == {"mode": "auto"}  # nothing to score against
     with pytest.raises(ValueError, match="associate: expected one of instances, auto, got 'hungarian'"):
         run_sequence(small, associate="hungarian")
     with pytest.raises(ValueError, match="instance column"):
@@ -73,8 +78,10 @@ def test_run_sequence_association_modes(small):
 
 def test_automatic_ids_are_matched_by_iou(small):
     """Automatic track ids are not instance ids: evaluation must not pair them by id."""
+    from spdslam.experiments import association_record
+
     auto = run_sequence(small, associate="auto", max_iterations=2)
-    m = auto.as_dict()
+    m = {**auto.as_dict(), "association": association_record(auto)}  # map.json as write_run writes it
     by_iou = match_objects(auto.objects, small.objects_gt, by_id=False)
     metrics = evaluate_run(m, auto.objects, auto.initial_objects, auto.poses_tum, small)
     assert {o["id"]: o["gt_id"] for o in metrics["objects"]} == by_iou

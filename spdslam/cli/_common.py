@@ -214,24 +214,25 @@ def run_and_write(seq, settings, out, overwrite, overlay, source=None):
     if records is not None:
         print_latency(records, frame_rate(seq))
     metrics = write_run_folder(out, seq, result, records=records, overlay=overlay, overwrite=overwrite, source=source)
-    print_result(result)
+    print_result(result, metrics.get("association"))
     print_metrics(metrics)
     console.print(f"wrote {out}")
     return result, metrics
 
 
-def print_result(result) -> None:
+def print_result(result, scores: dict | None = None) -> None:
+    """The run's figures, its objects not mapped, and an automatic association's ``scores``
+    (precision, recall: the metrics' ``association``) when given."""
     console.print(
         f"{result.method.name}: {len(result.objects)} objects, {result.iterations} iterations "
         f"({result.reason}), cost {result.initial_cost:.6g} -> {result.final_cost:.6g}"
     )
     for k, why in result.failed.items():
         err_console.print(f"object {k} not mapped: {why}")
-    a = result.association
-    if a.get("mode") == "auto":
-        scores = (f": precision {a['precision']:.3f}, recall {a['recall']:.3f} against the instance ids"
-                  if "precision" in a else "")
-        console.print(f"automatic data association, {len(result.objects) + len(result.failed)} tracks{scores}")
+    if result.association.get("mode") == "auto":
+        said = (f": precision {scores['precision']:.3f}, recall {scores['recall']:.3f} against the instance ids"
+                if scores and "precision" in scores else "")
+        console.print(f"automatic data association, {len(result.objects) + len(result.failed)} tracks{said}")
 
 
 def check_recording(path: Path, option: str) -> None:

@@ -7,6 +7,7 @@ only: the figures, the recording and the run's folder are ``experiments``'
 
 from ..geometry import box_iou as box_iou  # the IoU of image boxes, used by the check
 from ..io import dumps_strict as dumps_strict  # strict JSON, for the layers above io
+from ._association import association_scores as association_scores
 from ._check import BOX_CONVENTIONS as BOX_CONVENTIONS
 from ._check import CheckReference as CheckReference
 from ._check import camera_frame_offset as camera_frame_offset

@@ -41,6 +41,7 @@ from ._recording import write_recording as write_recording  # needs rerun-sdk (t
 from ._reference import compare_with_reference as compare_with_reference
 from ._reference import reference_solve as reference_solve
 from ._reference import reference_table as reference_table
+from ._run_folder import association_record as association_record
 from ._run_folder import frame_rate as frame_rate
 from ._run_folder import write_run as write_run
 from ._study import StudyConfig as StudyConfig

@@ -1,7 +1,9 @@
 """The one home of a run's outputs: ``spdslam run``, a manifest's job and the Python API
 write a run's folder through :func:`write_run`.
 
-    OUT/map.json          the map (``io.write_map``; schema ``io.map_document``)
+    OUT/map.json          the map (``io.write_map``; schema ``io.map_document``), with an
+                          automatic association's scores against the instance ids, where
+                          the detections carry them (``association_record``)
     OUT/trajectory.txt    the optimised poses (TUM)
     OUT/metrics.json      with ground truth: ``evaluation.evaluate_run``
     OUT/report.md         with ground truth: ``evaluation.report_markdown``
@@ -20,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..evaluation import evaluate_run, ground_truth_in_map_frame, report_markdown
+from ..evaluation import association_scores, evaluate_run, ground_truth_in_map_frame, report_markdown
 from ..io import dumps_strict, tum_text, write_folder_atomically, write_map
 from ._figures import latency_csv, plot_latency, plot_map_top, write_overlays
 
-__all__ = ["frame_rate", "write_run"]
+__all__ = ["association_record", "frame_rate", "write_run"]
 
 
 def frame_rate(seq) -> float | None:
@@ -32,6 +34,20 @@ def frame_rate(seq) -> float | None:
     they give none."""
     dt = np.diff(np.asarray(seq.timestamps, float))
     return 1.0 / float(np.median(dt)) if dt.size and np.median(dt) > 0 else None
+
+
+def association_record(result) -> dict:
+    """The run's ``association`` record, with ``evaluation.association_scores`` of an
+    automatic association (``MapResult.associated``) whose detections all carry instance
+    ids (without its track → instance ``mapping``)."""
+    record = dict(result.association)
+    if result.associated:
+        tracks, seq = result.associated
+        if seq.detections and all(d.instance is not None for d in seq.detections):
+            scores = dict(association_scores(tracks, seq))
+            scores.pop("mapping", None)
+            record.update(scores)
+    return record
 
 
 def write_run(out, seq, result, records=None, *, overlay: bool = True,
@@ -47,6 +63,7 @@ def write_run(out, seq, result, records=None, *, overlay: bool = True,
 
     def write(tmp: Path) -> dict:
         m = result.as_dict()
+        m["association"] = association_record(result)
         if source is not None:
             m["sequence"] = str(Path(source).resolve())
         metrics = evaluate_run(m, result.objects, result.initial_objects, result.poses_tum, seq)

@@ -9,7 +9,6 @@ from ._association import OnlineTracker as OnlineTracker
 from ._association import Track as Track
 from ._association import associate as associate
 from ._association import associate_detailed as associate_detailed
-from ._association import association_scores as association_scores
 from ._association import merge_tracks as merge_tracks
 from ._association import tracks_from_instances as tracks_from_instances
 from ._initialization import InitializationError as InitializationError

@@ -7,8 +7,8 @@ the demo generator): it belongs to no object and manual association leaves it ou
 Automatic association (:func:`associate`) uses only the boxes, labels, trajectory, camera
 and priors: per-frame Hungarian tracking on projected-box IoU, k-detection confirmation,
 merging of duplicates by SPD log-map distance and centre distance, and batch re-assignment
-of every frame against all landmarks. :func:`association_scores` measures precision and
-recall against the instance ids.
+of every frame against all landmarks. Their precision and recall against the instance ids
+are the evaluation's (``evaluation.association_scores``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ __all__ = [
     "associate",
     "associate_detailed",
     "merge_tracks",
-    "association_scores",
     "OnlineTracker",
 ]
 
@@ -1197,33 +1196,6 @@ def associate(seq: Sequence, settings: AssociationSettings | None = None, **over
     return associate_detailed(seq, settings, **overrides).tracks
 
 
-def _detection_indices(tracks, seq: Sequence) -> list:
-    """For each track, the indices in ``seq.detections`` of its (frame, box) pairs; raises
-    ``ValueError`` for a pair that is no detection or a detection used twice."""
-    lookup: dict = {}
-    for i, d in enumerate(seq.detections):
-        lookup.setdefault((d.frame, np.asarray(d.box, dtype=float).tobytes()), []).append(i)
-    used = np.zeros(len(seq.detections), bool)
-    out = []
-    for tr in tracks:
-        frames = np.asarray(tr.frames, dtype=int).reshape(-1)
-        boxes = np.asarray(tr.boxes, dtype=float).reshape(-1, 4)
-        if frames.size != boxes.shape[0]:
-            raise ValueError(f"track {tr.id}: {frames.size} frames but {boxes.shape[0]} boxes")
-        idx = []
-        for f, b in zip(frames.tolist(), boxes):
-            free = [i for i in lookup.get((f, b.tobytes()), []) if not used[i]]
-            if not free:
-                raise ValueError(
-                    f"track {tr.id}: frame {f} box {b.tolist()} is not a detection of the "
-                    "sequence (or is already in another track)"
-                )
-            used[free[0]] = True
-            idx.append(free[0])
-        out.append(np.array(idx, dtype=int))
-    return out
-
-
 def merge_tracks(tracks, seq: Sequence, settings: AssociationSettings | None = None, **overrides) -> list:
     """Merge duplicate tracks of the same object (the merging step of :func:`associate`):
     same label, no shared frame, log-map shape distance, centre distance and joint
@@ -1231,71 +1203,8 @@ def merge_tracks(tracks, seq: Sequence, settings: AssociationSettings | None = N
     frame; each track's boxes must be detections of ``seq``."""
     s = AssociationSettings.of(settings, **overrides)
     sc = _Scene(seq, s)
-    groups, _ = _merge(sc, _detection_indices(tracks, seq), s)
+    groups, _ = _merge(sc, seq.detection_indices(tracks), s)
     groups = [g[np.argsort(sc.frame[g], kind="stable")] for g in groups if g.size]
     groups.sort(key=lambda g: (sc.frame[g[0]], g[0]))
     return [Track(k, sc.labels[sc.label[g[0]]], sc.frame[g].copy(), sc.box[g].copy())
             for k, g in enumerate(groups)]
-
-
-def association_scores(tracks, seq: Sequence) -> dict:
-    """Precision and recall of ``tracks`` against the sequence's instance ids.
-
-    Each track maps to the ground-truth instance (id ≥ 0) holding the majority of its
-    detections (ties: the smaller id; a track of false detections only maps to none), and
-    each instance keeps at most one track: the one with the most of its detections (ties:
-    the earlier track); the other tracks map to none. A detection is *correct* when its
-    track maps to the detection's own instance. Then
-
-        precision = correct / detections in tracks,
-        recall    = correct / detections with instance ≥ 0,
-
-    so false detections (instance < 0) in a track count against precision only. An empty
-    denominator gives 1.0 (nothing claimed, nothing to find). Tracks are matched to the
-    detections by (frame, box); a box that is no detection of ``seq`` raises ``ValueError``,
-    and so does a sequence without instance ids.
-
-    Returns {precision, recall, correct, assigned, true_detections, false_assigned,
-    tracks, instances, matched_instances, mapping {track id: instance or None}}.
-    """
-    inst = np.array([-1 if d.instance is None else d.instance for d in seq.detections], dtype=int)
-    if any(d.instance is None for d in seq.detections):
-        raise ValueError("association scores need the instance ids of the detections")
-    idx = _detection_indices(tracks, seq)
-    best: dict = {}  # instance -> (count, -order, track order)
-    target: list[int | None] = []
-    m: int | None  # an instance id
-    for k, g in enumerate(idx):
-        ids, counts = np.unique(inst[g][inst[g] >= 0], return_counts=True)
-        if ids.size == 0:
-            target.append(None)
-            continue
-        m = int(ids[np.argmax(counts)])  # np.unique sorts: argmax takes the smaller id on ties
-        target.append(m)
-        c = int(counts.max())
-        if m not in best or c > best[m][0]:
-            best[m] = (c, k)
-    mapping = {}
-    correct = 0
-    for k, (tr, g) in enumerate(zip(tracks, idx)):
-        m = target[k]
-        if m is not None and best[m][1] != k:
-            m = None
-        mapping[int(tr.id)] = m
-        if m is not None:
-            correct += int(np.sum(inst[g] == m))
-    assigned = int(sum(g.size for g in idx))
-    n_true = int(np.sum(inst >= 0))
-    false_assigned = int(sum(np.sum(inst[g] < 0) for g in idx))
-    return {
-        "precision": correct / assigned if assigned else 1.0,
-        "recall": correct / n_true if n_true else 1.0,
-        "correct": correct,
-        "assigned": assigned,
-        "true_detections": n_true,
-        "false_assigned": false_assigned,
-        "tracks": len(tracks),
-        "instances": int(np.unique(inst[inst >= 0]).size),
-        "matched_instances": len(best),
-        "mapping": mapping,
-    }

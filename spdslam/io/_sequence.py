@@ -305,6 +305,33 @@ class Sequence:
                                    poses_tum=self.poses_tum[frames], detections=dets,
                                    ellipsoids=ells, segments=tuple(starts))
 
+    def detection_indices(self, tracks) -> list:
+        """For each track (``id``, ``frames`` (k,), ``boxes`` (k, 4)), the indices in
+        ``detections`` of its (frame, box) pairs; raises ``ValueError`` for a pair that is no
+        detection or a detection used twice."""
+        lookup: dict = {}
+        for i, d in enumerate(self.detections):
+            lookup.setdefault((d.frame, np.asarray(d.box, dtype=float).tobytes()), []).append(i)
+        used = np.zeros(len(self.detections), bool)
+        out = []
+        for tr in tracks:
+            frames = np.asarray(tr.frames, dtype=int).reshape(-1)
+            boxes = np.asarray(tr.boxes, dtype=float).reshape(-1, 4)
+            if frames.size != boxes.shape[0]:
+                raise ValueError(f"track {tr.id}: {frames.size} frames but {boxes.shape[0]} boxes")
+            idx = []
+            for f, b in zip(frames.tolist(), boxes):
+                free = [i for i in lookup.get((f, b.tobytes()), []) if not used[i]]
+                if not free:
+                    raise ValueError(
+                        f"track {tr.id}: frame {f} box {b.tolist()} is not a detection of the "
+                        "sequence (or is already in another track)"
+                    )
+                used[free[0]] = True
+                idx.append(free[0])
+            out.append(np.array(idx, dtype=int))
+        return out
+
     def detections_at(self, frame: int) -> list:
         """The detections of trajectory index ``frame``."""
         return [d for d in self.detections if d.frame == frame]

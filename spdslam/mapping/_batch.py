@@ -437,7 +437,9 @@ def _result(p: _Pass) -> _Mapped:
     with step("result"):
         result = map_result(p.method, p.solve, p.labels, p.front.ellipsoids, p.seq.timestamps, p.front.failed,
                             priors=p.ctx.priors, given_poses=given)
-        result = dataclasses.replace(result, notes=list(p.front.notes), association=p.association.record)
+        auto = p.association.record.get("mode") == "auto"
+        result = dataclasses.replace(result, notes=list(p.front.notes), association=p.association.record,
+                                     associated=(p.association.tracks, p.seq) if auto else ())
     if unbounded:
         start = "held" if p.run.hold_trajectory else ("incremental" if p.start is not None else "input")
         result = dataclasses.replace(result, trajectory={"start": start, "checks": [c.as_dict() for c in p.checks]})

@@ -27,7 +27,6 @@ from ..frontend import (
     MultiFit,
     SupportPlanes,
     Track,
-    association_scores,
     estimate_support_planes,
     multi_initialize,
     svd_initialize,
@@ -129,9 +128,13 @@ class MapResult:
     reason: str
     failed: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
-    #: how detections were grouped: {"mode": "instances" | "auto" | "given"}, with automatic
-    #: association's precision and recall against the instance ids when they exist
+    #: how detections were grouped: {"mode": "instances" | "auto" | "given"}; an automatic
+    #: association's precision and recall against the instance ids, where they exist, are the
+    #: evaluation's (``evaluation.association_scores`` of ``associated``, added to map.json
+    #: by ``experiments.write_run``)
     association: dict = field(default_factory=lambda: {"mode": "instances"})
+    #: an automatic association's (tracks, the sequence they group the detections of), else ()
+    associated: tuple = field(default=(), repr=False, compare=False)
     #: the final cost of each factor kind, {kind: ½ Σ ρ(‖W r‖²)}: which constraint the
     #: optimum pays for
     costs: dict = field(default_factory=dict)
@@ -157,7 +160,7 @@ class MapResult:
 @dataclass(frozen=True)
 class RunTracks:
     """The tracks of a run and the record of how they were made: {"mode": "instances" |
-    "auto" | "given"}, with automatic association's scores against the ids when they exist."""
+    "auto" | "given"} (``associated_on``: what poses an automatic association used)."""
 
     tracks: list
     record: dict
@@ -174,7 +177,6 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None)
         return RunTracks(list(tracks), {"mode": "given"})
     if associate not in (None, *ASSOCIATIONS):
         raise ValueError(f"associate must be one of {', '.join(ASSOCIATIONS)}, got {associate!r}")
-    has_ids = bool(seq.detections) and all(d.instance is not None for d in seq.detections)
     if associate is None:
         associate = str(default_association(seq))
     if associate == "instances":
@@ -184,16 +186,7 @@ def associate_tracks(ctx, tracks=None, associate: str | None = None, found=None)
         found = auto_associate(seq)
     else:
         record["associated_on"] = "incremental poses"
-    if has_ids:
-        record.update(_record_scores(found, seq))
     return RunTracks(list(found), record)
-
-
-def _record_scores(tracks, seq) -> dict:
-    """Automatic association's scores against the instance ids (``association_scores``)."""
-    scores = dict(association_scores(tracks, seq))
-    scores.pop("mapping", None)
-    return scores
 
 
 # --- initialisation ---------------------------------------------------------------------------
