@@ -307,7 +307,7 @@ def test_a_joined_recording_replayed_online_has_no_odometry_across_the_join():
         by_frame.setdefault(d.frame, []).append(d)
     replay(joined, m, by_frame, {})
     assert m.sequence().segments == (12,)
-    pairs = {tuple(sorted(k.index for k in keys)) for f in m._last_graph if f.kind == "between"
+    pairs = {tuple(sorted(k.index for k in keys)) for f in m._smoother.last[0] if f.kind == "between"
              for keys in ([f.keys] if len(f.keys) == 2 else [f.keys[i:i + 2] for i in range(0, len(f.keys), 2)])}
     assert (10, 11) in pairs and (12, 13) in pairs and (11, 12) not in pairs
     with pytest.raises(ValueError, match="a new segment needs a pose"):

@@ -80,10 +80,10 @@ def test_every_frame_is_recorded_and_the_problem_stays_bounded(room, replay):
 
 def test_views_that_left_the_window_become_priors(room, replay):
     m, _, _ = replay
-    assert set(m._prior) == set(m.landmarks)
+    assert {key.index for key in m._smoother.priors} == set(m.landmarks)
     last = max(r.frame for r in m.records if r.factors)  # the last update's window began at
     start = last + 1 - m.window
-    pending = [f for k in m._pending for f, _ in m._pending[k]]
+    pending = [f for key in m._smoother.active() for f, _ in m._smoother.kept(key)]
     assert pending and min(pending) >= start
 
 
@@ -262,6 +262,42 @@ def test_marginal_prior_is_the_quadratic_it_replaces(rng):
         x = manifold.retract(x0, d)
         delta = np.asarray(manifold.local(x0, x))
         assert f.error(x) - const == pytest.approx(0.5 * delta @ H @ delta + g @ delta, rel=1e-9, abs=1e-12)
+
+
+def test_the_smoother_keeps_the_window_and_summarises_what_leaves_it(rng):
+    """``FixedLagSmoother.update`` with a lag of 3 frames at frame 10: the factors of frames
+    0–6 leave the window as one prior (the kept ones are 7–9), and that prior says what they
+    said: the next update, from the kept factors and the prior only, stays at the optimum of
+    all ten (the Gauss–Newton summary is exact at the point it was made); ``merge`` moves a
+    variable's kept factors to another and drops its prior."""
+    from spdslam.solver import LevenbergMarquardt
+
+    x0 = Ellipsoid.from_axes(np.eye(3), [0.5, -0.2, 1.0], [0.4, 0.3, 0.2])
+    means = [manifold.retract(x0, 0.02 * rng.normal(size=9)) for _ in range(10)]
+    stamped = [(i, LandmarkPriorFactor(L(0), m, sigma=0.1 + 0.01 * i)) for i, m in enumerate(means)]
+    sm = FixedLagSmoother(LevenbergMarquardt(max_iterations=20, relative_tolerance=1e-14), lambda name: 8, lag=3)
+    sm.add(L(0), stamped)
+    estimate = {"x": x0}
+
+    def values_of(keys):
+        return Values({L(0): estimate["x"]})
+
+    def accept(values):
+        estimate["x"] = values[L(0)]
+
+    first = sm.update(10, [], lambda key: [], values_of, accept)
+    assert first.start == 7 and first.factors == 10 and first.variables == 1 and not first.dropped
+    assert [f for f, _ in sm.kept(L(0))] == [7, 8, 9] and set(sm.priors) == {L(0)}
+    batch = estimate["x"]
+    second = sm.update(10, [], lambda key: [], values_of, accept)
+    assert second.factors == 4  # three kept factors and the prior
+    np.testing.assert_allclose(np.asarray(manifold.local(batch, estimate["x"])), 0.0, atol=1e-9)
+    sm.add(L(1), [(9, LandmarkPriorFactor(L(1), x0, sigma=0.1))])
+    sm.merge(L(0), L(1))
+    assert sm.active() == [L(0)] and [f for f, _ in sm.kept(L(0))] == [7, 8, 9, 9]
+    assert all(fac.keys == (L(0),) for _, fac in sm.kept(L(0)))
+    sm.merge(L(1), L(0))  # L(0)'s factors move to L(1), its prior goes
+    assert sm.active() == [L(1)] and not sm.priors
 
 
 def test_landmark_prior_factor_takes_spd_and_rts_landmarks_only():

@@ -53,7 +53,6 @@ from typing import Any, Callable, Iterable
 import jaxlie
 import numpy as np
 
-from ..factors import LandmarkPriorFactor
 from ..frontend import AssociationSettings, OnlineTracker, Track
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import from_tum, to_tum
@@ -64,7 +63,6 @@ from ..solver import (
     LevenbergMarquardt,
     NonlinearFactorGraph,
     Problem,
-    Values,
     X,
     ensure_compilation_cache,
     group_kernels,
@@ -228,7 +226,8 @@ class OnlineMapper:
         self._segments: list = []  # the frames that start a later segment (add_frame's new_segment)
         self._user_sigmas = sigmas
         self._robust = robust_kernel(method.robust, method.robust_k)
-        self._smoother = FixedLagSmoother(LevenbergMarquardt(max_iterations=online.iterations), self._floor)
+        self._smoother = FixedLagSmoother(LevenbergMarquardt(max_iterations=online.iterations), self._floor,
+                                          lag=online.window, prepare=lambda fs: with_robust_by_type(fs, method))
         self._tracker = OnlineTracker(camera, priors, association) if associate == "auto" else None
         self._assoc_settings = association or AssociationSettings()
         self._intake = FrameIntake(camera, priors, method.margin, run.screen, associate == "instances")
@@ -242,17 +241,12 @@ class OnlineMapper:
         self._candidates: set = set()  # tracks with new views that are not objects
         self._measured: dict = {}  # track id -> [EllipsoidDetection]
         self.landmarks: dict = {}  # object id -> landmark value
-        self._pending: dict = {}  # object id -> [(frame, factor)]: views not yet marginalised
-        self._pending_meas: dict = {}  # … the same of its measured ellipsoids
-        self._prior: dict = {}  # object id -> LandmarkPriorFactor
         self._tried: dict = {}  # track id -> views at the last failed initialisation
         self.failed: dict = {}
         self.notes: list = []
         self.records: list = []
         self._initial: dict = {}
         self._merged: dict = {}  # object id -> label, of the objects merged into another
-        self._last_graph: NonlinearFactorGraph | None = None
-        self._last_values: Values | None = None
         self._since = 0
         self._arrival: list = []  # perf_counter at each frame's add_frame
         self._used = 0  # frames the last optimisation used (records before it have their lag)
@@ -380,7 +374,7 @@ class OnlineMapper:
             if m.instance is not None and m.instance >= 0 and self.associate == "instances":
                 self._measured.setdefault(m.instance, []).append(m)
                 if m.instance in self.landmarks:
-                    self._pending_meas.setdefault(m.instance, []).extend(self._measurement(m.instance, [m]))
+                    self._smoother.add(L(m.instance), self._measurement(m.instance, [m]))
         self._since += 1
         ready = any(self._could_start(k) for k in self._candidates)
         if self._since >= self.every or (ready and not self.landmarks):
@@ -438,7 +432,7 @@ class OnlineMapper:
             if k not in self.landmarks:
                 self._candidates.add(k)
             if k in self.landmarks:
-                self._pending.setdefault(k, []).extend(self._box_factors(k, [(f, np.asarray(d.box, float))]))
+                self._smoother.add(L(k), self._box_factors(k, [(f, np.asarray(d.box, float))]))
 
     def _label(self, k) -> str:
         counts = self._labels.get(k) or Counter(m.label for m in self._measured.get(k, []))
@@ -487,8 +481,8 @@ class OnlineMapper:
             self._candidates.discard(k)
             self._initial[k] = e
             self._views[k] = [v for v, good in zip(self._views[k], ok) if good]
-            self._pending[k] = self._box_factors(k, self._views[k])
-            self._pending_meas[k] = self._measurement(k, self._measured.get(k, []))
+            self._smoother.add(L(k), self._box_factors(k, self._views[k]))
+            self._smoother.add(L(k), self._measurement(k, self._measured.get(k, [])))
             if note:
                 self.notes.append(note)
 
@@ -500,7 +494,7 @@ class OnlineMapper:
         self._views[keep] = sorted(self._views[keep] + views, key=lambda v: v[0])
         self._labels[keep] += self._labels.pop(drop)
         self._candidates.discard(drop)
-        self._pending.setdefault(keep, []).extend(self._box_factors(keep, views))
+        self._smoother.add(L(keep), self._box_factors(keep, views))
         self._tried.pop(drop, None)
 
     def _merge_duplicates(self, active) -> None:
@@ -521,12 +515,8 @@ class OnlineMapper:
         self._merged[drop] = self._label(drop)
         self._views[keep] = sorted(self._views[keep] + self._views.pop(drop), key=lambda v: v[0])
         self._labels[keep] += self._labels.pop(drop)
-        moved = [(f, fac.replace(keys=[L(keep) if key == L(drop) else key for key in fac.keys]))
-                 for f, fac in self._pending.pop(drop, [])]
-        self._pending.setdefault(keep, []).extend(moved)
+        self._smoother.merge(L(keep), L(drop))
         self.landmarks.pop(drop)
-        self._prior.pop(drop, None)
-        self._pending_meas.pop(drop, None)
         self.notes.append(f"objects {keep} and {drop} ({self._label(keep)}) are one object: "
                           f"each centre lay inside the other ellipsoid; {drop}'s boxes joined to {keep}")
 
@@ -546,55 +536,42 @@ class OnlineMapper:
                                    self._sigmas, self._robust)
         return [(m.frame, fac) for m, fac in zip(meas, out)]
 
-    def _object_graph(self, k, items, with_prior: bool, with_object: bool = True) -> list:
-        """Factors of object k: ``items`` [(frame, factor)] (views, measured ellipsoids), its
-        own factors (orientation, plane, shape, size, radius floor: ``with_object``) and its
-        marginal prior (``with_prior``)."""
-        out = [fac for _, fac in items]
-        if with_object:
-            out += object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method, self._sigmas,
-                                  boxes=False)
-        if with_prior and k in self._prior:
-            out.append(self._prior[k])
-        return out
+    def _object_factors(self, key) -> list:
+        """Object ``key``'s own factors (orientation, plane, shape, size, radius floor), made
+        afresh at each update from its current estimate."""
+        k = key.index
+        return object_factors(self._ctx0, self._track(k, []), self.landmarks[k], self.method, self._sigmas,
+                              boxes=False)
 
     def _update(self) -> tuple[int, int, int]:
-        """Create and merge objects, solve the fixed-lag problem, marginalise what left the
-        window. Returns (factors, free variables, LM iterations)."""
+        """Create and merge objects, then the smoother's update (``FixedLagSmoother``): the
+        window solved, what left it marginalised. Returns (factors, free variables, LM
+        iterations)."""
         self._create_objects()
-        self._merge_duplicates([k for k in self.landmarks if self._pending.get(k)])
-        n = len(self)
-        start = max(0, n - self.window)
-        factors: list = [] if self.hold_poses else list(NonlinearFactorGraph(
+        self._merge_duplicates([k for k in self.landmarks if self._smoother.has_kept(L(k))])
+        start = max(0, len(self) - self.window)
+        odometry = [] if self.hold_poses else list(NonlinearFactorGraph(
             odometry_factors(self._input.array, self._segments, self._sigmas, start)))
-        active = sorted(k for k in self.landmarks if self._pending.get(k) or self._pending_meas.get(k))
-        for k in active:
-            factors += self._object_graph(k, self._pending.get(k, []) + self._pending_meas.get(k, []), True)
-        factors = with_robust_by_type(factors, self.method)
-        if not factors:  # poses held and no object with new views: nothing to solve
-            self._marginalise(start)
-            return 0, 0, 0
-        graph = NonlinearFactorGraph(factors)
-        keys = {key for f in factors for key in f.keys}
-        values = initial_values(self._est, self.landmarks, keys)
-        fixed = [key for key in keys if key.chr == "x" and (key.index < start or self.hold_poses)]
-        if start > 0:
-            fixed.append(X(start - 1))
-        fixed = sorted(set(fixed) & keys, key=lambda k: k.index)
-        res = self._smoother.optimize(graph, values, fixed)
-        for key in keys:
-            if key.chr == "l":
-                self.landmarks[key.index] = res.values[key]
-            elif key.index >= start:
-                self._est.array[key.index] = np.asarray(res.values[key].wxyz_xyz)
-        if self._tracker is not None:
-            for k in active:
-                e = as_ellipsoid(self.landmarks[k])
-                self._tracker.set_landmark(k, np.asarray(e.center), np.asarray(e.P))
-        self._last_graph, self._last_values, self._last_fixed = graph, res.values, fixed
-        self._marginalise(start)
-        free = len(keys) - len(fixed)
-        return len(factors), free, res.iterations
+        active = [key.index for key in self._smoother.active()]
+
+        def accept(values) -> None:  # the window's solution becomes the estimates
+            for key in values:
+                if key.chr == "l":
+                    self.landmarks[key.index] = values[key]
+                elif key.index >= start:
+                    self._est.array[key.index] = np.asarray(values[key].wxyz_xyz)
+            if self._tracker is not None:
+                for k in active:
+                    e = as_ellipsoid(self.landmarks[k])
+                    self._tracker.set_landmark(k, np.asarray(e.center), np.asarray(e.P))
+
+        done = self._smoother.update(len(self), odometry, self._object_factors,
+                                     lambda keys: initial_values(self._est, self.landmarks, keys), accept,
+                                     self.hold_poses)
+        for key in done.dropped:
+            self.notes.append(f"object {key.index}: the views before frame {done.start} could not be "
+                              "summarised (non-finite); they are dropped")
+        return done.factors, done.variables, done.iterations
 
     def _floor(self, name: str) -> int:
         """The fewest rows the smoother pads a factor kind or variable type to: the boxes of a
@@ -602,34 +579,6 @@ class OnlineMapper:
         if "box" in name:
             return 4 * self.window
         return self.window + self.every + 8 if name in ("between", "SE3") else 16
-
-    def _marginalise(self, start: int) -> None:
-        """The box and measurement factors of frames before ``start`` become the objects'
-        priors (module docstring)."""
-        old = {}
-        for k in sorted(self.landmarks):
-            items = [v for v in self._pending.get(k, []) + self._pending_meas.get(k, []) if v[0] < start]
-            if items:
-                old[k] = items
-        if not old:
-            return
-        factors: list = []
-        for k, items in old.items():
-            factors += self._object_graph(k, items, with_prior=True, with_object=False)
-        factors = with_robust_by_type(factors, self.method)
-        values = initial_values(self._est, self.landmarks, {key for f in factors for key in f.keys})
-        poses = [key for key in values if key.chr == "x"]  # type: ignore[attr-defined]  # Symbol keys
-        blocks, finite = self._smoother.marginalize(factors, values, poses, [L(k) for k in old])
-        for k in old:
-            prior = FixedLagSmoother.prior_from(*blocks[L(k)]) if finite else None
-            if prior is None:
-                self.notes.append(f"object {k}: the views before frame {start} could not be "
-                                  "summarised (non-finite); they are dropped")
-            else:
-                self._prior[k] = LandmarkPriorFactor(L(k), self.landmarks[k], prior[0],
-                                                     sqrt_info=prior[1])
-            self._pending[k] = [v for v in self._pending.get(k, []) if v[0] >= start]
-            self._pending_meas[k] = [v for v in self._pending_meas.get(k, []) if v[0] >= start]
 
     # --- output ----------------------------------------------------------------------------
     def _snapshot(self, n: int) -> OnlineMap:
@@ -682,12 +631,12 @@ class OnlineMapper:
         snap = self._corrected(self._snapshot(len(self)))
         objects, poses = snap.objects, snap.poses_tum
         cov: dict = {}
-        if covariances and self._last_graph is not None and self._last_values is not None:
+        if covariances and self._smoother.last is not None:
             from ..solver import marginal_covariances
 
-            keys = [key for key in self._last_values if key.chr == "l"]  # type: ignore[attr-defined]
-            cov = {key.index: c for key, c in marginal_covariances(
-                self._last_graph, self._last_values, keys, fixed=self._last_fixed).items()}
+            graph, values, fixed = self._smoother.last
+            keys = [key for key in values if key.chr == "l"]
+            cov = {key.index: c for key, c in marginal_covariances(graph, values, keys, fixed=fixed).items()}
         return OnlineMap(objects, poses, cov, frames=self._used)
 
     @property

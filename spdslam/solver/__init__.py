@@ -50,6 +50,7 @@ from ._optimizers import Optimizer as Optimizer
 from ._problem import Problem as Problem
 from ._problem import group_kernels as group_kernels
 from ._smoother import FixedLagSmoother as FixedLagSmoother
+from ._smoother import SmootherUpdate as SmootherUpdate
 from ._smoother import padded_size as padded_size
 from ._smoother import padded_sizes_above as padded_sizes_above
 from ._stored import StoredProgram as StoredProgram
