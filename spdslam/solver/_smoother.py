@@ -4,17 +4,19 @@ leave the window and the priors they leave behind, and ``update`` decides what l
 
 Time is the frame index: the pose ``X(i)`` is frame i's. ``add(key, [(i, factor)])`` keeps a
 variable's measurement factors (an object's views, each with its frame) until they leave the
-window. ``update(now, factors, extra, values_of, hold)``: the window is the last ``lag`` of
+window. ``update(now, factors, extra, values_of, accept, hold)``: the window is the last ``lag`` of
 the ``now`` frames (``start = max(0, now − lag)``); the graph is ``factors`` (the caller's
 factors of this update, e.g. the odometry of the window), then, for each variable with kept
 factors (``active``, by key), its kept factors, ``extra(key)`` (factors made afresh, e.g. its
 shape and orientation) and its prior; poses before ``start`` are held (conditioned, not
 marginalised), and so is ``X(start − 1)`` (the odometry's anchor), and every pose with
-``hold``. It is solved by LM (``optimize``) from ``values_of(keys)``; then the kept factors
-of frames before ``start`` leave: with the poses held, their Gauss–Newton quadratic in the
-variable (with its previous prior), linearised at the solution, becomes the variable's new
-prior (``marginalize``, ``prior_from``: mean x̂ ⊞ (−H⁺g), information H) — exact marginals,
-since such a variable shares no factor with another once the poses are held.
+``hold``. It is solved by LM (``optimize``) from ``values_of(keys)`` and the solution handed
+to ``accept`` (the caller keeps the estimates); then the kept factors of frames before
+``start`` leave: with the poses held, their Gauss–Newton quadratic in the variable (with its
+previous prior), linearised at ``values_of`` (the solution), becomes the variable's new prior
+(``marginalize``, ``prior_from``: a ``LandmarkPriorFactor``, mean x̂ ⊞ (−H⁺g), information
+H; the variables are landmarks) — exact marginals, since such a variable shares no factor
+with another once the poses are held.
 
 Each factor kind and variable type is padded to a grid of row counts (``padded_size``: 8, 12,
 16, 24, 32, 48, … at or above the count, never below the smoother's ``floor`` for that kind)
