@@ -236,11 +236,17 @@ def map_sequence(seq, settings: RunSettings, progress=None):
     """Map a sequence as ``spdslam run`` does: (``MapResult``, the online run's
     ``FrameRecord`` s or None): one batch optimisation (``mapping.run_sequence``), or, with
     ``settings.online``, a replay through the online mapper (``mapping.run_online``; with
-    ``online.warmup`` a ``WARMUP_ROOM`` replayed first)."""
+    ``online.warmup`` a ``WARMUP_ROOM`` replayed first). An automatic association's scores
+    are made here (``association_record``), where the run is, so that a worker hands back
+    the record, not the sequence its tracks group."""
+    import dataclasses
+
     from ..mapping import run_online, run_sequence
+    from ._run_folder import association_record
 
     if settings.online is None:
-        return run_sequence(seq, settings, progress=progress), None
+        result = run_sequence(seq, settings, progress=progress)
+        return dataclasses.replace(result, association=association_record(result), associated=()), None
     warmup = None
     if settings.online.warmup:
         from ..synthetic import make_room_sequence
