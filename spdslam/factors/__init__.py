@@ -35,6 +35,10 @@ from ._box import inverse_box_residual as inverse_box_residual
 from ._box import inverse_cuboid_box_residual as inverse_cuboid_box_residual
 from ._box import semi_inverse_box_residual as semi_inverse_box_residual
 from ._box import semi_inverse_cuboid_box_residual as semi_inverse_cuboid_box_residual
+from ._closed_form import ClosedForm as ClosedForm
+from ._closed_form import closed_form as closed_form
+from ._closed_form import inverse_box_linearization as inverse_box_linearization
+from ._closed_form import rotation_matrices as rotation_matrices
 from ._ellipsoid_measurement import (
     EllipsoidMeasurementFactor as EllipsoidMeasurementFactor,
 )

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import manifold
+from ..geometry import array_namespace, manifold
 
 __all__ = [
     "Factor",
@@ -58,7 +58,8 @@ __all__ = [
 
 @dataclass(frozen=True)
 class RobustKernel:
-    """A robust loss ρ(s) of the squared whitened residual norm s = ‖W r‖²."""
+    """A robust loss ρ(s) of the squared whitened residual norm s = ‖W r‖² (NumPy in, NumPy
+    out; JAX in, JAX out)."""
 
     k: float = 1.0
 
@@ -75,12 +76,14 @@ class Huber(RobustKernel):
     """ρ(s) = s for √s ≤ k, 2k√s − k² beyond."""
 
     def rho(self, s):
-        r = jnp.sqrt(jnp.maximum(s, 1e-300))
-        return jnp.where(r <= self.k, s, 2.0 * self.k * r - self.k**2)
+        xp = array_namespace(s)
+        r = xp.sqrt(xp.maximum(s, 1e-300))
+        return xp.where(r <= self.k, s, 2.0 * self.k * r - self.k**2)
 
     def weight(self, s):
-        r = jnp.sqrt(jnp.maximum(s, 1e-300))
-        return jnp.where(r <= self.k, 1.0, self.k / r)
+        xp = array_namespace(s)
+        r = xp.sqrt(xp.maximum(s, 1e-300))
+        return xp.where(r <= self.k, 1.0, self.k / r)
 
 
 @dataclass(frozen=True)
@@ -88,7 +91,7 @@ class Cauchy(RobustKernel):
     """ρ(s) = k² log(1 + s/k²)."""
 
     def rho(self, s):
-        return self.k**2 * jnp.log1p(s / self.k**2)
+        return self.k**2 * array_namespace(s).log1p(s / self.k**2)
 
     def weight(self, s):
         return 1.0 / (1.0 + s / self.k**2)

@@ -26,6 +26,7 @@ from ._cache import DEFAULT_CACHE_DIR as DEFAULT_CACHE_DIR
 from ._cache import cache_dir as cache_dir
 from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._cache import ensure_compilation_cache as ensure_compilation_cache
+from ._closed_form import closed_forms as closed_forms
 from ._compile import AUTO_OPTIMIZE_WORK as AUTO_OPTIMIZE_WORK
 from ._compile import clear_caches as clear_caches
 from ._graph import NonlinearFactorGraph as NonlinearFactorGraph

@@ -49,6 +49,7 @@ import numpy as np
 
 from ..factors import CustomFactor, FactorBatch, RobustKernel
 from ..geometry import manifold
+from ._closed_form import ClosedFormGroup, closed_form_of, closed_forms_enabled
 from ._linearize import (
     differentiable,
     finish,
@@ -421,8 +422,12 @@ class _Kernels:
 
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
-        self.groups = []
+        self.groups: list[Any] = []
         for spec in gspecs:
+            cf = closed_form_of(spec, tspecs)
+            if cf is not None:
+                self.groups.append(ClosedFormGroup(spec, cf))
+                continue
             used = tuple(dict.fromkeys(spec.var_types))  # the types, in order of first use
             local = replace(spec, var_types=tuple(used.index(t) for t in spec.var_types))
             key = (local, tuple(tspecs[t] for t in used))
@@ -493,8 +498,8 @@ _KERNELS: dict[Any, _Kernels] = {}
 
 
 def kernels(tspecs, gspecs) -> _Kernels:
-    """The (cached) kernels of a static structure."""
-    key = (tspecs, gspecs)
+    """The (cached) kernels of a static structure (with the closed forms on or off)."""
+    key = (tspecs, gspecs, closed_forms_enabled())
     k = _KERNELS.get(key)
     if k is None:
         k = _KERNELS[key] = _Kernels(tspecs, gspecs)

@@ -1,0 +1,189 @@
+"""Closed-form linearisations: a factor type's residual, its Jacobian in tangent coordinates
+and its validity, in NumPy over stacked rows, for the factor types that dominate a run.
+
+The solver linearises a group whose residual function has one here without JAX: no
+tracing, no compiled program, nothing to load in a new process (docs/performance.md, "The
+hot path without a compiler"). Every other factor type, and the batched solver, keep the
+general path (forward-mode JAX through the residual); the tests check each closed form
+against it and against central differences.
+
+Conventions: poses are ``jaxlie.SE3`` T_wc (camera-to-world) retracted on the right,
+T ⊞ δ = T · exp(δ), δ = (ρ, ω): to first order R ← R (I + [ω]×), c ← c + R ρ. A landmark's
+tangent directions are its type's pushforward ∂(x ⊞ δ)/∂δ|₀, handed in by the solver (for
+an ``Ellipsoid`` the images (dP, dt) of its 9 tangent basis vectors).
+
+Inverse box model (``inverse_box_residual``). With A = R_wcᵀ, the landmark's centre in the
+camera frame m = A (t − c) and its shape there S = A P Aᵀ, the dual conic is
+C* = K G Kᵀ with G = S − m mᵀ, and with a = G₀₀, b = G₀₂, g = G₂₂, Δ = b² − a g,
+
+    u = c_x + f_x (b ± √Δ) / g,
+
+the sign giving u_min or u_max by the sign of g (v alike with G₁₁, G₁₂, f_y, c_y). Under
+the pose's δ: dG = G[ω]× − [ω]×G + ρ mᵀ + m ρᵀ; under the landmark's (dP, dt):
+dG = A dP Aᵀ − dm mᵀ − m dmᵀ with dm = A dt.
+"""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+from typing import Callable
+
+import jaxlie
+import numpy as np
+
+from ..geometry import Ellipsoid
+from ._box import box_visible, inverse_box_residual
+
+__all__ = ["ClosedForm", "closed_form", "rotation_matrices", "inverse_box_linearization"]
+
+
+@dataclass(frozen=True)
+class ClosedForm:
+    """A residual function's NumPy linearisation (``closed_form``).
+
+    ``linearize(xs, Ts, args, jacobian)`` takes the stacked variables of n factors (``xs``,
+    one pytree with NumPy leaves per variable), their pushforwards (``Ts``, as the solver
+    gathers them) and the stacked data (``args``) and returns (r (n, m), J (n, m, D) in
+    tangent coordinates or None without ``jacobian``, validity (n,) or None). It stands for
+    ``residual`` with the validity rule ``valid`` when the variables are of ``types``."""
+
+    residual: Callable
+    valid: Callable | None
+    types: tuple[type, ...]
+    linearize: Callable
+
+
+_CLOSED: dict[Callable, ClosedForm] = {}
+
+
+def closed_form(residual: Callable, valid: Callable | None = None,
+                types: tuple[type, ...] = ()) -> ClosedForm | None:
+    """The closed form of ``residual`` for that validity rule and variable types, or None."""
+    cf = _CLOSED.get(residual)
+    if cf is None or cf.valid is not valid or tuple(types) != cf.types:
+        return None
+    return cf
+
+
+def _register(cf: ClosedForm) -> None:
+    _CLOSED[cf.residual] = cf
+
+
+def rotation_matrices(wxyz: np.ndarray) -> np.ndarray:
+    """R (n, 3, 3) of quaternions wxyz (n, 4), normalised, as ``jaxlie.SO3.as_matrix``."""
+    q = wxyz * np.sqrt(2.0 / np.sum(wxyz * wxyz, axis=-1, keepdims=True))
+    w, x, y, z = q.T
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return np.stack([1.0 - yy - zz, xy - wz, xz + wy,
+                     xy + wz, 1.0 - xx - zz, yz - wx,
+                     xz - wy, yz + wx, 1.0 - xx - yy], axis=-1).reshape(-1, 3, 3)
+
+
+#: The entries (I[e], J[e]) of G the box edges read: (a, b, g) = (G₀₀, G₀₂, G₂₂) for u,
+#: (G₁₁, G₁₂, G₂₂) for v.
+_I, _J = np.array([0, 1, 2, 0, 1]), np.array([0, 1, 2, 2, 2])
+
+
+def _entry_jacobians(G, m, A, T_landmark):
+    """∂G_e/∂(ρ, ω, landmark) (n, 5, 6 + 9) for the entries e = (i, j) of ``_I``, ``_J``:
+
+        ρ ↦ e_i m_j + m_i e_j,   ω ↦ e_j × g_i + e_i × g_j   (g_i: row i of G),
+        (dP, dt) ↦ a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt   (a_i: row i of A),
+
+    the pose's written out entry by entry (most are 0), the landmark's through its
+    pushforward ``T_landmark`` (per factor: P (n, 9, 3, 3), center (n, 9, 3))."""
+    n = len(G)
+    dG = np.zeros((n, 5, 15))
+    g00, g11, g22, g01, g02, g12 = G[:, 0, 0], G[:, 1, 1], G[:, 2, 2], G[:, 0, 1], G[:, 0, 2], G[:, 1, 2]
+    m0, m1, m2 = m[:, 0], m[:, 1], m[:, 2]
+    # ρ
+    dG[:, 0, 0], dG[:, 1, 1], dG[:, 2, 2] = 2.0 * m0, 2.0 * m1, 2.0 * m2
+    dG[:, 3, 0], dG[:, 3, 2] = m2, m0
+    dG[:, 4, 1], dG[:, 4, 2] = m2, m1
+    # ω
+    dG[:, 0, 4], dG[:, 0, 5] = -2.0 * g02, 2.0 * g01
+    dG[:, 1, 3], dG[:, 1, 5] = 2.0 * g12, -2.0 * g01
+    dG[:, 2, 3], dG[:, 2, 4] = -2.0 * g12, 2.0 * g02
+    dG[:, 3, 3], dG[:, 3, 4], dG[:, 3, 5] = -g01, g00 - g22, g12
+    dG[:, 4, 3], dG[:, 4, 4], dG[:, 4, 5] = g22 - g11, g01, -g02
+    # the landmark
+    AI, AJ = A[:, _I], A[:, _J]
+    dGP = (AI[:, :, :, None] * AJ[:, :, None, :]).reshape(n, 5, 9)
+    dGt = -(m[:, _J, None] * AI + m[:, _I, None] * AJ)
+    TP, Tt = np.asarray(T_landmark.P), np.asarray(T_landmark.center)
+    dG[:, :, 6:] = dGP @ np.swapaxes(TP.reshape(n, -1, 9), 1, 2) + dGt @ np.swapaxes(Tt, 1, 2)
+    return dG
+
+
+def _edges(a, b, g, f, c0, jacobian: bool):
+    """(lower, upper) image coordinates c0 + f (b ± √Δ)/g, Δ = b² − a g (√ of Δ ≤ 0 taken
+    as 0, with derivative 0, as ``geometry.conic_box``), and with ``jacobian`` their
+    derivatives (n, 3) by (a, b, g)."""
+    delta = b * b - a * g
+    pos = delta > 0
+    s = np.where(pos, np.sqrt(np.where(pos, delta, 1.0)), 0.0)
+    sign_lo = np.where(g < 0, 1.0, -1.0)  # (b + σ s)/g is the smaller with σ = sign_lo
+    out: list[tuple[np.ndarray, np.ndarray | None]] = []
+    for sigma in (sign_lo, -sign_lo):
+        value = c0 + f * (b + sigma * s) / g
+        if not jacobian:
+            out.append((value, None))
+            continue
+        inv_2s = np.where(pos, 0.5 / np.where(pos, s, 1.0), 0.0)
+        ds = (-g * inv_2s, 2.0 * b * inv_2s, -a * inv_2s)
+        d = np.stack([f * sigma * ds[0] / g,
+                      f * (1.0 + sigma * ds[1]) / g,
+                      f * sigma * ds[2] / g - f * (b + sigma * s) / (g * g)], axis=-1)
+        out.append((value, d))
+    return out
+
+
+def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
+    """``inverse_box_residual`` of n stacked (pose, Ellipsoid) pairs: (r (n, 4), J (n, 4, 15)
+    or None, ``box_visible`` (n,)). See the module docstring for the derivation."""
+    pose, lm = xs
+    box, cam = args[0], args[1]
+    keep = args[2] if len(args) > 2 else None
+    q = np.asarray(pose.wxyz_xyz)
+    R = rotation_matrices(q[:, :4])
+    A = np.swapaxes(R, 1, 2)
+    P, t = np.asarray(lm.P), np.asarray(lm.center)
+    m = np.einsum("nij,nj->ni", A, t - q[:, 4:])
+    G = A @ P @ R - m[:, :, None] * m[:, None, :]
+    fx, fy, cx, cy = (np.asarray(v, dtype=float) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+    (u0, du0), (u1, du1) = _edges(G[:, 0, 0], G[:, 0, 2], G[:, 2, 2], fx, cx, jacobian)
+    (v0, dv0), (v1, dv1) = _edges(G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], fy, cy, jacobian)
+    r = np.stack([u0, v0, u1, v1], axis=-1) - box
+    valid = _in_front(A, P, m)
+    if keep is not None:
+        r = r * keep
+    if not jacobian:
+        return r, None, valid
+    n = len(r)
+    # ∂r/∂(G₀₀, G₁₁, G₂₂, G₀₂, G₁₂) (n, 4, 5)
+    dr = np.zeros((n, 4, 5))
+    for row, d, (ia, ib) in ((0, du0, (0, 3)), (2, du1, (0, 3)), (1, dv0, (1, 4)), (3, dv1, (1, 4))):
+        dr[:, row, ia] = d[:, 0]
+        dr[:, row, ib] = d[:, 1]
+        dr[:, row, 2] = d[:, 2]
+    if keep is not None:
+        dr = dr * keep[:, :, None]
+    dG = _entry_jacobians(G, m, A, Ts[1])
+    return r, dr @ dG, valid
+
+
+#: ``box_visible``'s depth margin, read from its signature (one place for the number).
+_MIN_DEPTH = inspect.signature(box_visible).parameters["min_depth"].default
+
+
+def _in_front(A, P, m, min_depth: float = _MIN_DEPTH):
+    """``geometry.in_front`` from the camera-frame centre: z_c − √(a₂ᵀ P a₂) > min_depth."""
+    a2 = A[:, 2]
+    half2 = np.einsum("ni,nij,nj->n", a2, P, a2)
+    half = np.where(half2 > 0, np.sqrt(np.where(half2 > 0, half2, 1.0)), 0.0)
+    return m[:, 2] - half > min_depth
+
+
+_register(ClosedForm(inverse_box_residual, box_visible, (jaxlie.SE3, Ellipsoid), inverse_box_linearization))
