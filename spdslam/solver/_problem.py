@@ -22,7 +22,9 @@ variables (``_linearize``; types with non-float leaves are differentiated per fa
 ``jax.jacfwd`` instead),
 
 with a robust kernel applied by IRLS: s = ‖r̃‖², r̃ ← √ρ'(s) r̃, J ← √ρ'(s) J. Each group is
-one jitted call (its per-factor JᵀJ and Jᵀr̃ are scattered into their slots on the host).
+one jitted call (its per-factor JᵀJ and Jᵀr̃ are scattered into their slots on the host),
+except a group whose factor type has a closed form (``factors.closed_form``): it computes the
+same terms in NumPy (``_closed_form``), with nothing to compile.
 
 Compilation. A group's jitted functions are cached on its static description (residual
 function, variable types, data tree structure, kernel) and take its factors' variables
