@@ -33,9 +33,10 @@ import jaxlie
 import numpy as np
 
 from ..geometry import Ellipsoid
+from ..geometry.se3 import quat_to_matrix
 from ._box import box_visible, inverse_box_residual
 
-__all__ = ["ClosedForm", "closed_form", "rotation_matrices", "inverse_box_linearization"]
+__all__ = ["ClosedForm", "closed_form", "inverse_box_linearization"]
 
 
 @dataclass(frozen=True)
@@ -68,17 +69,6 @@ def closed_form(residual: Callable, valid: Callable | None = None,
 
 def _register(cf: ClosedForm) -> None:
     _CLOSED[cf.residual] = cf
-
-
-def rotation_matrices(wxyz: np.ndarray) -> np.ndarray:
-    """R (n, 3, 3) of quaternions wxyz (n, 4), normalised, as ``jaxlie.SO3.as_matrix``."""
-    q = wxyz * np.sqrt(2.0 / np.sum(wxyz * wxyz, axis=-1, keepdims=True))
-    w, x, y, z = q.T
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    return np.stack([1.0 - yy - zz, xy - wz, xz + wy,
-                     xy + wz, 1.0 - xx - zz, yz - wx,
-                     xz - wy, yz + wx, 1.0 - xx - yy], axis=-1).reshape(-1, 3, 3)
 
 
 #: The entries (I[e], J[e]) of G the box edges read: (a, b, g) = (G₀₀, G₀₂, G₂₂) for u,
@@ -125,17 +115,17 @@ def _edges(a, b, g, f, c0, jacobian: bool):
     pos = delta > 0
     s = np.where(pos, np.sqrt(np.where(pos, delta, 1.0)), 0.0)
     sign_lo = np.where(g < 0, 1.0, -1.0)  # (b + σ s)/g is the smaller with σ = sign_lo
+    if jacobian:
+        inv_2s = np.where(pos, 0.5 / np.where(pos, s, 1.0), 0.0)
+        ds = (-g * inv_2s, 2.0 * b * inv_2s, -a * inv_2s)  # ∂√Δ/∂(a, b, g)
     out: list[tuple[np.ndarray, np.ndarray | None]] = []
     for sigma in (sign_lo, -sign_lo):
         value = c0 + f * (b + sigma * s) / g
-        if not jacobian:
-            out.append((value, None))
-            continue
-        inv_2s = np.where(pos, 0.5 / np.where(pos, s, 1.0), 0.0)
-        ds = (-g * inv_2s, 2.0 * b * inv_2s, -a * inv_2s)
-        d = np.stack([f * sigma * ds[0] / g,
-                      f * (1.0 + sigma * ds[1]) / g,
-                      f * sigma * ds[2] / g - f * (b + sigma * s) / (g * g)], axis=-1)
+        d = None
+        if jacobian:
+            d = np.stack([f * sigma * ds[0] / g,
+                          f * (1.0 + sigma * ds[1]) / g,
+                          f * sigma * ds[2] / g - f * (b + sigma * s) / (g * g)], axis=-1)
         out.append((value, d))
     return out
 
@@ -147,7 +137,7 @@ def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     box, cam = args[0], args[1]
     keep = args[2] if len(args) > 2 else None
     q = np.asarray(pose.wxyz_xyz)
-    R = rotation_matrices(q[:, :4])
+    R = quat_to_matrix(q[:, [1, 2, 3, 0]])  # jaxlie's wxyz as xyzw
     A = np.swapaxes(R, 1, 2)
     P, t = np.asarray(lm.P), np.asarray(lm.center)
     m = np.einsum("nij,nj->ni", A, t - q[:, 4:])
