@@ -11,14 +11,22 @@ import pytest
 from conftest import check_jacobians
 
 from spdslam.factors import (
+    BetweenFactor,
     Cauchy,
+    Huber,
     InverseBoxFactor,
+    PriorFactor,
     box_visible,
     closed_form,
     inverse_box_linearization,
     inverse_box_residual,
+    pose_between_linearization,
+    pose_between_residual,
+    pose_prior_linearization,
+    pose_prior_residual,
 )
 from spdslam.geometry import Camera, Ellipsoid, EllipsoidRTS, manifold, project_box
+from spdslam.geometry import se3
 from spdslam.geometry.se3 import quat_to_matrix
 from spdslam.solver import L, NonlinearFactorGraph, Problem, Values, X, closed_forms
 from spdslam.solver._linearize import pushforward
@@ -143,3 +151,85 @@ def test_a_problem_linearises_alike_with_and_without_the_closed_forms(gen, behin
     r1, J1, _ = closed.group_terms(0)
     assert np.allclose(np.asarray(r1), np.asarray(r0), atol=1e-9)
     assert np.allclose(np.asarray(J1), np.asarray(J0), atol=1e-8)
+
+
+def _random_poses(gen, n, scale):
+    """n poses Exp(ξ), ξ ~ N(0, scale²) per coordinate."""
+    return jaxlie.SE3.exp(jnp.asarray(gen.rng.normal(size=(n, 6)) * scale))
+
+
+def _near(gen, scale):
+    return jaxlie.SE3.exp(jnp.asarray(gen.rng.normal(size=6) * scale))
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e-3, 0.05, 1.0])
+def test_the_group_operations_in_numpy_are_jaxlies(gen, scale):
+    """se3's NumPy compose, inverse, log, adjoint and J_r⁻¹ against jaxlie (J_r⁻¹ against
+    forward-mode JAX through Log(Exp(ξ) Exp(δ))) at rotations from 10⁻⁶ rad to about π."""
+    A, B = _random_poses(gen, 40, scale), _random_poses(gen, 40, scale)
+    a, b = np.asarray(A.wxyz_xyz), np.asarray(B.wxyz_xyz)
+    assert np.allclose(se3.compose_params(a, b), np.asarray((A @ B).wxyz_xyz), rtol=0, atol=1e-14)
+    assert np.allclose(se3.inverse_params(a), np.asarray(A.inverse().wxyz_xyz), rtol=0, atol=1e-14)
+    xi = np.asarray(A.log())
+    assert np.allclose(se3.log_params(a), xi, rtol=0, atol=1e-13)
+    flipped = a * np.r_[-np.ones(4), np.ones(3)]  # −q: the same rotation
+    assert np.allclose(se3.log_params(flipped), xi, rtol=0, atol=1e-13)
+    assert np.allclose(se3.adjoint_params(a), np.asarray(A.adjoint()), rtol=0, atol=1e-14)
+    J = jax.vmap(lambda x: jax.jacfwd(lambda d: (jaxlie.SE3.exp(x) @ jaxlie.SE3.exp(d)).log())(jnp.zeros(6)))(
+        jnp.asarray(xi))
+    # to 1e-11: below θ ≈ 1e-5 jaxlie's own Taylor branches are first order (~1e-12 off)
+    assert np.allclose(se3.right_jacobian_inverse(xi), np.asarray(J), rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("scale", [1e-4, 0.05, 0.8])
+def test_pose_closed_forms_match_the_jax_jacobian(gen, scale):
+    """Prior and between factors: residual and Jacobian against the JAX path (checked by
+    ``check_jacobians`` against central differences), the measurement near the truth
+    (odometry-like residuals) and far from it."""
+    n = 32
+    T1 = _random_poses(gen, n, 1.0)
+    T2 = T1 @ _random_poses(gen, n, scale)
+    T12 = (T1.inverse() @ T2) @ _random_poses(gen, n, scale)
+    prior = T1 @ _random_poses(gen, n, scale)
+    r_jax, (J_jax,) = check_jacobians(pose_prior_residual, (T1,), (prior,))
+    r, J, valid = pose_prior_linearization((_host(T1),), None, (_host(prior),))
+    assert valid is None
+    assert np.allclose(r, r_jax, rtol=0, atol=1e-12)
+    assert np.allclose(J, J_jax, rtol=0, atol=1e-10)
+    r_jax, (J1, J2) = check_jacobians(pose_between_residual, (T1, T2), (T12,))
+    r, J, _ = pose_between_linearization((_host(T1), _host(T2)), None, (_host(T12),))
+    assert np.allclose(r, r_jax, rtol=0, atol=1e-12)
+    assert np.allclose(J, np.concatenate([J1, J2], axis=2), rtol=0, atol=1e-10)
+    assert closed_form(pose_prior_residual, None, (jaxlie.SE3,)).linearize is pose_prior_linearization
+    assert closed_form(pose_between_residual, None, (jaxlie.SE3, jaxlie.SE3)).linearize is pose_between_linearization
+
+
+def test_a_pose_graph_linearises_alike_with_and_without_the_closed_forms(gen):
+    """A chain with loop closures (Huber), priors (diagonal σ) and box factors: H, g, cost
+    and terms equal with and without the closed forms; no pose pushforward is computed when
+    every group that reads poses has a closed form."""
+    graph, values = _graph(gen)
+    keys = [X(i) for i in range(6)]
+    for i in range(5):
+        Ti, Tj = values[keys[i]], values[keys[i + 1]]
+        graph.add(BetweenFactor(keys[i], keys[i + 1], (Ti.inverse() @ Tj) @ _near(gen, 0.02),
+                                sigma=[0.01, 0.01, 0.02, 0.001, 0.002, 0.001]))
+    graph.add(BetweenFactor(keys[0], keys[5], values[keys[0]].inverse() @ values[keys[5]], sigma=0.05,
+                            robust=Huber(1.0)))
+    graph.add(PriorFactor(keys[2], values[keys[2]] @ _near(gen, 0.1), sigma=[0.1] * 3 + [0.01] * 3))
+    with closed_forms(False):
+        general = Problem(graph, values, fixed=[X(0)])
+        H0, g0, c0, _, _ = general.linearize(general.vars)
+    closed = Problem(graph, values, fixed=[X(0)])
+    assert all(type(g).__name__ == "ClosedFormGroup" for g in closed.kernels.groups)
+    pose_type = [i for i, ts in enumerate(closed.tspecs) if ts.cls is jaxlie.SE3][0]
+    assert closed.kernels.pushforward[pose_type] is None
+    H1, g1, c1, _, _ = closed.linearize(closed.vars)
+    assert np.allclose(H1, H0, rtol=1e-10, atol=1e-10 * np.abs(H0).max())
+    assert np.allclose(g1, g0, rtol=1e-10, atol=1e-10 * np.abs(g0).max())
+    assert c1 == pytest.approx(c0, rel=1e-12)
+    for k in range(len(closed.kernels.groups)):
+        r0, J0, _ = general.group_terms(k)
+        r1, J1, _ = closed.group_terms(k)
+        assert np.allclose(np.asarray(r1), np.asarray(r0), atol=1e-9)
+        assert np.allclose(np.asarray(J1), np.asarray(J0), atol=1e-8)

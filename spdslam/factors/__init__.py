@@ -38,6 +38,8 @@ from ._box import semi_inverse_cuboid_box_residual as semi_inverse_cuboid_box_re
 from ._closed_form import ClosedForm as ClosedForm
 from ._closed_form import closed_form as closed_form
 from ._closed_form import inverse_box_linearization as inverse_box_linearization
+from ._closed_form import pose_between_linearization as pose_between_linearization
+from ._closed_form import pose_prior_linearization as pose_prior_linearization
 from ._ellipsoid_measurement import (
     EllipsoidMeasurementFactor as EllipsoidMeasurementFactor,
 )

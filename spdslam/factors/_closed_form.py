@@ -21,6 +21,13 @@ C* = K G Kᵀ with G = S − m mᵀ, and with a = G₀₀, b = G₀₂, g = G₂
 the sign giving u_min or u_max by the sign of g (v alike with G₁₁, G₁₂, f_y, c_y). Under
 the pose's δ: dG = G[ω]× − [ω]×G + ρ mᵀ + m ρᵀ; under the landmark's (dP, dt):
 dG = A dP Aᵀ − dm mᵀ − m dmᵀ with dm = A dt.
+
+Pose prior and between factors (``pose_prior_residual``, ``pose_between_residual``). With
+E = T̄⁻¹ T (prior) or E = T̄₁₂⁻¹ D, D = T₁⁻¹ T₂ (between), r = Log(E), and
+
+    ∂r/∂δ = J_r⁻¹(r),   ∂r/∂δ₂ = J_r⁻¹(r),   ∂r/∂δ₁ = −J_r⁻¹(r) Ad(D⁻¹),
+
+the last from T̄₁₂⁻¹ Exp(−δ₁) D = E Exp(−Ad(D⁻¹) δ₁) (``geometry.se3.right_jacobian_inverse``).
 """
 
 from __future__ import annotations
@@ -33,10 +40,19 @@ import jaxlie
 import numpy as np
 
 from ..geometry import Ellipsoid
-from ..geometry.se3 import quat_to_matrix
+from ..geometry.se3 import (
+    adjoint_params,
+    compose_params,
+    inverse_params,
+    log_params,
+    quat_to_matrix,
+    right_jacobian_inverse,
+)
 from ._box import box_visible, inverse_box_residual
+from ._pose import pose_between_residual, pose_prior_residual
 
-__all__ = ["ClosedForm", "closed_form", "inverse_box_linearization"]
+__all__ = ["ClosedForm", "closed_form", "inverse_box_linearization", "pose_prior_linearization",
+           "pose_between_linearization"]
 
 
 @dataclass(frozen=True)
@@ -47,12 +63,15 @@ class ClosedForm:
     one pytree with NumPy leaves per variable), their pushforwards (``Ts``, as the solver
     gathers them) and the stacked data (``args``) and returns (r (n, m), J (n, m, D) in
     tangent coordinates or None without ``jacobian``, validity (n,) or None). It stands for
-    ``residual`` with the validity rule ``valid`` when the variables are of ``types``."""
+    ``residual`` with the validity rule ``valid`` when the variables are of ``types``.
+    ``pushforwards``: for each variable, whether ``linearize`` reads its pushforward (the
+    solver computes only those; an entry of ``Ts`` it does not read may be None)."""
 
     residual: Callable
     valid: Callable | None
     types: tuple[type, ...]
     linearize: Callable
+    pushforwards: tuple[bool, ...] = ()
 
 
 _CLOSED: dict[Callable, ClosedForm] = {}
@@ -176,4 +195,27 @@ def _in_front(A, P, m, min_depth: float = _MIN_DEPTH):
     return m[:, 2] - half > min_depth
 
 
-_register(ClosedForm(inverse_box_residual, box_visible, (jaxlie.SE3, Ellipsoid), inverse_box_linearization))
+def pose_prior_linearization(xs, Ts, args, jacobian: bool = True):
+    """``pose_prior_residual`` of n stacked poses: (r (n, 6), J (n, 6, 6) or None, None)."""
+    (T,), (T_prior,) = xs, args
+    r = log_params(compose_params(inverse_params(np.asarray(T_prior.wxyz_xyz)), np.asarray(T.wxyz_xyz)))
+    return r, (right_jacobian_inverse(r) if jacobian else None), None
+
+
+def pose_between_linearization(xs, Ts, args, jacobian: bool = True):
+    """``pose_between_residual`` of n stacked pose pairs: (r (n, 6), J (n, 6, 12) or None,
+    None)."""
+    (T1, T2), (T12,) = xs, args
+    D = compose_params(inverse_params(np.asarray(T1.wxyz_xyz)), np.asarray(T2.wxyz_xyz))
+    r = log_params(compose_params(inverse_params(np.asarray(T12.wxyz_xyz)), D))
+    if not jacobian:
+        return r, None, None
+    Jr = right_jacobian_inverse(r)
+    return r, np.concatenate([-Jr @ adjoint_params(inverse_params(D)), Jr], axis=2), None
+
+
+_register(ClosedForm(inverse_box_residual, box_visible, (jaxlie.SE3, Ellipsoid), inverse_box_linearization,
+                     (False, True)))
+_register(ClosedForm(pose_prior_residual, None, (jaxlie.SE3,), pose_prior_linearization, (False,)))
+_register(ClosedForm(pose_between_residual, None, (jaxlie.SE3, jaxlie.SE3), pose_between_linearization,
+                     (False, False)))

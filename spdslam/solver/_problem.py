@@ -425,11 +425,16 @@ class _Kernels:
     def __init__(self, tspecs: tuple[_TypeSpec, ...], gspecs: tuple[_GroupSpec, ...]):
         self.tspecs, self.gspecs = tspecs, gspecs
         self.groups: list[Any] = []
+        needs_push = [False] * len(tspecs)  # a type's pushforward is computed when read
         for spec in gspecs:
             cf = closed_form_of(spec, tspecs)
             if cf is not None:
                 self.groups.append(ClosedFormGroup(spec, cf))
+                for t, read in zip(spec.var_types, cf.pushforwards):
+                    needs_push[t] |= read
                 continue
+            for t in spec.var_types:
+                needs_push[t] = True
             used = tuple(dict.fromkeys(spec.var_types))  # the types, in order of first use
             local = replace(spec, var_types=tuple(used.index(t) for t in spec.var_types))
             key = (local, tuple(tspecs[t] for t in used))
@@ -438,12 +443,12 @@ class _Kernels:
                 gk = _GROUP_KERNELS[key] = _GroupKernels(*key)
             self.groups.append(gk)
         self.retract = [_retract_kernel(ts) for ts in tspecs]
-        self.pushforward = [_pushforward_kernel(ts) for ts in tspecs]
+        self.pushforward = [_pushforward_kernel(ts) if need else None for ts, need in zip(tspecs, needs_push)]
 
     def _pushforwards(self, vars_):
         """Per type: the pushforwards of its rows, on the host like ``_host``'s variables
-        (None for a type with non-float leaves)."""
-        return [_host([push(x)])[0] if differentiable(x) else None
+        (None for a type with non-float leaves, or whose pushforward no group reads)."""
+        return [_host([push(x)])[0] if push is not None and differentiable(x) else None
                 for push, x in zip(self.pushforward, vars_)]
 
     def _inputs(self, k, vars_host, gidx, data, push_host=None):
@@ -454,7 +459,9 @@ class _Kernels:
         gather = lambda host, p, t: host[t][1].unflatten([a[idx[:, p]] for a in host[t][0]])  # noqa: E731
         xs = [gather(vars_host, p, t) for p, t in enumerate(var_types)]
         Ts = None
-        if push_host is not None and all(push_host[t] is not None for t in var_types):
+        if push_host is not None and isinstance(self.groups[k], ClosedFormGroup):
+            Ts = [None if push_host[t] is None else gather(push_host, p, t) for p, t in enumerate(var_types)]
+        elif push_host is not None and all(push_host[t] is not None for t in var_types):
             Ts = [gather(push_host, p, t) for p, t in enumerate(var_types)]
         self.groups[k].note(xs, Ts, mask, data)
         return xs, Ts, mask, data
