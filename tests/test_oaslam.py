@@ -85,6 +85,16 @@ def test_opencv_camera_with_distortion(tmp_path):
     ([{"file_name": "1.5.png", "detections": [{"category_id": 3, "detection_score": 0.9,
                                                "bbox": [5, 0, 1, 1]}]}], r"detection 0: a box with x2 > x1"),
     ([{"file_name": "1.5.png", "detections": [{"bbox": [0, 0, 1, 1]}]}], "category_id, detection_score"),
+    # checked as arrays, yet the error is the first in the file: a box before a bad entry,
+    # a category before a bad box
+    ([{"file_name": "1.5.png", "detections": [{"category_id": 3, "detection_score": 0.9, "bbox": [0, 0, 1, 1]},
+                                              {"category_id": 3, "detection_score": 0.9, "bbox": [0, 5, 1, 1]}]},
+      {"file_name": "frame.png", "detections": []}], r"entry 0 detection 1: a box with y2 > y1"),
+    ([{"file_name": "1.5.png", "detections": [{"category_id": 3.0, "detection_score": 0.9, "bbox": [0, 0, 1, 1]},
+                                              {"category_id": 3, "detection_score": 0.9, "bbox": [0, 5, 1, 1]}]}],
+     r"entry 0 detection 0: a COCO-80 category_id"),
+    ([{"file_name": "1.5.png", "detections": [{"category_id": 3, "detection_score": 0.9, "bbox": [0, 0, 1]}]}],
+     r"entry 0 detection 0: a finite bbox"),
 ])
 def test_detection_json_errors_name_the_entry(tmp_path, payload, match):
     f = _write(tmp_path / "detections.json", json.dumps(payload))

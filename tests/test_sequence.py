@@ -160,6 +160,13 @@ BAD = [
     ("trajectory.txt", TRAJ + "3.0 0 0 1 0 0 0 inf\n", 5, "finite number"),
     ("trajectory.txt", TRAJ + "3.0 0 0 1 0 0 0 0\n", 5, "normalises to unit length"),
     ("trajectory.txt", TRAJ + "1.5 0 0 1 0 0 0 1\n", 5, "greater than the previous"),
+    ("trajectory.txt", TRAJ + "3.0 0 0 1_0 0 0 0 1\n", 5, "a number for tz, got '1_0'"),
+    # the rows are checked as arrays: the error still names the first line that fails
+    ("trajectory.txt", TRAJ.replace("2.00 0.2", "1.20 0.2") + "3.0 0 0 1 0 0 0 0\n", 4,
+     "a timestamp greater than the previous one (1.5), got '1.20'"),
+    ("trajectory.txt", TRAJ.replace("0 0 0 2\n", "0 0 0 0\n") + "2.5 0 0 nan 0 0 0 1\n", 4, "normalises to unit"),
+    ("detections.txt", DETS.replace("11 21 111 221", "11 21 1 221") + "2.0 10 2 5 4 chair 0.5\n", 3, "x2 > x1"),
+    ("detections.txt", DETS.replace("1.51 11", "1.31 11") + "2.0 1 2 abc 4 chair 0.5\n", 3, "within 0.02 s"),
     ("objects_gt.txt", OBJS + "2 x 0 0 0 0 0 0 1 1 1\n", 3, "12 columns"),
     ("objects_gt.txt", OBJS + "2 x 0 0 0 0 0 0 1 1 -1 1\n", 3, "positive half-extents"),
     ("groundtruth.txt", "1.0 0 0 0 0 0 0 1\n1.1 0 0 0 0 0 0 one\n", 2, "a number for qw"),
@@ -350,3 +357,23 @@ def test_fr3_cabinet_reference_data(tmp_path):
     assert len(s.images) == 58 and all(p.is_file() for p in s.images.values())
     back = read_sequence(write_sequence(s, tmp_path / "tum_fr3_cabinet"))
     assert back == s
+
+
+def test_box_faults_is_check_boxs_rule(rng):
+    """The array form of the box rule refuses exactly the boxes ``check_box`` refuses."""
+    from spdslam.io._parse import box_faults, check_box
+
+    boxes = rng.uniform(-100, 800, size=(400, 4))
+    boxes[::7, 2] = boxes[::7, 0]  # zero width
+    boxes[::11, 1] = np.nan
+    cam = Camera(500.0, 500.0, 320.0, 240.0, 640.0, 480.0)
+    for camera in (None, cam):
+        faults = box_faults(boxes, camera)
+        for b, f in zip(boxes, faults):
+            try:
+                check_box("f", 1, b, camera)
+                refused = False
+            except ValueError:
+                refused = True
+            assert refused == f
+        assert 0 < faults.sum() < len(boxes)

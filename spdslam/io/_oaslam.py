@@ -31,6 +31,7 @@ from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
+    box_faults,
     camera_from,
     check_box,
     nearest_stamps,
@@ -138,7 +139,9 @@ def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE,
                          camera: Camera | None = None):
     """[(timestamp, box (4,), label, score)] of an OA-SLAM detection file, scores ≥
     ``min_score``; errors name the entry (``<file>: entry <i>``); every box of positive
-    area and, with ``camera``, overlapping its (distorted) image (``check_box``)."""
+    area and, with ``camera``, overlapping its (distorted) image (``check_box``). The
+    detections are checked as arrays; when any fails they are checked one by one, so the
+    error is the first in the file."""
     name = str(path)
     try:
         data = json.loads(read_text(path, name))
@@ -146,39 +149,83 @@ def read_detections_json(path: Path, min_score: float = DEFAULT_MIN_SCORE,
         raise SequenceFormatError(name, e.lineno, "valid JSON", e.msg) from None
     if not isinstance(data, list):
         raise SequenceFormatError(name, None, "a JSON list of images", type(data).__name__)
-    out = []
+    times: list[float] = []
+    labels: list = []
+    scores: list[float] = []
+    boxes: list = []
+    at: list[tuple[int, int]] = []
+
+    def check_so_far():
+        """The detections read so far, each checked alone: an earlier one's error comes
+        first, as in the file."""
+        return [_detection(f"{name}: entry {i} detection {j}", data[i]["detections"][j], camera)[2] for i, j in at]
+
     for i, entry in enumerate(data):
-        where = f"{name}: entry {i}"
-        if not isinstance(entry, dict) or "file_name" not in entry or "detections" not in entry:
-            raise SequenceFormatError(where, None, "an object with 'file_name' and 'detections'",
-                                      repr(entry)[:80])
-        stem = Path(str(entry["file_name"])).stem
         try:
-            t = float(stem)
-        except ValueError:
-            t = math.nan
-        if not math.isfinite(t):
-            raise SequenceFormatError(where, None, "a file_name '<timestamp>.png'", repr(entry["file_name"]))
-        if not isinstance(entry["detections"], list):
-            raise SequenceFormatError(where, None, "a list of detections", repr(entry["detections"])[:80])
-        for j, d in enumerate(entry["detections"]):
-            w = f"{where} detection {j}"
-            try:
-                k = d["category_id"]
-                s = float(d["detection_score"])
-                b = np.asarray(d["bbox"], dtype=float)
-            except (KeyError, TypeError, ValueError):
-                raise SequenceFormatError(w, None, "category_id, detection_score and bbox [x1, y1, x2, y2]",
-                                          repr(d)[:80]) from None
-            if not (isinstance(k, int) and 0 <= k < len(COCO80)):
-                raise SequenceFormatError(w, None, "a COCO-80 category_id in 0…79", repr(k))
-            if b.shape != (4,) or not np.all(np.isfinite(b)) or not math.isfinite(s):
-                raise SequenceFormatError(w, None, "a finite bbox [x1, y1, x2, y2] and score",
-                                          repr(d.get("bbox")))
-            check_box(w, None, b, camera)
-            if s >= min_score:
-                out.append((t, b, COCO80[k], s))
-    return out
+            t, detections = _entry(f"{name}: entry {i}", entry)
+            for j, d in enumerate(detections):
+                try:
+                    k, s, b = d["category_id"], float(d["detection_score"]), d["bbox"]
+                except (KeyError, TypeError, ValueError):
+                    _detection(f"{name}: entry {i} detection {j}", d, camera)  # raises
+                times.append(t)
+                labels.append(k)
+                scores.append(s)
+                boxes.append(b)
+                at.append((i, j))
+        except SequenceFormatError:
+            check_so_far()
+            raise
+    if not boxes:
+        return []
+    # the boxes, labels and scores checked as arrays; the first detection that fails is
+    # checked alone (``_detection``) for its error
+    try:
+        B = np.array(boxes, dtype=float).reshape(len(boxes), 4)
+        K = np.array(labels)
+        ok = (K.dtype.kind == "i" and bool(np.all((K >= 0) & (K < len(COCO80))))
+              and bool(np.all(np.isfinite(B))) and bool(np.all(np.isfinite(scores)))
+              and not np.any(box_faults(B, camera)))
+    except (ValueError, TypeError):
+        ok = False
+    if not ok:
+        B = np.stack(check_so_far())
+    keep = np.asarray(scores, dtype=float) >= min_score
+    return [(t, b, COCO80[k], s) for t, b, k, s, u in zip(times, B, labels, scores, keep) if u]
+
+
+def _entry(where: str, entry):
+    """(timestamp, detections) of one image entry, checked; else ``SequenceFormatError``."""
+    if not isinstance(entry, dict) or "file_name" not in entry or "detections" not in entry:
+        raise SequenceFormatError(where, None, "an object with 'file_name' and 'detections'", repr(entry)[:80])
+    stem = Path(str(entry["file_name"])).stem
+    try:
+        t = float(stem)
+    except ValueError:
+        t = math.nan
+    if not math.isfinite(t):
+        raise SequenceFormatError(where, None, "a file_name '<timestamp>.png'", repr(entry["file_name"]))
+    if not isinstance(entry["detections"], list):
+        raise SequenceFormatError(where, None, "a list of detections", repr(entry["detections"])[:80])
+    return t, entry["detections"]
+
+
+def _detection(where: str, d, camera: Camera | None):
+    """(category id, score, box (4,)) of one detection, each checked; else
+    ``SequenceFormatError`` at ``where``."""
+    try:
+        k = d["category_id"]
+        s = float(d["detection_score"])
+        b = np.asarray(d["bbox"], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise SequenceFormatError(where, None, "category_id, detection_score and bbox [x1, y1, x2, y2]",
+                                  repr(d)[:80]) from None
+    if not (isinstance(k, int) and 0 <= k < len(COCO80)):
+        raise SequenceFormatError(where, None, "a COCO-80 category_id in 0…79", repr(k))
+    if b.shape != (4,) or not np.all(np.isfinite(b)) or not math.isfinite(s):
+        raise SequenceFormatError(where, None, "a finite bbox [x1, y1, x2, y2] and score", repr(d.get("bbox")))
+    check_box(where, None, b, camera)
+    return k, s, b
 
 
 def read_quadrics_gt(path: Path) -> list[GroundTruthObject]:
@@ -219,7 +266,8 @@ def estimate_up(poses_tum: np.ndarray) -> np.ndarray:
     turns about the vertical); raises ``ValueError`` otherwise."""
     R = Rotation.from_quat(np.asarray(poses_tum)[:, 3:7]).as_matrix()
     x = R[:, :, 0]
-    _, sv, Vt = np.linalg.svd(x, full_matrices=True)  # Vt 3×3 for any number of poses
+    # Vt 3×3 for any number of poses; U only as wide as needed (not N×N)
+    _, sv, Vt = np.linalg.svd(x, full_matrices=len(x) < 3)
     if sv.size < 2 or not sv[1] > 0.05 * sv[0]:
         raise ValueError("the cameras' x axes do not span a plane: the up direction is not "
                          "determined (give up in priors.yaml)")

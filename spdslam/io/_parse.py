@@ -16,8 +16,9 @@ import numpy as np
 from ..geometry import Camera
 
 __all__ = ["SequenceFormatError", "MATCH_TOLERANCE", "CAMERA_KEYS", "read_tum", "read_images", "read_text",
-           "nearest_stamps", "token_rows", "check_columns", "parse_number", "parse_integer",
-           "unit_quaternion", "match_stamp", "parse_box", "check_box", "yaml_root", "yaml_line",
+           "nearest_stamps", "token_rows", "check_columns", "parse_number", "number_rows", "parse_integer",
+           "unit_quaternion", "match_stamp", "match_stamps", "parse_box", "box_faults", "check_box", "yaml_root",
+           "yaml_line",
            "yaml_mapping", "yaml_kind", "yaml_scalar", "yaml_number", "yaml_vector",
            "reject_unknown_key"]
 
@@ -159,16 +160,52 @@ def unit_quaternion(file, line, q) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def number_rows(numbered, columns: int) -> np.ndarray | None:
+    """The (n, ``columns``) floats of ``numbered`` [(line, tokens)] converted at once, or None
+    when a token is not a finite number as ``parse_number`` reads it (the caller then reads
+    the rows one by one, for the error of the first line that fails)."""
+    flat = [t for _, tok in numbered for t in tok]
+    if any("_" in t for t in flat):  # float() reads 1_000; no text format here does
+        return None
+    try:
+        v = np.array(flat, dtype=float).reshape(len(numbered), columns)
+    except ValueError:
+        return None
+    return v if bool(np.isfinite(v).all()) else None
+
+
 def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
     """(N, 8) rows ``timestamp tx ty tz qx qy qz qw``, quaternions normalised, strictly
     increasing timestamps (``skip_repeats``: a row whose timestamp does not exceed the
     previous one is left out instead, as motion-capture files repeat a timestamp now and
-    then)."""
+    then). The rows are converted and checked as arrays; when any fails they are read
+    again line by line (``_tum_lines``), whose error names the first line that fails."""
     layout = "timestamp tx ty tz qx qy qz qw"
+    numbered = list(token_rows(path, name))
+    for line, tok in numbered:
+        check_columns(name, line, tok, (8,), layout)
+    if not numbered:
+        raise SequenceFormatError(name, None, f"at least one line '{layout}'", "an empty file")
+    v = number_rows(numbered, 8)
+    if v is not None:
+        q = v[:, 4:8]
+        m = np.max(np.abs(q), axis=1)
+        qs = q / np.where(m > 0, m, 1.0)[:, None]  # scaled first: huge entries do not overflow
+        norm = np.linalg.norm(qs, axis=1)
+        t = v[:, 0]
+        # a row is kept when it follows every kept row: its time exceeds all earlier times
+        later = t > np.r_[-np.inf, np.maximum.accumulate(t)[:-1]]
+        if np.all(m * norm > 1e-6) and (skip_repeats or later.all()):
+            v[:, 4:8] = qs / norm[:, None]
+            return v[later]
+    return _tum_lines(numbered, name, layout, skip_repeats)
+
+
+def _tum_lines(numbered, name: str, layout: str, skip_repeats: bool) -> np.ndarray:
+    """``read_tum``'s rows read one line at a time (its rules, in the order of the lines)."""
     fields = layout.split()
     rows: list[list[float]] = []
-    for line, tok in token_rows(path, name):
-        check_columns(name, line, tok, (8,), layout)
+    for line, tok in numbered:
         v = [parse_number(name, line, t, f) for t, f in zip(tok, fields)]
         v[4:8] = unit_quaternion(name, line, v[4:8]).tolist()
         if rows and not v[0] > rows[-1][0]:
@@ -179,8 +216,6 @@ def read_tum(path: Path, name: str, skip_repeats: bool = False) -> np.ndarray:
                 repr(tok[0]),
             )
         rows.append(v)
-    if not rows:
-        raise SequenceFormatError(name, None, f"at least one line '{layout}'", "an empty file")
     return np.array(rows, dtype=float)
 
 
@@ -208,6 +243,20 @@ def match_stamp(file, line, t: float, timestamps: np.ndarray) -> int:
     return i
 
 
+def match_stamps(t, timestamps: np.ndarray) -> np.ndarray | None:
+    """``match_stamp`` for many times at once: the index of the nearest trajectory pose of
+    each (the earlier of two as near; ``timestamps`` increasing), or None when one is not
+    within ``MATCH_TOLERANCE`` or the timestamps do not increase (the caller then matches
+    row by row, for the error of the first line that fails)."""
+    t = np.asarray(t, dtype=float)
+    ts = np.asarray(timestamps, dtype=float)
+    if len(ts) < 2 or not np.all(np.diff(ts) > 0):
+        return None
+    j = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
+    i = np.where(np.abs(ts[j - 1] - t) <= np.abs(ts[j] - t), j - 1, j)
+    return None if np.any(np.abs(ts[i] - t) > MATCH_TOLERANCE + _MATCH_SLACK) else i
+
+
 def parse_box(file, line, tok, what="x1 y1 x2 y2", camera: Camera | None = None) -> np.ndarray:
     """A box ``x1 y1 x2 y2`` of positive area, overlapping ``camera``'s image when given
     (``check_box``)."""
@@ -216,11 +265,21 @@ def parse_box(file, line, tok, what="x1 y1 x2 y2", camera: Camera | None = None)
     return b
 
 
+def box_faults(boxes, camera: Camera | None = None) -> np.ndarray:
+    """(n,) whether each box (n, 4) breaks the rule for impossible boxes, the same in every
+    reader: a box must have x2 > x1 and y2 > y1 (a zero-area box fixes no silhouette edge)
+    and, when the image size is known, overlap the image (0, 0)–(width, height) (a box
+    wholly outside it is no view of an object)."""
+    x1, y1, x2, y2 = np.asarray(boxes, dtype=float).reshape(-1, 4).T
+    ok = (x2 > x1) & (y2 > y1)
+    if camera is not None:
+        ok &= (x1 < camera.width) & (x2 > 0) & (y1 < camera.height) & (y2 > 0)
+    return ~ok
+
+
 def check_box(file, line, b, camera: Camera | None = None) -> None:
-    """The rule for impossible boxes, the same in every reader: a box must have x2 > x1 and
-    y2 > y1 (a zero-area box fixes no silhouette edge) and, when the image size is known,
-    overlap the image (0, 0)–(width, height) (a box wholly outside it is no view of an
-    object); else ``SequenceFormatError`` at the box's line."""
+    """``box_faults``' rule for one box (in scalars: a reader checks one box per line):
+    ``SequenceFormatError`` at the box's line naming what is wrong."""
     x1, y1, x2, y2 = (float(v) for v in b)
     if not x2 > x1:
         raise SequenceFormatError(file, line, "a box with x2 > x1 (positive width)", f"x1={x1:g} x2={x2:g}")

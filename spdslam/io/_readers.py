@@ -27,9 +27,12 @@ from ._formats import SequenceFormat
 from ._parse import (
     CAMERA_KEYS,
     SequenceFormatError,
+    box_faults,
     camera_from,
     check_columns,
     match_stamp,
+    match_stamps,
+    number_rows,
     optional,
     parse_box,
     parse_integer,
@@ -167,9 +170,21 @@ def read_detections(path, timestamps, name: str | None = None, camera: Camera | 
     name = name or str(path)
     timestamps = np.asarray(timestamps, dtype=float)
     layout = "timestamp x1 y1 x2 y2 label score [instance]"
-    out = []
-    for line, tok in token_rows(path, name):
+    numbered = list(token_rows(path, name))
+    for line, tok in numbered:
         check_columns(name, line, tok, (7, 8), layout)
+    # converted and checked as arrays; when any row fails they are read again line by line,
+    # whose error names the first line that fails
+    v = number_rows([(line, tok[:5] + tok[6:7]) for line, tok in numbered], 6) if numbered else None
+    if v is not None and not np.any(box_faults(v[:, 1:5], camera)) and all(
+            len(tok) == 7 or _is_integer(tok[7]) for _, tok in numbered):
+        frames = match_stamps(v[:, 0], timestamps)
+        if frames is not None:
+            return [Detection(int(f), float(r[0]), r[1:5].copy(), tok[5], float(r[5]),
+                              int(tok[7]) if len(tok) == 8 else None)
+                    for f, r, (_, tok) in zip(frames, v, numbered)]
+    out = []
+    for line, tok in numbered:
         t = parse_number(name, line, tok[0], "timestamp")
         box = parse_box(name, line, tok[1:5], camera=camera)
         score = parse_number(name, line, tok[6], "score")
@@ -177,6 +192,14 @@ def read_detections(path, timestamps, name: str | None = None, camera: Camera | 
         frame = match_stamp(name, line, t, timestamps)
         out.append(Detection(frame, t, box, tok[5], score, inst))
     return out
+
+
+def _is_integer(token: str) -> bool:
+    try:
+        int(token)
+    except ValueError:
+        return False
+    return True
 
 
 def read_ellipsoids(path, timestamps, name: str | None = None) -> list:
