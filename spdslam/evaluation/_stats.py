@@ -24,7 +24,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats as _st
 
 __all__ = ["Interval", "wilson", "bootstrap", "PairedComparison", "paired_comparison"]
 
@@ -51,14 +50,17 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> Interval:
         raise ValueError(f"successes must be in [0, {n}], got {successes}")
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    ci = _st.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
+    from scipy import stats  # imported where used: its import is slow, and a run needs none
+
+    ci = stats.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
     return Interval(successes / n, max(0.0, float(ci.low)), min(1.0, float(ci.high)), n)
 
 
 #: Resampled indices drawn at a time (``scipy.stats.bootstrap``'s ``batch``): about 32 MB.
 _RESAMPLE_BLOCK = 4_000_000
-#: ``scipy.stats.bootstrap``'s keyword for the generator (``random_state`` before SciPy 1.15).
-_RNG = "rng" if "rng" in inspect.signature(_st.bootstrap).parameters else "random_state"
+def _rng_keyword(bootstrap) -> str:
+    """``scipy.stats.bootstrap``'s keyword for the generator (``random_state`` before SciPy 1.15)."""
+    return "rng" if "rng" in inspect.signature(bootstrap).parameters else "random_state"
 
 
 def _distribution(samples, statistic, resamples: int, seed: int, paired: bool = False) -> np.ndarray:
@@ -66,18 +68,20 @@ def _distribution(samples, statistic, resamples: int, seed: int, paired: bool = 
     rows of indices drawn from ``default_rng(seed)`` as one (resamples, n) draw, in blocks of
     at most ``_RESAMPLE_BLOCK`` entries (``paired``: the same rows for every sample). SciPy
     needs two observations; every resample of one is the sample itself."""
+    from scipy import stats
+
     n = samples[0].size
     if n == 1:
         return statistic(*(x[np.zeros((resamples, 1), int)] for x in samples), axis=-1)
     with warnings.catch_warnings():
         # SciPy's interval and standard error, computed beside the distribution, are not used
         # here: not their warnings either (a NaN statistic; the spread of a single resample)
-        warnings.filterwarnings("ignore", category=_st.DegenerateDataWarning)
+        warnings.filterwarnings("ignore", category=stats.DegenerateDataWarning)
         if resamples < 2:
             warnings.filterwarnings("ignore", category=RuntimeWarning)
-        res = _st.bootstrap(samples, statistic, n_resamples=resamples, batch=max(1, _RESAMPLE_BLOCK // n),
-                            vectorized=True, paired=paired, method="percentile",
-                            **{_RNG: np.random.default_rng(seed)})
+        res = stats.bootstrap(samples, statistic, n_resamples=resamples, batch=max(1, _RESAMPLE_BLOCK // n),
+                              vectorized=True, paired=paired, method="percentile",
+                              **{_rng_keyword(stats.bootstrap): np.random.default_rng(seed)})
     return np.asarray(res.bootstrap_distribution)
 
 
@@ -159,7 +163,9 @@ def paired_comparison(a, b, confidence: float = 0.95, resamples: int = 4000, see
     if np.all(d == 0):
         p = 1.0
     else:
-        p = float(_st.wilcoxon(a, b, zero_method="wilcox").pvalue)
+        from scipy import stats
+
+        p = float(stats.wilcoxon(a, b, zero_method="wilcox").pvalue)
     return PairedComparison(
         n, float(a.mean()), float(b.mean()), diff, ratio, p, float(np.mean(d < 0)), float(np.mean(d == 0))
     )

@@ -53,7 +53,6 @@ from typing import Any, Callable
 
 import jaxlie
 import numpy as np
-from scipy.stats import chi2
 
 from ..factors import BetweenFactor
 from ..frontend import Track
@@ -108,6 +107,9 @@ GATE_SIGMAS = 4.0
 
 
 def _chi2_limit() -> float:
+    """The χ²(6) quantile at 1 − ``LOOP_P`` (scipy.stats imported here, when a loop is tried)."""
+    from scipy.stats import chi2
+
     return float(chi2.ppf(1.0 - LOOP_P, 6))
 
 
