@@ -36,7 +36,7 @@ from ..geometry import (
     project_cuboid_box,
     truncation_mask,
 )
-from ..geometry.se3 import as_pose, stack
+from ..geometry.se3 import as_pose, quat_to_matrix
 from ..solver import stored_jit
 
 __all__ = [
@@ -164,14 +164,14 @@ def triangulate_rays(origins, directions) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-def _box_rays(boxes, poses, camera):
-    """Camera centres and world directions through the box centres."""
+def _box_rays(boxes, rows, camera):
+    """Camera centres and world directions through the box centres; ``rows`` (k, 7): the
+    poses' jaxlie parameters (NumPy)."""
     K = np.asarray(camera.K)
     uv1 = np.c_[(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2, np.ones(len(boxes))]
     rays_c = uv1 @ np.linalg.inv(K).T
-    Rs = np.stack([np.asarray(T.rotation().as_matrix()) for T in poses])
-    origins = np.stack([np.asarray(T.translation()) for T in poses])
-    return origins, np.einsum("kij,kj->ki", Rs, rays_c), Rs
+    Rs = quat_to_matrix(rows[:, [1, 2, 3, 0]])
+    return rows[:, 4:], np.einsum("kij,kj->ki", Rs, rays_c), Rs
 
 
 def _multi_model(theta, frame, has_plane):
@@ -307,9 +307,10 @@ def multi_initialize(boxes, poses, camera: Camera, up, support_plane=None, fit: 
     if not keep.any():
         raise InitializationError("every box edge is truncated by the image border")
     frame = _plane_frame(up, support_plane)
-    starts = _multi_starts(boxes, poses, camera, keep, frame, support_plane is not None)
+    rows = np.stack([np.asarray(T.wxyz_xyz, dtype=float) for T in poses])  # on the host once
+    starts = _multi_starts(boxes, rows, camera, keep, frame, support_plane is not None)
     pad = MULTI_FIT_VIEWS - len(boxes)
-    poses_b = stack(poses + [poses[0]] * pad)
+    poses_b = jaxlie.SE3(jnp.asarray(np.concatenate([rows, np.repeat(rows[:1], pad, axis=0)])))
     boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
     mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
     if fit.prior_radii is None:
@@ -328,7 +329,7 @@ def multi_initialize(boxes, poses, camera: Camera, up, support_plane=None, fit: 
     return Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
 
 
-def _multi_starts(boxes, poses, camera: Camera, keep, frame, on_plane: bool) -> list:
+def _multi_starts(boxes, rows, camera: Camera, keep, frame, on_plane: bool) -> list:
     """The fit's starts θ = (centre in the plane's frame, log radii, yaw, tilt), one per
     yaw of ``_YAW_STARTS``: the centre from the rays through the box centres, the radii from
     the box sizes at that depth (whole boxes when there are two, a truncated box's centre
@@ -336,7 +337,7 @@ def _multi_starts(boxes, poses, camera: Camera, keep, frame, on_plane: bool) -> 
     e1, e2, n, w0 = frame
     whole = keep.all(axis=1)
     start = whole if whole.sum() >= 2 else np.ones(len(boxes), bool)
-    origins, dirs, Rs = _box_rays(boxes[start], [T for T, u in zip(poses, start) if u], camera)
+    origins, dirs, Rs = _box_rays(boxes[start], rows[start], camera)
     c0 = triangulate_rays(origins, dirs)
     depth = np.einsum("ki,ki->k", c0 - origins, Rs[:, :, 2])
     if np.median(depth) <= 0:
