@@ -61,6 +61,7 @@ from ._linearize import (
     tangent_directions,
     whitened,
 )
+from ._pattern import csc_pattern
 from ._stored import own_code, stored_jit
 
 __all__ = ["Problem", "bucket", "CHUNK"]
@@ -740,7 +741,8 @@ class Problem:
         return out
 
     def sparse_pattern(self) -> dict:
-        """The lower-triangular CSC pattern of H and the slot of every contribution.
+        """The lower-triangular CSC pattern of H and the slot of every contribution
+        (``_pattern.csc_pattern``: from the variables' blocks, no sort of the entries).
 
         nnz; indptr, indices (CSC, int32); rows, cols (of each stored entry); diag (slot of
         each diagonal entry); hslots (per group, flat (nf_pad·D(D+1)/2,): slot of each
@@ -749,39 +751,17 @@ class Problem:
         """
         if self._sparse is None:
             n = self.n
-            codes = []
-            for G in self.group_cols:
-                iu, ju = np.triu_indices(G.shape[1])
-                gi, gj = G[:, iu], G[:, ju]
-                ok = (gi >= 0) & (gj >= 0)
-                code = np.minimum(gi, gj).astype(np.int64) * n + np.maximum(gi, gj)
-                codes.append(np.where(ok, code, -1))
-            diag_code = np.arange(n, dtype=np.int64) * (n + 1)
-            # sorted unique codes (an explicit sort rather than np.unique's hashing, which is
-            # slower on millions of codes: docs/performance.md, graph building)
-            uniq = np.sort(np.concatenate([c[c >= 0] for c in codes] + [diag_code]))
-            uniq = uniq[np.r_[True, uniq[1:] != uniq[:-1]]] if uniq.size else uniq
-            nnz = len(uniq)
-            hslots = []
-            for k, c in enumerate(codes):
-                s = np.searchsorted(uniq, c)
-                s[c < 0] = nnz
-                hslots.append(self._pad_index(s, k, nnz).ravel())
-            gslots = tuple(
+            offsets = np.concatenate([off[off >= 0] for off in self.offsets] + [np.zeros(0, np.int64)])
+            dims = np.concatenate([np.full(int((off >= 0).sum()), ts.dim, np.int64)
+                                   for off, ts in zip(self.offsets, self.tspecs)] + [np.zeros(0, np.int64)])
+            groups = []
+            for k, (G, spec) in enumerate(zip(self.group_cols, self.gspecs)):
+                starts = np.concatenate([[0], np.cumsum(spec.dims)[:-1]]).astype(int)
+                groups.append((G[:, starts].astype(np.int64), np.asarray(spec.dims), self.gidx[k][0].shape[0]))
+            self._sparse = csc_pattern(n, offsets, dims, groups)
+            self._sparse["gslots"] = tuple(
                 self._pad_index(np.where(G >= 0, G, n), k, n).ravel()
                 for k, G in enumerate(self.group_cols)
-            )
-            cols, rows = np.divmod(uniq, n) if n else (uniq, uniq)
-            indptr = np.searchsorted(cols, np.arange(n + 1)).astype(np.int32)
-            self._sparse = dict(
-                nnz=nnz,
-                indptr=indptr,
-                indices=rows.astype(np.int32),
-                rows=rows,
-                cols=cols,
-                diag=np.searchsorted(uniq, diag_code),
-                hslots=tuple(hslots),
-                gslots=gslots,
             )
         return self._sparse
 
