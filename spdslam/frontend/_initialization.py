@@ -310,19 +310,19 @@ def multi_initialize(boxes, poses, camera: Camera, up, support_plane=None, fit: 
     rows = np.stack([np.asarray(T.wxyz_xyz, dtype=float) for T in poses])  # on the host once
     starts = _multi_starts(boxes, rows, camera, keep, frame, support_plane is not None)
     pad = MULTI_FIT_VIEWS - len(boxes)
-    poses_b = jaxlie.SE3(jnp.asarray(np.concatenate([rows, np.repeat(rows[:1], pad, axis=0)])))
+    poses_b = jaxlie.SE3(np.concatenate([rows, np.repeat(rows[:1], pad, axis=0)]))  # type: ignore[arg-type]
     boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
     mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
     if fit.prior_radii is None:
         prior_log, prior_w = np.zeros(3), 0.0
     else:
         prior_log, prior_w = np.sort(np.log(np.asarray(fit.prior_radii, dtype=float))), 1.0 / fit.prior_sigma
-    frame_j = tuple(jnp.asarray(f, dtype=float) for f in frame)
+    # the inputs as NumPy (the program takes them as they are) and its outputs read back once
+    frame_h = tuple(np.asarray(f, dtype=float) for f in frame)
     tilt_w = 0.0 if fit.tilt_sigma is None else 1.0 / float(fit.tilt_sigma)
-    costs, Ps, centers = _MULTI_FIT[fit.shape](
-        jnp.asarray(starts), frame_j, jnp.asarray(support_plane is not None),
-        (poses_b, jnp.asarray(boxes_b), jnp.asarray(mask)), camera, (jnp.asarray(prior_log), prior_w), tilt_w)
-    costs = np.asarray(costs)
+    costs, Ps, centers = (np.asarray(a) for a in _MULTI_FIT[fit.shape](
+        np.asarray(starts, dtype=float), frame_h, np.asarray(support_plane is not None),
+        (poses_b, boxes_b, mask), camera, (prior_log, prior_w), tilt_w))
     if not np.any(np.isfinite(costs)):
         raise InitializationError("the constrained fit diverged from every start")
     best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
