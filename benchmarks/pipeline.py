@@ -16,7 +16,7 @@ changing either; a stage whose function an older commit does not have shows "–
 inclusive (a stage's inner stages are part of it): import (``import spdslam.cli``), read,
 screening, association, initialisation, graph (every ``build_graph``), each optimisation
 (``Optimizer.optimize``; the first includes tracing and compilation), of which the first
-linearisation, uncertainty, write (the run folder: map.json, report, figures) and the whole
+linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls), uncertainty, write (the run folder: map.json, report, figures) and the whole
 process (wall). The older commit runs in a ``git worktree`` removed afterwards; the two
 checkouts alternate, ``--repeats`` times each, and the table gives medians and the ratio.
 Before them, ``spdslam --help`` and ``spdslam run --help`` are timed the same way (wall
@@ -55,6 +55,7 @@ STAGES = [
     ("graph", [("spdslam.mapping._graph", "build_graph")]),
     ("optimisation", [("spdslam.solver._optimizers", "Optimizer.optimize")]),
     ("linearisation", [("spdslam.solver._problem", "Problem.linearize")]),
+    ("sparsity pattern", [("spdslam.solver._problem", "Problem.sparse_pattern")]),
     ("uncertainty", [("spdslam.mapping._run", "object_uncertainty")]),
     ("write", [("spdslam.experiments._run_folder", "write_run"),
                ("spdslam.evaluation._report", "write_run")]),
