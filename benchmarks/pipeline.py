@@ -16,15 +16,17 @@ changing either; a stage whose function an older commit does not have shows "–
 inclusive (a stage's inner stages are part of it): import (``import spdslam.cli``), read,
 screening, association, initialisation, graph (every ``build_graph``), each optimisation
 (``Optimizer.optimize``; the first includes tracing and compilation), of which the first
-linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls), uncertainty, write (the run folder: map.json, report, figures) and the whole
-process (wall). The older commit runs in a ``git worktree`` removed afterwards; the two
-checkouts alternate, ``--repeats`` times each, and the table gives medians and the ratio.
-Before them, ``spdslam --help`` and ``spdslam run --help`` are timed the same way (wall
+linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls),
+uncertainty, write (the run folder: map.json, report, figures) and the whole process (wall).
+The older commit runs in a ``git worktree`` removed afterwards; the two checkouts alternate,
+``--repeats`` times each, and the table gives medians and the ratio. ``--tables`` prints the
+tables of an earlier ``--out`` file again. Before them, ``spdslam --help`` and ``spdslam run --help`` are timed the same way (wall
 time of a fresh process, median of ``--help-repeats``).
 
     python3 benchmarks/pipeline.py --against d63919a
     python3 benchmarks/pipeline.py --against d63919a --repeats 3 --out benchmarks/results/pipeline.json
     python3 benchmarks/pipeline.py --sequence ../shared/data/tum_fr3_cabinet --no-empty
+    python3 benchmarks/pipeline.py --tables benchmarks/results/pipeline.json
 """
 
 from __future__ import annotations
@@ -183,7 +185,7 @@ def summarise(recs: list) -> dict:
     optimisations also one by one, the linearisations as the first and the rest)."""
     out: dict = {}
     keys = ["import", "read", "screening", "association", "initialisation", "graph",
-            "optimisation", "uncertainty", "write", "wall"]
+            "optimisation", "sparsity pattern", "uncertainty", "write", "wall"]
     for k in keys:
         vals = [sum(r[k]) if isinstance(r.get(k), list) else r.get(k) for r in recs]
         out[k] = statistics.median(vals) if all(v is not None for v in vals) else None
@@ -195,6 +197,26 @@ def summarise(recs: list) -> dict:
         out["other linearisations (mean)"] = statistics.median(
             statistics.fmean(r["linearisation"][1:] or [0.0]) for r in recs)
     return out
+
+
+def print_tables(table: dict, names: list) -> None:
+    """The stage tables (empty and warm cache) of ``table`` {checkout: {kind: summary}}."""
+    for kind in ("empty", "warm"):
+        if not all(kind in table[n] for n in names):
+            continue
+        rows = list(dict.fromkeys(k for n in names for k in table[n][kind]))
+        head = f"| stage ({kind} cache, s) | " + " | ".join(names)
+        head += " | ratio |" if len(names) == 2 else " |"
+        print(head)
+        print("| --- " * (len(names) + 1 + (len(names) == 2)) + "|")
+        for k in rows:
+            vals = [table[n][kind].get(k) for n in names]
+            cells = ["–" if v is None else f"{v:.2f}" for v in vals]
+            if len(names) == 2:
+                a, b = vals
+                cells.append(f"{a / b:.2f}×" if a is not None and b else "–")
+            print(f"| {k} | " + " | ".join(cells) + " |")
+        print()
 
 
 def same_maps(a: dict, b: dict, tol: float = 1e-9) -> str:
@@ -221,8 +243,15 @@ def main() -> None:
     ap.add_argument("--no-empty", action="store_true", help="skip the empty-cache runs")
     ap.add_argument("--help-repeats", type=int, default=5, help="runs of each help timed (0: none)")
     ap.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
+    ap.add_argument("--tables", type=Path, default=None,
+                    help="print the tables of a JSON file written by --out, and nothing else")
     ap.add_argument("extra", nargs="*", help="more options for spdslam run (after --)")
     args = ap.parse_args()
+    if args.tables:  # the tables of an earlier run, summarised again (e.g. with a new stage)
+        runs = json.loads(args.tables.read_text())["runs"]
+        print_tables({name: {kind: summarise(r) for kind, r in by.items() if r} for name, by in runs.items()},
+                     list(runs))
+        return
     args.sequence = args.sequence.resolve()
     if not args.sequence.exists():
         raise SystemExit(f"pipeline.py: {args.sequence} does not exist")
@@ -266,22 +295,7 @@ def main() -> None:
         table = {name: {kind: summarise(r) for kind, r in by.items() if r} for name, by in recs.items()}
         names = list(checkouts)
         print()
-        for kind in ("empty", "warm"):
-            if not all(kind in table[n] for n in names):
-                continue
-            rows = list(dict.fromkeys(k for n in names for k in table[n][kind]))
-            head = f"| stage ({kind} cache, s) | " + " | ".join(names)
-            head += " | ratio |" if len(names) == 2 else " |"
-            print(head)
-            print("| --- " * (len(names) + 1 + (len(names) == 2)) + "|")
-            for k in rows:
-                vals = [table[n][kind].get(k) for n in names]
-                cells = ["–" if v is None else f"{v:.2f}" for v in vals]
-                if len(names) == 2:
-                    a, b = vals
-                    cells.append(f"{a / b:.2f}×" if a is not None and b else "–")
-                print(f"| {k} | " + " | ".join(cells) + " |")
-            print()
+        print_tables(table, names)
         if args.against:
             a = recs[names[0]]["warm"][-1]["map"]
             b = recs[names[1]]["warm"][-1]["map"]
