@@ -20,8 +20,8 @@ linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all cal
 uncertainty, write (the run folder: map.json, report, figures) and the whole process (wall).
 The older commit runs in a ``git worktree`` removed afterwards; the two checkouts alternate,
 ``--repeats`` times each, and the table gives medians and the ratio. ``--tables`` prints the
-tables of an earlier ``--out`` file again. Before them, ``spdslam --help`` and ``spdslam run --help`` are timed the same way (wall
-time of a fresh process, median of ``--help-repeats``).
+tables of an earlier ``--out`` file again. Before them, ``spdslam --help`` and ``spdslam run
+--help`` are timed the same way (wall time of a fresh process, median of ``--help-repeats``).
 
     python3 benchmarks/pipeline.py --against d63919a
     python3 benchmarks/pipeline.py --against d63919a --repeats 3 --out benchmarks/results/pipeline.json
