@@ -82,3 +82,16 @@ def test_the_block_pattern_is_the_sorted_pattern(seed):
 def test_blocks_that_do_not_tile_are_refused():
     with pytest.raises(ValueError, match="tile"):
         csc_pattern(10, np.array([0, 6]), np.array([6, 6]), [])
+
+
+def test_pairs_that_all_touch_a_fixed_variable():
+    """A group of pairs each with one fixed variable (an odometry chain from a fixed first
+    pose, of one factor): no pair block, only the free variables' own blocks."""
+    off = np.array([-1, 0, 6])
+    groups = [(np.array([[-1, 0]]), np.array([6, 6]), 2), (np.array([[0], [6]]), np.array([6, 6])[:1], 2)]
+    got = csc_pattern(12, off[1:], np.array([6, 6]), groups)
+    want = _by_sorting(12, groups)
+    for key in ("nnz", "indptr", "indices", "rows", "cols", "diag"):
+        assert np.array_equal(np.asarray(got[key]), np.asarray(want[key])), key
+    for a, b in zip(got["hslots"], want["hslots"]):
+        assert np.array_equal(a, b)

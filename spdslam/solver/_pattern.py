@@ -111,6 +111,7 @@ def _slots(B, d, nf_pad, pk, n, off, base, R, dim, C, nnz) -> np.ndarray:
                 kp[ok] = np.searchsorted(pk, np.minimum(B[ok, a], B[ok, b]) * n + np.maximum(B[ok, a], B[ok, b]))
                 va = column_start(ua, ie) + (dim[ua][:, None] - ie) + je
                 vb = column_start(ub, je) + (dim[ub][:, None] - je) + ie
-                val = np.where((B[:, a] < B[:, b])[:, None], va, vb) + C[kp][:, None]
+                Ck = C[kp] if C.size else np.zeros(nf, np.int64)  # no pair: every one has a fixed variable
+                val = np.where((B[:, a] < B[:, b])[:, None], va, vb) + Ck[:, None]
             out[:nf, e] = np.where(ok[:, None], val, nnz)
     return out.ravel()
