@@ -16,7 +16,9 @@ long synthetic room, against the batch map.
    objects, association by instance id), replayed twice as above: time per frame against
    the frames seen; the fitted exponent b of (mean time per frame over a block of frames) ∝
    (frames seen)^b over ``--blocks`` log-spaced blocks after the first ``--warmup`` frames
-   (b ≈ 0: the cost per frame does not grow). The first replay's blocks include the
+   (b ≈ 0: the cost per frame does not grow); after frame ``SETTLED`` (1 500) the slowest
+   frames, how many exceed 100 and 300 ms, and the growth of resident memory. The first
+   replay's blocks include the
    compilations, which happen when the problem outgrows its padded shapes (a one-off cost,
    not one that grows with the frames).
 
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -186,6 +189,20 @@ def demo_rooms(args) -> dict:
     return out
 
 
+#: The frame after which a long stream has no excuse for a slow frame (issue 48: none over
+#: 300 ms in line after it, memory growth ≤ 100 MB).
+SETTLED = 1500
+
+
+def rss_mb() -> float | None:
+    """The process's resident memory now (MB), from /proc (None elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 def room(args) -> dict:
     from spdslam.mapping import OnlineMapper
     from spdslam.synthetic import make_room_sequence
@@ -199,10 +216,16 @@ def room(args) -> dict:
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
                          every=args.every, iterations=args.iterations, initial_poses="input")
         t0 = time.perf_counter()
+        rss_settled = None
         for i in range(len(seq)):
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
+            if i == SETTLED:
+                rss_settled = rss_mb()
         wall = time.perf_counter() - t0
+        rss_end = rss_mb()
         sec = np.array([r.seconds for r in m.records])
+        late = sec[SETTLED:]
+        slowest = np.argsort(late)[::-1][:5] + SETTLED
         blocks = np.geomspace(max(args.warmup, 1), len(sec), args.blocks + 1).astype(int)
         mid, mean = [], []
         for a, b in zip(blocks[:-1], blocks[1:]):
@@ -213,12 +236,22 @@ def room(args) -> dict:
         r = dict(frames=len(seq), objects=args.room_objects, detections=len(seq.detections),
                  wall_s=wall, median_ms=1e3 * float(np.median(sec)), p99_ms=1e3 * float(np.percentile(sec, 99)),
                  exponent=float(b_exp), objects_mapped=len(m.landmarks),
+                 max_ms_after_settled=1e3 * float(late.max()) if late.size else None,
+                 over_300ms_after_settled=int((late > 0.3).sum()), over_100ms_after_settled=int((late > 0.1).sum()),
+                 slowest_after_settled=[(int(k), 1e3 * float(sec[k])) for k in slowest],
+                 rss_mb_settled=rss_settled, rss_mb_end=rss_end,
                  blocks=[dict(frames=float(x), mean_ms=1e3 * float(y)) for x, y in zip(mid, mean)])
         out[rep + "_replay"] = r
         print(f"room {len(seq)} frames x {args.room_objects} objects ({len(seq.detections)} boxes), "
               f"{rep} replay: {wall:.1f} s, per frame median {r['median_ms']:.3g} ms, p99 {r['p99_ms']:.3g} ms; "
               f"fitted exponent of time per frame against frames seen (after {args.warmup}): "
               f"{r['exponent']:.3f}", flush=True)
+        if late.size:
+            grow = "–" if rss_settled is None or rss_end is None else f"{rss_end - rss_settled:+.0f} MB"
+            print(f"  after frame {SETTLED}: max {r['max_ms_after_settled']:.4g} ms, "
+                  f"{r['over_300ms_after_settled']} frames over 300 ms, {r['over_100ms_after_settled']} over 100 ms; "
+                  f"slowest {', '.join(f'{k}: {v:.0f} ms' for k, v in r['slowest_after_settled'])}; "
+                  f"resident memory {rss_settled} → {rss_end} MB ({grow})", flush=True)
         for blk in r["blocks"]:
             print(f"  around frame {blk['frames']:7.0f}: {blk['mean_ms']:.3g} ms per frame")
     return out
