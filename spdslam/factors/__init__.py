@@ -35,11 +35,6 @@ from ._box import inverse_box_residual as inverse_box_residual
 from ._box import inverse_cuboid_box_residual as inverse_cuboid_box_residual
 from ._box import semi_inverse_box_residual as semi_inverse_box_residual
 from ._box import semi_inverse_cuboid_box_residual as semi_inverse_cuboid_box_residual
-from ._closed_form import ClosedForm as ClosedForm
-from ._closed_form import closed_form as closed_form
-from ._closed_form import inverse_box_linearization as inverse_box_linearization
-from ._closed_form import pose_between_linearization as pose_between_linearization
-from ._closed_form import pose_prior_linearization as pose_prior_linearization
 from ._ellipsoid_measurement import (
     EllipsoidMeasurementFactor as EllipsoidMeasurementFactor,
 )
@@ -68,3 +63,11 @@ from ._pose import BetweenFactor as BetweenFactor
 from ._pose import PriorFactor as PriorFactor
 from ._pose import pose_between_residual as pose_between_residual
 from ._pose import pose_prior_residual as pose_prior_residual
+
+# isort: split
+# last: the closed forms import the factor modules, which register their groups in the order above
+from ._closed_form import ClosedForm as ClosedForm
+from ._closed_form import closed_form as closed_form
+from ._closed_form import inverse_box_linearization as inverse_box_linearization
+from ._closed_form import pose_between_linearization as pose_between_linearization
+from ._closed_form import pose_prior_linearization as pose_prior_linearization
