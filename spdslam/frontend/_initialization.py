@@ -88,9 +88,11 @@ def svd_initialize(
         raise InitializationError(
             f"only {int(keep.sum())} untruncated box edges, Quadric-SVD needs at least 9"
         )
-    planes = np.concatenate([np.asarray(box_planes(b, T, camera)) for b, T in zip(boxes, poses)])
+    # every view's planes at once, in NumPy: the poses read on the host once
+    rows = np.stack([np.asarray(T.wxyz_xyz, dtype=float) for T in poses])
+    centres = rows[:, 4:]
+    planes = np.asarray(box_planes(boxes, (quat_to_matrix(rows[:, [1, 2, 3, 0]]), centres), camera)).reshape(-1, 4)
     planes = planes[keep]
-    centres = np.array([np.asarray(T.translation()) for T in poses])
     c = centres.mean(axis=0)
     s = max(float(np.mean(np.linalg.norm(centres - c, axis=1))), 1e-6)
     T = np.eye(4)
@@ -99,7 +101,8 @@ def svd_initialize(
     p = planes @ T  # π' = Tᵀπ, one per row
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     A = p[:, _TRIU[0]] * p[:, _TRIU[1]] * (1.0 + _OFF)
-    _, sv, Vt = np.linalg.svd(A)
+    # Vt 10×10 (its last row the null vector): thin when A has 10 rows or more (no 4k × 4k U)
+    _, sv, Vt = np.linalg.svd(A, full_matrices=len(A) < 10)
     if sv[-2] <= 1e-9 * sv[0]:
         raise InitializationError(
             "the box planes do not determine the quadric (null space of dimension > 1): "
@@ -112,10 +115,21 @@ def svd_initialize(
     if abs(Q[3, 3]) <= 1e-12 * np.max(np.abs(Q)):
         raise InitializationError("the fitted quadric has no finite centre (Q*₃₃ ≈ 0)")
     Q = Q / -Q[3, 3]
-    e = EllipsoidFull.from_dual_quadric(Q).regularized().to_ellipsoid()
-    if not np.all(np.isfinite(np.asarray(e.P))) or not np.all(np.isfinite(np.asarray(e.center))):
+    P, center = (np.asarray(a) for a in _ELLIPSOID_OF_QUADRIC(Q))
+    if not np.all(np.isfinite(P)) or not np.all(np.isfinite(center)):
         raise InitializationError("the fitted quadric is not finite")
-    return e
+    return Ellipsoid(jnp.asarray(P), jnp.asarray(center))
+
+
+def _ellipsoid_of_quadric(Q):
+    """(P, centre) of the ellipsoid nearest the dual quadric Q (``EllipsoidFull.regularized``)."""
+    e = EllipsoidFull.from_dual_quadric(Q).regularized().to_ellipsoid()
+    return e.P, e.center
+
+
+#: ``_ellipsoid_of_quadric`` as one stored program (a few dozen operations: one call, not one
+#: dispatch each)
+_ELLIPSOID_OF_QUADRIC = stored_jit(_ellipsoid_of_quadric, "frontend.ellipsoid_of_quadric")
 
 
 # --- multi-constraint initialisation ---------------------------------------------------------
