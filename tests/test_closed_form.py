@@ -175,6 +175,8 @@ def test_the_group_operations_in_numpy_are_jaxlies(gen, scale):
     flipped = a * np.r_[-np.ones(4), np.ones(3)]  # −q: the same rotation
     assert np.allclose(se3.log_params(flipped), xi, rtol=0, atol=1e-13)
     assert np.allclose(se3.adjoint_params(a), np.asarray(A.adjoint()), rtol=0, atol=1e-14)
+    assert np.allclose(se3.exp_params(xi), np.asarray(jaxlie.SE3.exp(jnp.asarray(xi)).wxyz_xyz), rtol=0,
+                       atol=1e-14)
     J = jax.vmap(lambda x: jax.jacfwd(lambda d: (jaxlie.SE3.exp(x) @ jaxlie.SE3.exp(d)).log())(jnp.zeros(6)))(
         jnp.asarray(xi))
     # to 1e-11: below θ ≈ 1e-5 jaxlie's own Taylor branches are first order (~1e-12 off)
@@ -219,7 +221,7 @@ def test_a_pose_graph_linearises_alike_with_and_without_the_closed_forms(gen):
     graph.add(PriorFactor(keys[2], values[keys[2]] @ _near(gen, 0.1), sigma=[0.1] * 3 + [0.01] * 3))
     with closed_forms(False):
         general = Problem(graph, values, fixed=[X(0)])
-        H0, g0, c0, _, _ = general.linearize(general.vars)
+        H0, g0, c0, v0, _ = general.linearize(general.vars)
     closed = Problem(graph, values, fixed=[X(0)])
     assert all(type(g).__name__ == "ClosedFormGroup" for g in closed.kernels.groups)
     pose_type = [i for i, ts in enumerate(closed.tspecs) if ts.cls is jaxlie.SE3][0]
@@ -228,6 +230,13 @@ def test_a_pose_graph_linearises_alike_with_and_without_the_closed_forms(gen):
     assert np.allclose(H1, H0, rtol=1e-10, atol=1e-10 * np.abs(H0).max())
     assert np.allclose(g1, g0, rtol=1e-10, atol=1e-10 * np.abs(g0).max())
     assert c1 == pytest.approx(c0, rel=1e-12)
+    # a step: the poses retracted in NumPy (the manifold's host_retract) as by the program
+    delta = gen.rng.normal(scale=0.05, size=closed.n)
+    new0, c0s, bad0 = general.step(general.vars, delta, v0)
+    new1, c1s, bad1 = closed.step(closed.vars, delta, v0)
+    assert np.allclose(np.asarray(new1[pose_type].wxyz_xyz), np.asarray(new0[pose_type].wxyz_xyz), rtol=0,
+                       atol=1e-13)
+    assert c1s == pytest.approx(c0s, rel=1e-11) and bad1 == bad0
     for k in range(len(closed.kernels.groups)):
         r0, J0, _ = general.group_terms(k)
         r1, J1, _ = closed.group_terms(k)

@@ -9,7 +9,10 @@ Every optimisation variable is a JAX pytree of one registered type. For each typ
   (identity for true manifolds; the QuadricSLAM "constrain" for the Full quadric);
 - ``blocks``: the split of the tangent coordinates into consecutive blocks in which the
   metric is isotropic (default: one block), e.g. (3, 3) for SE3's (v, ω); the solver's
-  isotropic damping scales each block by its own curvature.
+  isotropic damping scales each block by its own curvature;
+- ``host_retract(xs, deltas)``: optionally, ``retract`` of stacked rows in NumPy (leaves
+  and deltas (rows, …)), equal to it to round-off: the solver then steps that type without
+  a compiled program (``solver.closed_forms``).
 
 The functions act on one element; the solver vmaps them over all variables of a type.
 ``jaxlie.SE3`` (camera-to-world poses ``T_wc``) is registered here with jaxlie's right
@@ -24,6 +27,9 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
+
+from .se3 import compose_params, exp_params
 
 __all__ = [
     "ManifoldOps",
@@ -44,6 +50,7 @@ class ManifoldOps:
     local: Callable[[Any, Any], jax.Array]
     regularize: Callable[[Any], Any] | None = None
     blocks: tuple[int, ...] = ()
+    host_retract: Callable[[Any, Any], Any] | None = None
 
 
 _REGISTRY: dict[type, ManifoldOps] = {}
@@ -57,12 +64,13 @@ def register(
     local: Callable,
     regularize: Callable | None = None,
     blocks: tuple[int, ...] | None = None,
+    host_retract: Callable | None = None,
 ) -> None:
     """Register a pytree class as an optimisation variable type."""
     blocks = (int(tangent_dim),) if blocks is None else tuple(int(b) for b in blocks)
     if sum(blocks) != tangent_dim or min(blocks, default=1) < 1:
         raise ValueError(f"blocks {blocks} must be positive and sum to tangent_dim {tangent_dim}")
-    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize, blocks)
+    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize, blocks, host_retract)
 
 
 def is_registered(cls: type) -> bool:
@@ -100,12 +108,18 @@ def regularize(x: Any) -> Any:
     return x if reg is None else reg(x)
 
 
+def _se3_host_retract(T, d):
+    """T · Exp(δ) of stacked poses in NumPy (``se3.compose_params``, ``se3.exp_params``)."""
+    return jaxlie.SE3(compose_params(np.asarray(T.wxyz_xyz), exp_params(d)))  # type: ignore[arg-type]
+
+
 register(
     jaxlie.SE3,
     tangent_dim=6,
     blocks=(3, 3),
     retract=lambda T, d: jaxlie.manifold.rplus(T, d),
     local=lambda T, U: jaxlie.manifold.rminus(T, U),
+    host_retract=_se3_host_retract,
 )
 register(
     jaxlie.SO3,

@@ -37,6 +37,7 @@ __all__ = [
     "compose_params",
     "inverse_params",
     "log_params",
+    "exp_params",
     "adjoint_params",
     "right_jacobian_inverse",
 ]
@@ -218,6 +219,26 @@ def log_params(T) -> np.ndarray:
     omega = factor[..., None] * v
     rho = np.einsum("...ij,...j->...i", _so3_left_jacobian_inverse(omega), T[..., 4:])
     return np.concatenate([rho, omega], axis=-1)
+
+
+def exp_params(xi) -> np.ndarray:
+    """Exp(ξ) (…, 7) of ξ = (v, ω) (…, 6): q = (cos(θ/2), sin(θ/2) ω/θ), t = V(ω) v with
+    V = I + (1 − cos θ)/θ² [ω]× + (θ − sin θ)/θ³ [ω]×² (jaxlie's SE3.exp, with its Taylor
+    expansions for θ² < 1e-10: q to θ⁴, V = R)."""
+    xi = np.asarray(xi, dtype=float)
+    w = xi[..., 3:]
+    th2 = np.sum(w * w, axis=-1)
+    small = th2 < _JAXLIE_EPS
+    th2s = np.where(small, 1.0, th2)
+    th = np.sqrt(th2s)
+    real = np.where(small, 1.0 - th2 / 8.0 + th2 * th2 / 384.0, np.cos(0.5 * th))
+    imag = np.where(small, 0.5 - th2 / 48.0 + th2 * th2 / 3840.0, np.sin(0.5 * th) / th)
+    q = np.concatenate([real[..., None], imag[..., None] * w], axis=-1)
+    W = _hat(w)
+    V = np.eye(3) + ((1.0 - np.cos(th)) / th2s)[..., None, None] * W + ((th - np.sin(th)) / (th2s * th))[
+        ..., None, None] * (W @ W)
+    V = np.where(small[..., None, None], _rotation(np.concatenate([q, np.zeros(q.shape[:-1] + (3,))], -1)), V)
+    return np.concatenate([q, np.einsum("...ij,...j->...i", V, xi[..., :3])], axis=-1)
 
 
 def adjoint_params(T) -> np.ndarray:

@@ -392,6 +392,21 @@ def _retract_kernel(ts: _TypeSpec):
     return k
 
 
+def _host_retraction(ts: _TypeSpec):
+    """x ⊞ δ of one variable type by its registered NumPy retraction (rows where ``free``;
+    others unchanged), as JAX arrays like ``_retract_kernel``'s."""
+    host = manifold.ops(ts.cls).host_retract
+
+    def retract(x, d, fr):
+        xh = jax.tree.map(np.asarray, x)
+        y = host(xh, np.asarray(d, dtype=float))
+        keep = np.asarray(fr)
+        return jax.tree.map(lambda a, b: jnp.asarray(np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)),
+                            y, xh)
+
+    return retract
+
+
 def _pushforward_kernel(ts: _TypeSpec):
     """The jitted ∂(x ⊞ δ)/∂δ|₀ of every row of one variable type (``_linearize.pushforward``)."""
     k = _PUSHFORWARD.get(ts)
@@ -443,7 +458,9 @@ class _Kernels:
             if gk is None:
                 gk = _GROUP_KERNELS[key] = _GroupKernels(*key)
             self.groups.append(gk)
-        self.retract = [_retract_kernel(ts) for ts in tspecs]
+        host = closed_forms_enabled()
+        self.retract = [_host_retraction(ts) if host and manifold.ops(ts.cls).host_retract is not None
+                        else _retract_kernel(ts) for ts in tspecs]
         self.pushforward = [_pushforward_kernel(ts) if need else None for ts, need in zip(tspecs, needs_push)]
 
     def _pushforwards(self, vars_):
