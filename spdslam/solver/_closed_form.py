@@ -5,8 +5,8 @@ general path (``_linearize``):
     r̃ = √ρ'(s) W r,   J̃ = √ρ'(s) W ∂r(x ⊞ δ)/∂δ|₀,   ½ρ(s),  s = ‖W r‖²,
 
 finiteness of W r and W J, and the factor's validity. ``closed_forms(False)`` turns them off
-(every group then takes the general path), for the tests and benchmarks that compare the
-two.
+(every group then takes the general path, and every type its compiled retraction), for the
+tests and benchmarks that compare the two.
 """
 
 from __future__ import annotations
@@ -26,8 +26,9 @@ _ENABLED = [True]
 
 @contextlib.contextmanager
 def closed_forms(enabled: bool) -> Iterator[None]:
-    """Within the block, problems built use the factor types' closed forms (True, the
-    default) or the general JAX path for every group (False)."""
+    """Within the block, problems built use the factor types' closed forms and the variable
+    types' NumPy retractions (``geometry.manifold``'s ``host_retract``) (True, the default), or
+    the general JAX path for every group and type (False)."""
     before = _ENABLED[0]
     _ENABLED[0] = bool(enabled)
     try:
