@@ -28,6 +28,7 @@ import jaxlie
 import numpy as np
 
 from ..factors import BetweenFactor, PriorFactor
+from ..geometry.se3 import compose_params
 from ..solver import NonlinearFactorGraph, Values
 
 __all__ = ["PoseGraph", "Edge", "read_g2o", "parse_g2o", "rpy_to_quaternion", "pose_graph_factors"]
@@ -192,24 +193,6 @@ def parse_g2o(text: str, name: str = "<string>") -> PoseGraph:
     return PoseGraph(poses, edges, fixed, name, bool(vertices))
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (w, x, y, z) quaternions."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
-
-
-def _qrot(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """R(q) v."""
-    w, u = q[0], q[1:]
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
 def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
     """T_first = I, T_{i+1} = T_i T̄_{i,i+1}, over the ids from the smallest to the largest."""
     odo: dict[int, np.ndarray] = {}
@@ -219,17 +202,16 @@ def _odometry_chain(edges: list[Edge], name: str) -> dict[int, jaxlie.SE3]:
         if e.j == e.i + 1 and e.i not in odo:
             odo[e.i] = np.asarray(e.measured.wxyz_xyz, dtype=float)
     first, last = min(ids), max(ids)
-    q, t = np.array([1.0, 0.0, 0.0, 0.0]), np.zeros(3)
+    p = np.r_[1.0, np.zeros(6)]
     # jaxlie takes NumPy arrays too (its annotations say jax.Array)
-    poses = {first: jaxlie.SE3(np.concatenate([q, t]))}  # type: ignore[arg-type]
+    poses = {first: jaxlie.SE3(p)}  # type: ignore[arg-type]
     for i in range(first, last):
         if i not in odo:
             raise ValueError(f"{name}: no vertices, and no odometry edge {i} -> {i + 1} "
                              "to build the initial poses from")
-        m = odo[i]
-        q, t = _qmul(q, m[:4]), t + _qrot(q, m[4:])
-        q = q / np.linalg.norm(q)
-        poses[i + 1] = jaxlie.SE3(np.concatenate([q, t]))  # type: ignore[arg-type]
+        p = compose_params(p, odo[i])
+        p[:4] /= np.linalg.norm(p[:4])
+        poses[i + 1] = jaxlie.SE3(p)  # type: ignore[arg-type]
     return poses
 
 
