@@ -247,7 +247,7 @@ def test_evaluate_without_map_json(seq_dir, tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     result = invoke("evaluate", empty, seq_dir)
-    assert_error(result, str(empty / "map.json"))
+    assert_error(result, str(empty), "expected a saved map", "map.json", "none of their layouts")
     assert list(empty.iterdir()) == []
 
 

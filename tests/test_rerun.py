@@ -329,7 +329,7 @@ def test_run_rerun_refused_before_the_run(demo, tmp_path, monkeypatch):
 
 
 def test_view_errors(demo, tmp_path, monkeypatch):
-    assert_error(invoke("view", tmp_path / "nothing"), "nothing", "no such folder")
+    assert_error(invoke("view", tmp_path / "nothing"), "nothing", "no such file or folder")
     run = tmp_path / "run"
     shutil.copytree(demo / "run", run, ignore=shutil.ignore_patterns("*.rrd"))
     (run / "map.json").write_text('{"method": "multi-spd", "objects": [', encoding="utf-8")

@@ -90,7 +90,8 @@ def demo(
 
 @app.command()
 def view(
-    out: Path = typer.Argument(..., help="Output folder of spdslam run (map.json and trajectory.txt)."),
+    out: Path = typer.Argument(..., help="Output folder of spdslam run (map.json and trajectory.txt), or another "
+                               "system's saved map (an Osmap .yaml of GOReloc or VOOM: its objects and keyframes)."),
     sequence: Path | None = typer.Option(None, "--sequence", help="The sequence the run was made from (camera, "
         "detections, images, ground truth); default: the folder map.json records (spdslam run writes it), else the "
         "demo's sequence/ beside a demo's run/, else none."),
@@ -101,25 +102,20 @@ def view(
     """Write a rerun recording (.rrd) of a run: the ellipsoids, the trajectories, the camera
     per frame and, with the sequence, its ground truth, images, detections and the projected
     ellipses. Open it with: rerun FILE (needs rerun-sdk, the viewer extra)."""
-    from ..io import MapFormatError, SequenceFormatError, read_map, read_tum
+    from ..io import MapFormatError, load_map
 
-    if out.is_file() and out.name == "map.json":
-        out = out.parent
-    if not out.is_dir():
-        fail(f"{out}: expected the output folder of spdslam run, got no such folder")
-    recording = recording if recording is not None else out / "recording.rrd"
-    check_recording(recording, "--out")
     try:
-        m, objects = read_map(out)
+        saved = load_map(out)
     except MapFormatError as e:
         fail(str(e))
-    traj = out / "trajectory.txt"
-    if not traj.is_file():
-        fail(f"{traj}: expected the trajectory written by spdslam run, got no such file")
-    try:
-        poses = read_tum(traj, str(traj))
-    except SequenceFormatError as e:
-        fail(str(e))
+    out = saved.path.parent
+    recording = recording if recording is not None else out / "recording.rrd"
+    check_recording(recording, "--out")
+    m, objects, poses = saved.document, saved.objects, saved.trajectory
+    if poses is None and saved.is_spdslam:
+        fail(f"{out / 'trajectory.txt'}: expected the trajectory written by spdslam run, got no such file")
+    if poses is None:
+        fail(f"{saved.path}: expected the keyframes of the {saved.format} map (its trajectory), got none")
     recorded = m.get("sequence")
     if sequence is None and isinstance(recorded, str) and recorded:
         if Path(recorded).is_dir():

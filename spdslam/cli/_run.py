@@ -115,7 +115,7 @@ def run(
 def localize(
     sequence: Path = typer.Argument(..., help=SEQUENCE_HELP),
     map_path: Path = typer.Option(..., "--map", help="A saved map: the output folder of spdslam run "
-                                  "(or its map.json)."),
+                                  "(or its map.json), or another system's (an Osmap .yaml of GOReloc or VOOM)."),
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
     sim3: bool = typer.Option(False, "--sim3", help="Also estimate a scale (the recording's odometry has none of "
         "its own, as from a monocular front end)."),
@@ -142,7 +142,7 @@ def localize(
     import numpy as np
 
     from ..experiments import localize_sequence
-    from ..io import MapFormatError, dumps_strict, read_map
+    from ..io import MapFormatError, dumps_strict, load_map
     from ..mapping import LocalizationError
 
     if not (math.isfinite(match_tolerance) and match_tolerance > 0):
@@ -153,7 +153,7 @@ def localize(
     check_output(out, [sequence, map_path])
     check_out(out, overwrite)
     try:
-        _, map_objects = read_map(map_path)
+        map_objects = load_map(map_path).objects
     except MapFormatError as e:
         fail(str(e))
     except OSError as e:
@@ -217,7 +217,7 @@ def merge(
     objects in both, only in A, only in B (docs/map-reuse.md).
     """
     from ..experiments import merge_recordings
-    from ..io import MapFormatError, dumps_strict, read_map
+    from ..io import MapFormatError, dumps_strict, load_map
     from ..mapping import LocalizationError
 
     if not (math.isfinite(match_tolerance) and match_tolerance > 0):
@@ -226,11 +226,15 @@ def merge(
     maps = []
     for run, option in ((run_a, "RUN_A"), (run_b, "RUN_B")):
         try:
-            maps.append(read_map(run))
+            saved = load_map(run)
         except MapFormatError as e:
             fail(str(e))
         except OSError as e:
             fail(f"{option}: cannot read {run}: {e.strerror or e}")
+        if not saved.is_spdslam:  # merging maps both recordings' boxes: another system's map has none
+            fail(f"{option}: {run} is another system's map ({saved.format}): merge needs two runs of spdslam run (their "
+                 "recordings' boxes); put a recording into its frame with spdslam localize --map")
+        maps.append((saved.document, saved.objects))
     (doc_a, objects_a), (doc_b, objects_b) = maps
     path_a = _recorded_sequence(run_a, doc_a, sequence_a, "--sequence-a")
     path_b = _recorded_sequence(run_b, doc_b, sequence_b, "--sequence-b")

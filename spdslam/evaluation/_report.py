@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import Cuboid, Ellipsoid
-from ..io import MapObject
+from ..io import PEER_MODE, MapObject
 from ._metrics import (
     absolute_trajectory_error,
     cuboid_iou,
@@ -191,17 +191,23 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
     objects compared in the ground truth's frame (``to_groundtruth``; ``align=False``
     compares them as mapped, for sequences whose trajectory is in that frame already)."""
     out = {"sequence": seq.name, "method": map_dict["method"]}
-    T, why = to_groundtruth(seq, poses_tum) if align else (None, "")
+    association = map_dict.get("association")
+    if not isinstance(association, dict):  # maps written before automatic association
+        association = {"mode": "instances"}
+    peer = association.get("mode") == PEER_MODE  # another system's map: its keyframes' ATE only
+    T, why = (None, "")
+    if align and poses_tum is None:
+        why = "the map has no trajectory"
+    elif align:
+        T, why = to_groundtruth(seq, poses_tum)
     if T is not None:
         out["to_groundtruth"] = T.tolist()
     elif seq.groundtruth_tum is not None and align:
         out["not_aligned"] = why
     objects = moved(objects, T)
     initial_objects = None if initial_objects is None else moved(initial_objects, T)
-    association = map_dict.get("association")
-    if not isinstance(association, dict):  # maps written before automatic association
-        association = {"mode": "instances"}
-    by_id = association.get("mode") not in AUTOMATIC_MODES  # automatic track ids are not instance ids
+    # automatic track ids, another system's ids: not instance ids
+    by_id = association.get("mode") not in AUTOMATIC_MODES and not peer
     if "precision" in association:
         out["association"] = {k: association[k] for k in ("precision", "recall", "tracks", "instances")
                               if k in association}
@@ -212,10 +218,12 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
         if initial_objects is not None:
             rows0, summary0 = evaluate_objects(initial_objects, seq.objects_gt, by_id)
             out["front_end"] = {"objects": [r.as_dict() for r in rows0], "summary": summary0}
-    if seq.groundtruth_tum is not None:
+    if seq.groundtruth_tum is not None and poses_tum is not None:
         traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
         out["ate"], ate_failures = {}, {}
-        for key, traj in (("input", traj_in), ("optimized", np.asarray(poses_tum))):
+        pairs = (("keyframes", np.asarray(poses_tum)),) if peer else \
+            (("input", traj_in), ("optimized", np.asarray(poses_tum)))
+        for key, traj in pairs:
             try:
                 out["ate"][key] = absolute_trajectory_error(traj, seq.groundtruth_tum)
             except ValueError as e:  # too few common poses, a path that fixes no alignment
@@ -252,6 +260,10 @@ def shown(v, spec: str = ".3f", unit: str = "") -> str:
 def ate_line(ate: dict) -> str:
     """One line of the input and optimised ATE RMSE, each "not computed: reason" when so."""
     why = ate.get("not_computed", {})
+    if "keyframes" in ate or "keyframes" in why:  # another system's map (``evaluate_run``)
+        kf = ate.get("keyframes")
+        return (f"ATE RMSE of the map's keyframes: {1e3 * kf['rmse']:.2f} mm ({kf['pairs']} poses)." if kf else
+                f"ATE RMSE of the map's keyframes: not computed ({why.get('keyframes', 'no ground truth')}).")
 
     def one(key):
         a = ate.get(key)
@@ -264,10 +276,15 @@ def ate_line(ate: dict) -> str:
 
 def report_markdown(metrics: dict, map_dict: dict) -> str:
     lines = [f"# {map_dict['method']} on {metrics['sequence']}", ""]
-    lines.append(
-        f"Parameterisation {map_dict['parameterization']}, {map_dict['iterations']} iterations "
-        f"({map_dict.get('reason', '')}), final cost {map_dict['final_cost']:.6g}."
-    )
+    if "format" in map_dict:  # another system's map (``io.peer_document``)
+        lines.append(f"A map read from {map_dict['source']} ({map_dict['format']}): {len(map_dict['objects'])} "
+                     f"objects, {map_dict['keyframes']} keyframes. Its object ids are its own: objects are "
+                     "matched to the ground truth by label and overlap.")
+    else:
+        lines.append(
+            f"Parameterisation {map_dict['parameterization']}, {map_dict['iterations']} iterations "
+            f"({map_dict.get('reason', '')}), final cost {map_dict['final_cost']:.6g}."
+        )
     lines.append("")
     if "summary" in metrics:
         rows = []

@@ -1,7 +1,8 @@
 """Files: the sequence model and its formats (one ``SequenceFormat`` class per input layout:
 the canonical folder, fr3_cabinet, OA-SLAM, a detector's output folder (YOLO labels or COCO
 results), ROS 2 bags; ``read_sequence`` finds a path's
-format in the registry), g2o/TORO pose graphs and ``map.json``.
+format in the registry), g2o/TORO pose graphs, ``map.json`` and saved maps (``MapFormat``:
+spdslam's run folders and Osmap maps; ``load_map`` finds a path's).
 
 Every malformed file gives a one-line ``file:line: expected …, got …`` error
 (``SequenceFormatError``, ``MapFormatError``). Imports ``geometry``, ``factors`` and
@@ -48,6 +49,15 @@ from ._map import MapObject as MapObject
 from ._map import map_document as map_document
 from ._map import read_map as read_map
 from ._map import write_map as write_map
+from ._map_formats import MAP_FORMATS as MAP_FORMATS
+from ._map_formats import PEER_MODE as PEER_MODE
+from ._map_formats import MapFormat as MapFormat
+from ._map_formats import SavedMap as SavedMap
+from ._map_formats import SpdslamMap as SpdslamMap
+from ._map_formats import find_map_format as find_map_format
+from ._map_formats import load_map as load_map
+from ._map_formats import map_formats as map_formats
+from ._map_formats import peer_document as peer_document
 from ._oaslam import COCO80 as COCO80
 from ._oaslam import OASlamFolder as OASlamFolder
 from ._oaslam import estimate_up as estimate_up
@@ -56,6 +66,10 @@ from ._oaslam import is_oaslam_layout as is_oaslam_layout
 from ._oaslam import read_detections_json as read_detections_json
 from ._oaslam import read_opencv_camera as read_opencv_camera
 from ._oaslam import read_quadrics_gt as read_quadrics_gt
+from ._osmap import OSMAP_MESSAGES as OSMAP_MESSAGES
+from ._osmap import OsmapMap as OsmapMap
+from ._osmap import osmap_messages as osmap_messages
+from ._osmap import read_osmap as read_osmap
 from ._parse import MATCH_TOLERANCE as MATCH_TOLERANCE
 from ._parse import SequenceFormatError as SequenceFormatError
 from ._parse import nearest_stamps as nearest_stamps
