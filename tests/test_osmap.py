@@ -336,3 +336,14 @@ def test_goreloc_published_fr2_desk_map_reads():
     m = load_map(GORELOC)
     assert len(m.objects) == 47 and m.trajectory.shape == (198, 8)
     assert sum(o.label == "cup" for o in m.objects) == 8
+
+
+def test_cli_view_of_a_peer_map_needs_its_out_and_writes_there(coco_room, tmp_path):
+    pytest.importorskip("rerun")
+    base, header, _ = coco_room
+    before = sorted(p.name for p in header.parent.iterdir())
+    assert_error(invoke("view", header), "(osmap)", "--out FILE")
+    rec = tmp_path / "peer.rrd"
+    assert_ok(invoke("view", header, "--sequence", base / "room", "--out", rec, "--no-images"))
+    assert rec.stat().st_size > 0
+    assert sorted(p.name for p in header.parent.iterdir()) == before

@@ -109,6 +109,8 @@ def view(
     except MapFormatError as e:
         fail(str(e))
     out = saved.path.parent
+    if recording is None and not saved.is_spdslam:
+        fail(f"{saved.path}: another system's map ({saved.format}): give --out FILE for the recording")
     recording = recording if recording is not None else out / "recording.rrd"
     check_recording(recording, "--out")
     m, objects, poses = saved.document, saved.objects, saved.trajectory
