@@ -465,6 +465,44 @@ def test_a_localizing_mapper_in_the_background_tries_in_the_worker(room, batch):
     assert len(new) == 1 and new[0].label == left_out.label
 
 
+def test_a_saved_map_extended_by_a_second_recording_keeps_what_it_did_not_see(room, batch, tmp_path):
+    """Issue 49: the batch map written as map.json (version 2), read back, extended by a
+    second recording through ``LocalizingMapper`` and saved again: the object the recording
+    did not see is as saved to 1e-12 (estimate, uncertainty, covariance, ``observed_by``); the
+    ones it saw again keep their estimate and list both recordings."""
+    from dataclasses import replace
+
+    from spdslam.io import MAP_VERSION, read_map, write_map
+    from spdslam.mapping import LocalizingMapper
+
+    write_map(tmp_path / "map.json", batch.as_dict())
+    doc, saved = read_map(tmp_path / "map.json")
+    assert doc["version"] == MAP_VERSION and doc["units"]["length"] == "m"
+    assert all(o.observed_by and o.observed_by[0][0] == room.name for o in saved)
+    assert all(np.asarray(o.uncertainty["covariance"]).shape == (9, 9) for o in saved)
+    unseen = saved[0].id
+    _, _, G, rec = _saved_map_and_recording(room, batch)
+    rec = replace(rec, detections=[d for d in rec.detections if d.instance != unseen])
+    mapper = LocalizingMapper(saved, rec.camera, rec.priors, "multi-spd", associate="instances",
+                              initial_poses="input", name="day2")
+    for i in range(len(rec)):
+        mapper.add_frame(rec.timestamps[i], rec.poses_tum[i], detections=rec.detections_at(i))
+    result = mapper.finish()
+    assert mapper.localization is not None
+    write_map(tmp_path / "extended.json", result.as_dict())
+    _, extended = read_map(tmp_path / "extended.json")
+    by_id = {o.id: o for o in extended}
+    for o in saved:
+        e = by_id[o.id]
+        np.testing.assert_allclose(e.ellipsoid.P, o.ellipsoid.P, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(e.ellipsoid.center, o.ellipsoid.center, rtol=1e-12, atol=0)
+        assert e.uncertainty == o.uncertainty and e.label == o.label
+        if o.id == unseen:
+            assert e.observed_by == o.observed_by
+        else:
+            assert e.observed_by[:1] == o.observed_by and e.observed_by[1][0] == "day2"
+
+
 def test_run_online_takes_a_run_settings(room):
     """``run_online`` with a ``RunSettings``: its ``max_iterations`` bounds the final batch
     (tests/test_settings.py checks the settings themselves)."""

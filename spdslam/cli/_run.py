@@ -232,8 +232,8 @@ def merge(
         except OSError as e:
             fail(f"{option}: cannot read {run}: {e.strerror or e}")
         if not saved.is_spdslam:  # merging maps both recordings' boxes: another system's map has none
-            fail(f"{option}: {run} is another system's map ({saved.format}): merge needs two runs of spdslam run (their "
-                 "recordings' boxes); put a recording into its frame with spdslam localize --map")
+            fail(f"{option}: {run} is another system's map ({saved.format}): merge needs two runs of spdslam "
+                 "run (their recordings' boxes); put a recording into its frame with spdslam localize --map")
         maps.append((saved.document, saved.objects))
     (doc_a, objects_a), (doc_b, objects_b) = maps
     path_a = _recorded_sequence(run_a, doc_a, sequence_a, "--sequence-a")

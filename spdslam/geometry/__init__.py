@@ -55,6 +55,7 @@ from ._ellipsoid import cuboid_corners as cuboid_corners
 from ._ellipsoid import cuboid_half_axes as cuboid_half_axes
 from ._ellipsoid import dual_quadric as dual_quadric
 from ._ellipsoid import dual_quadric_of as dual_quadric_of
+from ._ellipsoid import moved_covariance as moved_covariance
 from ._ellipsoid import sorted_axes as sorted_axes
 from ._sim3 import Sim3 as Sim3
 from ._sim3 import frame_pose as frame_pose

@@ -51,6 +51,7 @@ __all__ = [
     "sorted_axes",
     "cuboid_half_axes",
     "cuboid_corners",
+    "moved_covariance",
 ]
 
 
@@ -371,3 +372,19 @@ def cuboid_corners(cuboid):
     (``cuboid_half_axes``: its axes in the order of P's eigenvectors, or of an RTS
     orientation) or a pair (H, t)."""
     return corners_of(*cuboid_half_axes(cuboid))
+
+
+def moved_covariance(C, R, scale: float = 1.0) -> np.ndarray:
+    """The covariance (9×9) of an ellipsoid's (centre, P's xx, xy, xz, yy, yz, zz), map.json's
+    ``uncertainty.covariance``, after x ↦ s R x + t: J C Jᵀ with J = diag(s R, s² M), M the
+    map of P ↦ R P Rᵀ on the upper triangle. NumPy."""
+    R = np.asarray(R, float)
+    iu = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+    M = np.empty((6, 6))
+    for k, (i, j) in enumerate(zip(*iu)):  # the image of the symmetric basis matrix of entry k
+        E = np.zeros((3, 3))
+        E[i, j] = E[j, i] = 1.0
+        M[:, k] = (R @ E @ R.T)[iu]
+    J = np.zeros((9, 9))
+    J[:3, :3], J[3:, 3:] = scale * R, scale**2 * M
+    return J @ np.asarray(C, float) @ J.T

@@ -43,7 +43,10 @@ from ._g2o import pose_graph_factors as pose_graph_factors
 from ._g2o import read_g2o as read_g2o
 from ._g2o import rpy_to_quaternion as rpy_to_quaternion
 from ._json import dumps_strict as dumps_strict
+from ._map import MAP_CONVENTIONS as MAP_CONVENTIONS
 from ._map import MAP_KEYS as MAP_KEYS
+from ._map import MAP_UNITS as MAP_UNITS
+from ._map import MAP_VERSION as MAP_VERSION
 from ._map import MapFormatError as MapFormatError
 from ._map import MapObject as MapObject
 from ._map import map_document as map_document

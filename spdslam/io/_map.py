@@ -13,10 +13,32 @@ from ..geometry import Ellipsoid
 from ._json import dumps_strict
 from ._parse import SequenceFormatError, read_text
 
-__all__ = ["MAP_KEYS", "MapObject", "MapFormatError", "map_document", "read_map", "write_map"]
+__all__ = ["MAP_KEYS", "MAP_VERSION", "MAP_UNITS", "MAP_CONVENTIONS", "MapObject", "MapFormatError",
+           "map_document", "read_map", "write_map"]
+
+#: map.json's schema version (docs/map.schema.json). 1: before it was written (no
+#: ``version``); 2: ``version``, ``units``, ``conventions``, each object's ``covariance`` (in
+#: ``uncertainty``) and ``observed_by``. ``read_map`` reads both.
+MAP_VERSION = 2
+#: The units of map.json's numbers.
+MAP_UNITS = {"length": "m", "P": "m^2", "angle": "rad", "time": "s"}
+#: What map.json's numbers mean, stated in the file.
+MAP_CONVENTIONS = {
+    "frame": "the map's frame: trajectory.txt's (the input trajectory's, unless localised or merged into "
+             "another map's)",
+    "poses": "T_wc, camera to world; trajectory.txt holds TUM rows: time x y z qx qy qz qw",
+    "object": "an ellipsoid {x: (x - center)^T P^-1 (x - center) <= 1}, P = R diag(radii^2) R^T, the "
+              "columns of rotation (R) its axes",
+    "covariance": "uncertainty.covariance: 9x9 marginal covariance of (center x, y, z; P xx, xy, xz, yy, "
+                  "yz, zz) at the solution",
+    "observed_by": "the recordings whose detections the object was estimated from, with how many frames each",
+}
 
 #: The keys of map.json, in order, with what each holds (``map_document``; docs/formats.md).
 MAP_KEYS = {
+    "version": "the schema version (MAP_VERSION; docs/map.schema.json)",
+    "units": "the units of the numbers",
+    "conventions": "what the numbers mean: frame, poses, objects, covariance",
     "method": "the method's name",
     "parameterization": "spd, rts or full",
     "iterations": "LM iterations of all the run's optimisations",
@@ -43,12 +65,15 @@ class MapFormatError(ValueError):
 @dataclass(frozen=True)
 class MapObject:
     """An object of the map: id, label and ellipsoid (P, t); ``uncertainty`` (optional):
-    marginal standard deviations of its centre (m) and log-radii (``mapping``)."""
+    marginal standard deviations of its centre (m) and log-radii, and the covariance of
+    (centre, P's upper triangle) (``mapping``); ``observed_by`` (optional): ((recording,
+    frames), …), the recordings whose detections it was estimated from."""
 
     id: int
     label: str
     ellipsoid: Ellipsoid
     uncertainty: dict | None = None
+    observed_by: tuple | None = None
 
     def as_dict(self) -> dict:
         R, s = (np.asarray(a) for a in self.ellipsoid.axes())
@@ -62,6 +87,8 @@ class MapObject:
         }
         if self.uncertainty is not None:
             out["uncertainty"] = self.uncertainty
+        if self.observed_by is not None:
+            out["observed_by"] = [{"recording": str(r), "frames": int(n)} for r, n in self.observed_by]
         return out
 
 
@@ -73,6 +100,9 @@ def map_document(*, method: str, parameterization: str, iterations: int, final_c
     and not empty) from a run's figures; ``objects`` are ``MapObject`` s. ``spdslam run`` may
     add ``sequence`` (the folder it read) and ``to_groundtruth`` (4×4) after them."""
     out = {
+        "version": MAP_VERSION,
+        "units": dict(MAP_UNITS),
+        "conventions": dict(MAP_CONVENTIONS),
         "method": method,
         "parameterization": parameterization,
         "iterations": int(iterations),
@@ -110,6 +140,11 @@ def read_map(path) -> tuple[dict, list]:
         raise MapFormatError(f"{path}:{e.lineno}: expected JSON, got {e.msg}") from None
     if not isinstance(m, dict):
         raise MapFormatError(f"{path}: expected a JSON object, got {type(m).__name__}")
+    version = m.get("version", 1)
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= MAP_VERSION:
+        raise MapFormatError(f"{path}: expected map.json version 1 to {MAP_VERSION} (what this spdslam reads), got "
+                             f"{str(version)[:20]}" + (": a newer spdslam wrote it" if isinstance(version, int)
+                                                       and version > MAP_VERSION else ""))
     for k, types in (("method", str), ("parameterization", str), ("iterations", int),
                      ("final_cost", (int, float)), ("objects", list)):
         if k not in m or not isinstance(m[k], types) or isinstance(m[k], bool):
@@ -129,5 +164,19 @@ def read_map(path) -> tuple[dict, list]:
             raise MapFormatError(f"{path}: expected object {i} with id, label, a finite SPD 'P' (3×3) and "
                                  f"'center' (3), got {str(o)[:80]}")
         u = o.get("uncertainty")
-        objs.append(MapObject(oid, label, Ellipsoid(P, c), u if isinstance(u, dict) else None))
+        objs.append(MapObject(oid, label, Ellipsoid(P, c), u if isinstance(u, dict) else None,
+                              _observed_by(path, i, o.get("observed_by"))))
     return m, objs
+
+
+def _observed_by(path: Path, i: int, value) -> tuple | None:
+    """An object's ``observed_by`` ([{recording, frames}]) as ((recording, frames), …)."""
+    if value is None:
+        return None
+    ok = isinstance(value, list) and all(
+        isinstance(e, dict) and isinstance(e.get("recording"), str) and isinstance(e.get("frames"), int)
+        and not isinstance(e.get("frames"), bool) and e["frames"] >= 0 for e in value)
+    if not ok:
+        raise MapFormatError(f"{path}: expected object {i}'s observed_by as [{{recording: name, frames: count}}], "
+                             f"got {str(value)[:60]}")
+    return tuple((e["recording"], e["frames"]) for e in value)

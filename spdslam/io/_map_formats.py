@@ -35,7 +35,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ._map import MapFormatError, MapObject, read_map
+from ._map import MapFormatError, read_map
 from ._parse import SequenceFormatError, read_tum
 
 __all__ = ["MapFormat", "MAP_FORMATS", "SavedMap", "SpdslamMap", "find_map_format", "load_map",

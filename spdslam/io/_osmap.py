@@ -42,7 +42,7 @@ _FILES = {"objects": ("objectsFile", "nObjects"), "keyframes": ("keyframesFile",
 _UNSET = 2**32 - 1
 
 #: message → [(field, number, type, repeated, message type)], proto3, the fields read.
-OSMAP_MESSAGES = {
+OSMAP_MESSAGES: dict[str, list[tuple[str, int, str, bool, str | None]]] = {
     "SerializedEllipsoid": [("element", 1, "float", True, None)],
     "SerializedPose": [("element", 1, "float", True, None)],
     "SerializedObject": [("ellipsoid", 1, "message", False, "SerializedEllipsoid"),

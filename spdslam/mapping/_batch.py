@@ -68,6 +68,7 @@ from ._run import (
     initialize,
     map_result,
     merge_duplicates,
+    observed_by,
     overlapping_duplicates,
     planes_note,
     step,
@@ -437,6 +438,7 @@ def _result(p: _Pass) -> _Mapped:
     with step("result"):
         result = map_result(p.method, p.solve, p.labels, p.front.ellipsoids, p.seq.timestamps, p.front.failed,
                             priors=p.ctx.priors, given_poses=given)
+        result = observed_by(result, p.front.tracks, p.seq)
         auto = p.association.record.get("mode") == "auto"
         result = dataclasses.replace(result, notes=list(p.front.notes), association=p.association.record,
                                      associated=(p.association.tracks, p.seq) if auto else ())

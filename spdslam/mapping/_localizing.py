@@ -189,5 +189,18 @@ class LocalizingMapper(OnlineMapper):
                  if self._first_new_id + int(o.id) in new_ids]
         note = (f"started from a saved map of {len(self.map_objects)} objects: {len(loc.matches)} seen again "
                 f"(kept as saved), {len(new)} new")
-        return replace(moved, objects=[*self.map_objects, *new], initial_objects=[*self.map_objects, *first],
-                       notes=[*moved.notes, note])
+        return replace(moved, objects=[*self._seen_again(moved.objects, loc), *new],
+                       initial_objects=[*self.map_objects, *first], notes=[*moved.notes, note])
+
+    def _seen_again(self, objects: list, loc) -> list:
+        """The saved map's objects, each seen again with the recording's ``observed_by``
+        added to its own (where the saved map records one); the estimates as saved."""
+        again = {int(b): int(a) for a, b in loc.matches}
+        recorded = {int(o.id): o.observed_by for o in objects}
+        out = []
+        for o in self.map_objects:
+            extra = recorded.get(again.get(int(o.id), -1))
+            if o.observed_by is not None and extra:
+                o = replace(o, observed_by=(*o.observed_by, *extra))
+            out.append(o)
+        return out

@@ -91,6 +91,7 @@ from ._run import (
     initialize_objects,
     map_result,
     merged_tracks,
+    observed_by,
     overlapping_duplicates,
     too_few_views,
 )
@@ -708,6 +709,7 @@ class OnlineMapper:
         unbounded = absolute_sigma(self._sigmas) is None
         result = map_result(self.method, solved, labels, dict(self._initial), seq.timestamps,
                             failed, priors=seq.priors, given_poses=unbounded and not solved.fixed)
+        result = observed_by(result, tracks, seq)
         return dataclasses.replace(result, notes=notes, association=record, trajectory=trajectory)
 
     def _closed(self, seq: Sequence, landmarks: dict) -> tuple[Sequence, np.ndarray, dict]:

@@ -63,7 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..geometry import Ellipsoid, align_rigid, align_rigid_many, in_front, project_box
+from ..geometry import Ellipsoid, align_rigid, align_rigid_many, in_front, moved_covariance, project_box
 from ..solver import Symbol
 from ._graph import inverse_box_sigma
 
@@ -657,7 +657,7 @@ def transform_poses_tum(rows, T: np.ndarray, scale: float = 1.0) -> np.ndarray:
 
 def _moved_object(o, T, scale):
     """A ``MapObject`` moved by x ↦ s R x + t; its centre's σ per axis rotated (the diagonal of
-    R diag(σ²) Rᵀ, times s), its log-radius σ unchanged."""
+    R diag(σ²) Rᵀ, times s), its log-radius σ unchanged, its covariance ``moved_covariance``."""
     u = o.uncertainty
     if u:
         R = np.asarray(T, float)[:3, :3]
@@ -665,6 +665,8 @@ def _moved_object(o, T, scale):
         sig = np.asarray(u["center_sigma"], float)
         u["center_sigma"] = (scale * np.sqrt(np.diag(R @ np.diag(sig**2) @ R.T))).tolist()
         u["center_sigma_max"] = scale * float(u["center_sigma_max"])
+        if u.get("covariance") is not None:
+            u["covariance"] = moved_covariance(u["covariance"], R, scale).tolist()
     return replace(o, ellipsoid=transform_ellipsoid(o.ellipsoid, T, scale), uncertainty=u)
 
 

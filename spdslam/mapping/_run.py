@@ -274,26 +274,33 @@ MAX_CENTER_SIGMA = 0.1
 MAX_LOG_RADIUS_SIGMA = float(np.log(2.0))
 
 
+#: The upper triangle of P in map.json's covariance order: xx, xy, xz, yy, yz, zz.
+_UPPER = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
 def _summary(lm, delta):
-    """(centre, log radii, smallest first) of the landmark ``lm`` ⊞ δ."""
+    """(centre, log radii, smallest first, P's upper triangle ``_UPPER``) of the landmark
+    ``lm`` ⊞ δ."""
     e = as_ellipsoid(manifold.retract(lm, delta))
     w, _ = eigh(e.P)
-    return jnp.concatenate([e.center, 0.5 * jnp.log(jnp.maximum(w, 1e-300))])
+    return jnp.concatenate([e.center, 0.5 * jnp.log(jnp.maximum(w, 1e-300)), e.P[_UPPER]])
 
 
 @jax.jit
 def _summary_jacobian(lm):
-    """∂(centre, log radii)/∂δ at δ = 0, in the landmark's chart (forward mode)."""
+    """∂(centre, log radii, P's upper triangle)/∂δ at δ = 0, in the landmark's chart
+    (forward mode)."""
     return jax.jacfwd(lambda d: _summary(lm, d))(jnp.zeros(manifold.tangent_dim(lm)))
 
 
 def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
     """{id: {"center_sigma": [3] (m, along the world axes), "center_sigma_max" (m, along
-    the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first)}}
-    from the marginal covariance Σ of each landmark L(id) at ``values``
-    (``solver.marginal_covariances``), propagated as J Σ Jᵀ with J the Jacobian of
-    (centre, log sorted radii) in the landmark's chart. An object whose block
-    is not determined gets ``inf``. ``fixed`` keys are held (the poses of a held trajectory).
+    the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first),
+    "covariance": 9×9 of (centre (m), P's xx, xy, xz, yy, yz, zz (m²))}} from the marginal
+    covariance Σ of each landmark L(id) at ``values`` (``solver.marginal_covariances``),
+    propagated as J Σ Jᵀ with J the Jacobian of (centre, log sorted radii, P's upper
+    triangle) in the landmark's chart. An object whose block is not determined gets
+    ``inf`` (and covariance None). ``fixed`` keys are held (the poses of a held trajectory).
     ``result``: the optimisation of ``graph`` (with ``fixed``) that ended at ``values``,
     whose last linearisation gives the covariances (``OptimizationResult.marginal_covariances``)."""
     keys = [L(k) for k in ids]
@@ -307,14 +314,17 @@ def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
         lm, S = values[L(k)], cov[L(k)]
         J = np.asarray(_summary_jacobian(lm)) if np.all(np.isfinite(S)) else None
         if J is None or not np.all(np.isfinite(J)):  # not determined, or no chart there
-            out[k] = {"center_sigma": inf, "center_sigma_max": float("inf"), "log_radius_sigma": inf}
+            out[k] = {"center_sigma": inf, "center_sigma_max": float("inf"), "log_radius_sigma": inf,
+                      "covariance": None}
             continue
         C = J @ S @ J.T
         Cc = C[:3, :3]
+        amb = np.r_[0:3, 6:12]  # centre and P's upper triangle
         out[k] = {
             "center_sigma": np.sqrt(np.maximum(np.diag(Cc), 0.0)).tolist(),
             "center_sigma_max": float(np.sqrt(max(np.linalg.eigvalsh(Cc)[-1], 0.0))),
-            "log_radius_sigma": np.sqrt(np.maximum(np.diag(C)[3:], 0.0)).tolist(),
+            "log_radius_sigma": np.sqrt(np.maximum(np.diag(C)[3:6], 0.0)).tolist(),
+            "covariance": (0.5 * (C[np.ix_(amb, amb)] + C[np.ix_(amb, amb)].T)).tolist(),
         }
     return out
 
@@ -675,6 +685,32 @@ class Optimised:
         self.iterations += result.iterations
         if self.initial_cost is None:
             self.initial_cost = result.initial_cost
+
+
+def recording_names(seq) -> list:
+    """The names of the recordings a sequence holds: its own, or for a sequence joined from
+    several (``Sequence.segments``) the parts of its name joined by "+" (``joined_sequence``),
+    else "NAME (k)"."""
+    n = len(seq.segments) + 1
+    parts = seq.name.split("+")
+    if n == 1:
+        return [seq.name]
+    return parts if len(parts) == n else [f"{seq.name} ({k + 1})" for k in range(n)]
+
+
+def observed_by(result: MapResult, tracks, seq) -> MapResult:
+    """``result`` with each object's ``observed_by``: ((recording, frames), …), in how many
+    frames of each recording of ``seq`` (``recording_names``) its track has a box
+    (recordings without one left out)."""
+    names = recording_names(seq)
+    starts = np.r_[0, np.asarray(seq.segments, int)]
+    seen = {}
+    for tr in tracks:
+        part = np.searchsorted(starts, np.unique(np.asarray(tr.frames, int)), side="right") - 1
+        counts = np.bincount(part, minlength=len(names))
+        seen[tr.id] = tuple((names[k], int(c)) for k, c in enumerate(counts) if c)
+    return dataclasses.replace(result, objects=[dataclasses.replace(o, observed_by=seen.get(o.id))
+                                                for o in result.objects])
 
 
 def map_result(method: Method, solved: Optimised, labels: dict, initial: dict, timestamps,
