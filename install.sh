@@ -7,8 +7,8 @@
 # 1. Ensures SuiteSparse headers (cholmod.h) and OpenBLAS are present: as root with apt-get it
 #    installs Debian's libsuitesparse-dev and libopenblas0-pthread, otherwise it prints the
 #    command to run and continues.
-# 2. pip install -e ".[test,viewer,ros,ray,cholmod]"; if that fails (scikit-sparse cannot build),
-#    falls back to pip install -e ".[test,viewer,ros,ray]", and the CHOLMOD bundled with cvxopt (a
+# 2. pip install -e ".[test,viewer,ros,ray,export,cholmod]"; if that fails (scikit-sparse cannot build),
+#    falls back to pip install -e ".[test,viewer,ros,ray,export]", and the CHOLMOD bundled with cvxopt (a
 #    default dependency) is used instead of scikit-sparse's.
 # Safe to re-run; never prompts.
 set -euo pipefail
@@ -70,11 +70,11 @@ else
 fi
 
 # --- the package ---------------------------------------------------------------------------
-if "$PY" -m pip install -q -e ".[test,viewer,ros,ray,cholmod]"; then
+if "$PY" -m pip install -q -e ".[test,viewer,ros,ray,export,cholmod]"; then
     say "installed spdslam with CHOLMOD (scikit-sparse)"
 else
-    say "pip install -e \".[test,viewer,ros,ray,cholmod]\" failed; retrying without scikit-sparse"
-    "$PY" -m pip install -q -e ".[test,viewer,ros,ray]"
+    say "pip install -e \".[test,viewer,ros,ray,export,cholmod]\" failed; retrying without scikit-sparse"
+    "$PY" -m pip install -q -e ".[test,viewer,ros,ray,export]"
     say "NOTE: scikit-sparse is not installed; the CHOLMOD bundled with cvxopt will be used."
 fi
 

@@ -1,5 +1,5 @@
 """The ``spdslam`` command: ``info``, ``simulate``, ``run``, ``localize``, ``merge``, ``check``,
-``evaluate``, ``import``, ``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top
+``evaluate``, ``import``, ``export``, ``compare``, ``batch``, ``demo``, ``view``, ``warmup``. The top
 layer: it may import every other package."""
 
 import importlib
@@ -9,7 +9,7 @@ from ._app import app as app
 from ._app import fail as fail
 
 # The commands, registered in the order the help lists them.
-for _module in ("_check", "_simulate", "_run", "_evaluate", "_import", "_batch", "_demo"):
+for _module in ("_check", "_simulate", "_run", "_evaluate", "_import", "_export", "_batch", "_demo"):
     importlib.import_module(f"{__name__}.{_module}")
 
 from ._demo import DEMO_MARKER as DEMO_MARKER  # noqa: E402  (after the registration)

@@ -22,6 +22,10 @@ from ._detector import read_class_names as read_class_names
 from ._detector import read_coco_results as read_coco_results
 from ._detector import read_image_times as read_image_times
 from ._detector import read_yolo_labels as read_yolo_labels
+from ._export import EXPORT_FORMATS as EXPORT_FORMATS
+from ._export import GLTF_SEGMENTS as GLTF_SEGMENTS
+from ._export import export_map as export_map
+from ._export import gltf_document as gltf_document
 from ._formats import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
 from ._formats import FORMATS as FORMATS
 from ._formats import SequenceFormat as SequenceFormat
