@@ -59,12 +59,13 @@ def evaluate(
                  "report.md": report_markdown(metrics, m)}
     except (TypeError, ValueError, KeyError) as e:
         fail(f"{saved.path}: expected a map written by spdslam run, got {type(e).__name__}: {e}")
+    name = "the folder"
     try:
         folder.mkdir(parents=True, exist_ok=True)
         for name, text in texts.items():
             write_file_atomically(folder / name, lambda tmp, text=text: tmp.write_text(text, encoding="utf-8"))
     except OSError as e:
-        fail(f"{folder}: cannot write {name if 'name' in locals() else 'the folder'}: {e.strerror or e}")
+        fail(f"{folder}: cannot write {name}: {e.strerror or e}")
     for r in metrics.get("objects", []):
         console.print(f"object {r['id']} ({r['label']}): IoU {shown(r['iou'])}, "
                       f"orientation {shown(r['orientation_deg'], '.2f', '°')}")
