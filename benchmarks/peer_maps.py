@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from spdslam.evaluation import evaluate_run, trajectory_alignment
 from spdslam.experiments import association_record, localize_sequence
+from spdslam.geometry.se3 import from_tum, to_matrix
 from spdslam.io import load_map, read_sequence, read_tum
 from spdslam.mapping import LocalizationError, RunSettings, moved_sequence, run_sequence
 
@@ -41,16 +42,9 @@ ROOT = Path(__file__).resolve().parents[1]
 FR2 = ROOT / "../shared/data/tum_fr2_desk"
 
 
-def _pose(row) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(row[3:7]).as_matrix()
-    T[:3, 3] = row[:3]
-    return T
-
-
 def _motion(seq, rng, trial: int) -> np.ndarray:
     """G of a trial: the first camera to the origin, then (trial > 0) a random rigid motion."""
-    G = np.linalg.inv(_pose(seq.poses_tum[0]))
+    G = np.linalg.inv(to_matrix(from_tum(seq.poses_tum[0])))
     if trial:
         S = np.eye(4)
         S[:3, :3] = Rotation.random(random_state=rng).as_matrix()

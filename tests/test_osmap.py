@@ -159,6 +159,13 @@ def test_the_registry_finds_each_format_and_refuses_what_none_or_two_claim(tmp_p
         load_map(tmp_path / "nothing")
     with pytest.raises(ValueError, match="unknown map format"):
         load_map(run, format="nope")
+    from spdslam.io import MapFormat
+
+    with pytest.raises(TypeError, match="map format Untitled: title must be set"):
+        type("Untitled", (MapFormat,), {"name": "untitled"})
+    with pytest.raises(ValueError, match="a map format named 'osmap' is already registered"):
+        type("Other", (MapFormat,), {"name": "osmap", "title": "t", "layout": "l"})
+    assert list(MAP_FORMATS) == ["spdslam", "osmap"]
 
 
 def _corpus(tmp_path: Path):

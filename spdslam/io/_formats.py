@@ -39,6 +39,7 @@ from ._sequence import Sequence
 
 __all__ = [
     "SequenceFormat",
+    "register_format",
     "FORMATS",
     "formats",
     "check_sequence_path",
@@ -80,16 +81,7 @@ class SequenceFormat:
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        if not cls.name:  # an intermediate base: nothing to register
-            return
-        for attr in ("title", "layout"):
-            if not getattr(cls, attr):
-                raise TypeError(f"sequence format {cls.__qualname__}: {attr} must be set")
-        old = FORMATS.get(cls.name)
-        if old is not None and old.__qualname__ != cls.__qualname__:
-            raise ValueError(f"a sequence format named {cls.name!r} is already registered "
-                             f"({old.__module__}.{old.__qualname__})")
-        FORMATS[cls.name] = cls  # (re-defining a class of the same name replaces it)
+        register_format(FORMATS, cls, "sequence format")
 
     @classmethod
     def claims(cls, path: Path) -> bool:
@@ -118,6 +110,22 @@ class SequenceFormat:
     def describe(cls) -> str:
         """"<title> (<layout>)", as messages name the format."""
         return f"{cls.title} ({cls.layout})"
+
+
+def register_format(registry: dict, cls, kind: str) -> None:
+    """Register a format class under its ``name`` (an intermediate base without one is
+    not); its ``title`` and ``layout`` must be set, and a name is another class's only
+    once (re-defining a class of the same name replaces it). The sequence formats' and the
+    map formats' (``MapFormat``) rule."""
+    if not cls.name:
+        return
+    for attr in ("title", "layout"):
+        if not getattr(cls, attr):
+            raise TypeError(f"{kind} {cls.__qualname__}: {attr} must be set")
+    old = registry.get(cls.name)
+    if old is not None and old.__qualname__ != cls.__qualname__:
+        raise ValueError(f"a {kind} named {cls.name!r} is already registered ({old.__module__}.{old.__qualname__})")
+    registry[cls.name] = cls
 
 
 def _load_entry_points() -> None:

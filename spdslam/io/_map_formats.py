@@ -35,6 +35,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from ._formats import register_format
 from ._map import MapFormatError, read_map
 from ._parse import SequenceFormatError, read_tum
 
@@ -86,16 +87,7 @@ class MapFormat:
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        if not cls.name:
-            return
-        for attr in ("title", "layout"):
-            if not getattr(cls, attr):
-                raise TypeError(f"map format {cls.__qualname__}: {attr} must be set")
-        old = MAP_FORMATS.get(cls.name)
-        if old is not None and old.__qualname__ != cls.__qualname__:
-            raise ValueError(f"a map format named {cls.name!r} is already registered "
-                             f"({old.__module__}.{old.__qualname__})")
-        MAP_FORMATS[cls.name] = cls
+        register_format(MAP_FORMATS, cls, "map format")
 
     @classmethod
     def claims(cls, path: Path) -> bool:
