@@ -85,11 +85,15 @@ def main() -> None:
     own_doc = dict(own.as_dict(), association=association_record(own))
     doc["scores"]["spdslam run (default)"] = _summary(evaluate_run(own_doc, own.objects, None, own.poses_tum, seq))
     doc["own_seconds"] = time.perf_counter() - t0
-    print("| map | mean IoU | matched | orientation error (°) | centre error (m) | objects |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| map | mean IoU | matched | orientation error (°) | centre error (m) | objects | ATE of the poses "
+          "aligned by (mm) |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for name, s in doc["scores"].items():
+        ate = s["ate"] or {}
+        a = ate.get("map") or ate.get("optimized")
+        shown = f"{1e3 * a['rmse']:.1f} ({a['pairs']} poses)" if a else "–"
         print(f"| {name} | {s['mean_iou']:.3f} | {s['matched']}/{s['ground_truth_objects']} | "
-              f"{s['mean_orientation_deg']:.1f} | {s['mean_center_error']:.3f} | {s['objects']} |")
+              f"{s['mean_orientation_deg']:.1f} | {s['mean_center_error']:.3f} | {s['objects']} | {shown} |")
     rng = np.random.default_rng(a.seed)
     rows = []
     for trial in range(a.trials):

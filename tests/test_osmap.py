@@ -310,9 +310,9 @@ def test_cli_evaluate_aligns_a_peer_map_by_its_keyframes(coco_room, tmp_path):
     np.testing.assert_allclose(np.asarray(metrics["to_groundtruth"]) @ G, np.eye(4), atol=1e-4)
     s = metrics["summary"]
     assert s["matched"] == 5 and s["mean_iou"] > 0.99, s
-    assert set(metrics["ate"]) == {"keyframes"} and metrics["ate"]["keyframes"]["rmse"] < 1e-4
+    assert set(metrics["ate"]) == {"map"} and metrics["ate"]["map"]["rmse"] < 1e-4
     report = (out / "report.md").read_text()
-    assert "A map read from" in report and "keyframes" in report
+    assert "A map read from" in report and "keyframes" in report and "ATE RMSE of the map's poses" in report
     assert sorted(p.name for p in header.parent.iterdir()) == before  # the peer map untouched
 
 

@@ -221,7 +221,7 @@ def evaluate_run(map_dict: dict, objects, initial_objects, poses_tum, seq,
     if seq.groundtruth_tum is not None and poses_tum is not None:
         traj_in = np.column_stack([seq.timestamps, seq.poses_tum])
         out["ate"], ate_failures = {}, {}
-        pairs = (("keyframes", np.asarray(poses_tum)),) if peer else \
+        pairs = (("map", np.asarray(poses_tum)),) if peer else \
             (("input", traj_in), ("optimized", np.asarray(poses_tum)))
         for key, traj in pairs:
             try:
@@ -260,10 +260,10 @@ def shown(v, spec: str = ".3f", unit: str = "") -> str:
 def ate_line(ate: dict) -> str:
     """One line of the input and optimised ATE RMSE, each "not computed: reason" when so."""
     why = ate.get("not_computed", {})
-    if "keyframes" in ate or "keyframes" in why:  # another system's map (``evaluate_run``)
-        kf = ate.get("keyframes")
-        return (f"ATE RMSE of the map's keyframes: {1e3 * kf['rmse']:.2f} mm ({kf['pairs']} poses)." if kf else
-                f"ATE RMSE of the map's keyframes: not computed ({why.get('keyframes', 'no ground truth')}).")
+    if "map" in ate or "map" in why:  # another system's map: its keyframes' or the given poses' (``evaluate_run``)
+        a = ate.get("map")
+        return (f"ATE RMSE of the map's poses: {1e3 * a['rmse']:.2f} mm ({a['pairs']} poses)." if a else
+                f"ATE RMSE of the map's poses: not computed ({why.get('map', 'no ground truth')}).")
 
     def one(key):
         a = ate.get(key)
