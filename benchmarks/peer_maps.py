@@ -90,8 +90,8 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for name, s in doc["scores"].items():
         ate = s["ate"] or {}
-        a = ate.get("map") or ate.get("optimized")
-        shown = f"{1e3 * a['rmse']:.1f} ({a['pairs']} poses)" if a else "–"
+        e = ate.get("map") or ate.get("optimized")
+        shown = f"{1e3 * e['rmse']:.1f} ({e['pairs']} poses)" if e else "–"
         print(f"| {name} | {s['mean_iou']:.3f} | {s['matched']}/{s['ground_truth_objects']} | "
               f"{s['mean_orientation_deg']:.1f} | {s['mean_center_error']:.3f} | {s['objects']} | {shown} |")
     rng = np.random.default_rng(a.seed)
