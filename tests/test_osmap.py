@@ -332,7 +332,32 @@ def test_cli_refuses_broken_peer_maps_in_one_line_and_writes_nothing(coco_room, 
         assert_error(invoke("evaluate", header, base / "room", "--out", out), must)
         assert not out.exists(), name
     _, header, _ = coco_room
-    assert_error(invoke("merge", header, base / "room", "--out", tmp_path / "m"), "(osmap)", "localize --map")
+    assert_error(invoke("merge", header, header, "--out", tmp_path / "m"), "the map records no sequence",
+                 "--sequence-a")
+    bare = write_osmap(tmp_path / "bare", [(0, load_map(header).objects[0].ellipsoid, {41: 1})])  # no keyframes
+    assert_error(invoke("merge", bare, header, "--sequence-a", base / "room", "--sequence-b", base / "room",
+                        "--out", tmp_path / "m"), "--sequence-a", "has no keyframes")
+    assert not (tmp_path / "m").exists()
+
+
+def test_cli_merge_with_a_peer_map_is_in_its_frame(coco_room, tmp_path):
+    """Another system's map (A) with the recording it was made from, merged with a run of
+    spdslam (B, in the recording's own frame): one map in A's frame, an object seen in both one
+    object."""
+    base, header, G = coco_room
+    run = tmp_path / "run"
+    assert_ok(invoke("run", base / "room", "--out", run))
+    out = tmp_path / "merged"
+    assert_ok(invoke("merge", header, run, "--sequence-a", base / "room", "--out", out))
+    doc = json.loads((out / "merge.json").read_text())
+    assert doc["in_both"] >= 4 and doc["frames"] == {"a": 40, "b": 40}
+    merged = load_map(out).objects
+    peer = load_map(header).objects
+    for o in merged:  # each merged object near the peer's of its label, in the peer's frame
+        near = min(np.linalg.norm(np.asarray(o.ellipsoid.center) - np.asarray(p.ellipsoid.center))
+                   for p in peer if p.label == o.label)
+        assert near < 0.1, (o.label, near)
+    assert all(len(o.observed_by) == 2 for o in merged if o.label != "object")
 
 
 GORELOC = os.environ.get("SPDSLAM_GORELOC_MAP")

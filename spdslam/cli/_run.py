@@ -190,17 +190,42 @@ def _recorded_sequence(run: Path, doc: dict, given: Path | None, option: str) ->
         return given
     path = doc.get("sequence")
     if not isinstance(path, str):
-        fail(f"{run}: its map.json records no sequence: give {option}")
+        fail(f"{run}: the map records no sequence: give {option} (the recording it was made from)")
     return Path(path)
+
+
+def _in_map_frame(seq, saved, option: str):
+    """``seq`` as it is for a run of spdslam (its poses are its map's frame); for another
+    system's map, moved into the map's frame: its trajectory aligned to the map's keyframes
+    over their common times (the recording the map was made from)."""
+    if saved.is_spdslam:
+        return seq
+    import numpy as np
+
+    from ..evaluation import trajectory_alignment
+    from ..mapping import moved_sequence
+
+    if saved.trajectory is None:
+        fail(f"{option}: {saved.path} has no keyframes: its recording cannot be put into its frame")
+    try:
+        T = trajectory_alignment(np.c_[seq.timestamps, seq.poses_tum], saved.trajectory)
+    except ValueError as e:
+        fail(f"{option}: {seq.name} against {saved.path}'s keyframes: {e}")
+    return moved_sequence(seq, T)
 
 
 @app.command()
 def merge(
-    run_a: Path = typer.Argument(..., help="A run's output folder (spdslam run): the result is in its frame."),
-    run_b: Path = typer.Argument(..., help="A second run's output folder, of the same place."),
+    run_a: Path = typer.Argument(..., help="A run's output folder (spdslam run), or another system's saved map "
+                                 "with --sequence-a: the result is in its frame."),
+    run_b: Path = typer.Argument(..., help="A second run's output folder (or another system's map with "
+                                 "--sequence-b), of the same place."),
     out: Path = typer.Option(Path("out"), "--out", help="Output folder."),
-    sequence_a: Path | None = typer.Option(None, help="RUN_A's sequence (default: the one its map.json records)."),
-    sequence_b: Path | None = typer.Option(None, help="RUN_B's sequence (default: the one its map.json records)."),
+    sequence_a: Path | None = typer.Option(None, help="RUN_A's sequence (default: the one its map.json records; "
+                                           "another system's map: the recording it was made from, put into its "
+                                           "frame by its keyframes' times)."),
+    sequence_b: Path | None = typer.Option(None, help="RUN_B's sequence (default: the one its map.json records; "
+                                           "another system's map as for --sequence-a)."),
     sim3: bool = typer.Option(False, "--sim3", help="Also estimate B's scale against A's."),
     match_tolerance: float = typer.Option(0.15, help="Metres within which a matched object's centre must land."),
     refine: bool = typer.Option(True, help="Refine B's transform with B's boxes against A's objects."),
@@ -231,18 +256,17 @@ def merge(
             fail(str(e))
         except OSError as e:
             fail(f"{option}: cannot read {run}: {e.strerror or e}")
-        if not saved.is_spdslam:  # merging maps both recordings' boxes: another system's map has none
-            fail(f"{option}: {run} is another system's map ({saved.format}): merge needs two runs of spdslam "
-                 "run (their recordings' boxes); put a recording into its frame with spdslam localize --map")
-        maps.append((saved.document, saved.objects))
-    (doc_a, objects_a), (doc_b, objects_b) = maps
+        maps.append(saved)
+    saved_a, saved_b = maps
+    doc_a, objects_a, doc_b, objects_b = saved_a.document, saved_a.objects, saved_b.document, saved_b.objects
     path_a = _recorded_sequence(run_a, doc_a, sequence_a, "--sequence-a")
     path_b = _recorded_sequence(run_b, doc_b, sequence_b, "--sequence-b")
     for p in (path_a, path_b):
         sequence_path(p)
     check_output(out, [run_a, run_b, path_a, path_b])
     check_out(out, overwrite)
-    seq_a, seq_b = load_sequence(path_a), load_sequence(path_b)
+    seq_a = _in_map_frame(load_sequence(path_a), saved_a, "--sequence-a")
+    seq_b = _in_map_frame(load_sequence(path_b), saved_b, "--sequence-b")
     try:
         result, joined, loc, doc = merge_recordings(seq_a, objects_a, seq_b, objects_b, settings, sim3=sim3,
                                                     tolerance=match_tolerance, refine=refine, progress=progress)
