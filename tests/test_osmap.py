@@ -47,28 +47,46 @@ def _dual(e: Ellipsoid, scale: float) -> np.ndarray:
 
 
 def write_osmap(folder: Path, objects, keyframes=(), graphs=None, name: str = "map",
-                counts: dict | None = None, quadrics: dict | None = None) -> Path:
+                counts: dict | None = None, quadrics: dict | None = None, oa_slam: bool = False) -> Path:
     """An Osmap map in ``folder``: ``objects`` [(id, ellipsoid, {category id: count})],
     ``keyframes`` [(id, timestamp, T_wc 4×4)], ``graphs`` [[(category id, object id)]]
     (nodes per keyframe; not written when None); ``counts`` overrides the header's counts,
-    ``quadrics`` {index: 16 numbers} an object's Q* entries. Returns the header."""
+    ``quadrics`` {index: 16 numbers} an object's Q* entries. ``oa_slam``: OA-SLAM's layout
+    (map objects with their track's id, the tracks' categories (the most counted), the
+    keyframes' times as seconds and nanoseconds). Returns the header."""
     M = osmap_messages()
     folder.mkdir(parents=True, exist_ok=True)
     oa = M["SerializedObjectArray"]()
+    tracks = M["SerializedObjectTrackArray"]()
     for k, (oid, e, cats) in enumerate(objects):
         o = oa.object.add()
         o.object_id = oid
         q = (quadrics or {}).get(k)
         o.ellipsoid.element.extend(q if q is not None else _dual(e, -0.5 - k).reshape(-1).tolist())
-        o.cat_ids.extend(list(cats))
-        o.cat_counts.extend(list(cats.values()))
-    ka = M["SerializedKeyframeArray"]()
+        if oa_slam:
+            tr = tracks.objecttrack.add()
+            tr.id, tr.cat = oid, max(cats, key=cats.get)
+        else:
+            o.cat_ids.extend(list(cats))
+            o.cat_counts.extend(list(cats.values()))
+    ka = M["SerializedKeyframeStampedArray" if oa_slam else "SerializedKeyframeArray"]()
     for kid, stamp, T_wc in keyframes:
         kf = ka.keyframe.add()
-        kf.id, kf.timestamp = kid, stamp
+        kf.id = kid
+        if oa_slam:
+            kf.timestamp.sec = int(np.floor(stamp))
+            kf.timestamp.nsec = int(round((stamp - np.floor(stamp)) * 1e9))
+        else:
+            kf.timestamp = stamp
         kf.pose.element.extend(np.linalg.inv(T_wc)[:3].reshape(-1).tolist())
-    (folder / f"{name}.objects").write_bytes(oa.SerializeToString())
-    lines = ["%YAML:1.0", "---", f'objectsFile: "{name}.objects"', f"nObjects: {len(objects)}"]
+    if oa_slam:
+        (folder / f"{name}.mapobjects").write_bytes(oa.SerializeToString())
+        (folder / f"{name}.objecttracks").write_bytes(tracks.SerializeToString())
+        lines = ["%YAML:1.0", "---", f'mapobjectsFile: "{name}.mapobjects"', f"nMapobjects: {len(objects)}",
+                 f'objecttracksFile: "{name}.objecttracks"', f"nObjectTracks: {len(objects)}"]
+    else:
+        (folder / f"{name}.objects").write_bytes(oa.SerializeToString())
+        lines = ["%YAML:1.0", "---", f'objectsFile: "{name}.objects"', f"nObjects: {len(objects)}"]
     if keyframes:
         (folder / f"{name}.keyframes").write_bytes(ka.SerializeToString())
         lines += [f'keyframesFile: "{name}.keyframes"', f"nKeyframes: {len(keyframes)}"]
@@ -132,6 +150,23 @@ def test_objects_keyframes_and_labels_read_back(tmp_path):
     assert len(m.document["objects"]) == 4
 
 
+def test_oa_slam_s_layout_reads_the_same_map(tmp_path):
+    """OA-SLAM: map objects with their track's id, labels from the tracks, keyframe times as
+    seconds and nanoseconds: the same objects, labels and trajectory as GOReloc's layout."""
+    rng = np.random.default_rng(5)
+    objs = [(3, _random_ellipsoid(rng), {66: 4}), (8, _random_ellipsoid(rng), {41: 2})]
+    kfs = [(1, 1311868164.363181, _pose(rng)), (2, 1311868165.5, _pose(rng))]
+    a = load_map(write_osmap(tmp_path / "goreloc", objs, kfs))
+    b = load_map(write_osmap(tmp_path / "oa", objs, kfs, oa_slam=True))
+    assert [(o.id, o.label) for o in b.objects] == [(o.id, o.label) for o in a.objects] == [(3, "keyboard"), (8, "cup")]
+    for x, y in zip(a.objects, b.objects):
+        np.testing.assert_array_equal(x.ellipsoid.P, y.ellipsoid.P)
+    np.testing.assert_allclose(b.trajectory, a.trajectory, rtol=0, atol=1e-6)
+    (tmp_path / "oa" / "map.objecttracks").unlink()
+    with pytest.raises(MapFormatError, match="the tracks file"):
+        load_map(tmp_path / "oa")
+
+
 def test_a_map_without_keyframes_has_no_trajectory(tmp_path):
     rng = np.random.default_rng(1)
     header = write_osmap(tmp_path, [(0, _random_ellipsoid(rng), {39: 1})])
@@ -193,6 +228,7 @@ def _corpus(tmp_path: Path):
     case("count_mismatch", "expected 5 objects", counts={"nObjects": 5})
     case("bad_count", "a count", counts={"nObjects": "many"})
     case("duplicate_id", "distinct object ids", objects=[(3, es[0], {41: 1}), (3, es[1], {41: 1})])
+    case("no_times", "each keyframe's timestamp", keyframes=[(1, 0.0, kfs[0][2]), (2, 0.0, kfs[1][2])])
     h = case("missing_keyframes", "the keyframes file")
     (h.parent / "map.keyframes").unlink()
     h = case("truncated_objects", "map.objects")

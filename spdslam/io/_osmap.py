@@ -1,15 +1,21 @@
 """Osmap maps: the saved maps of the object-SLAM systems built on ORB-SLAM2's Osmap
-serialisation (GOReloc, VOOM): a YAML header naming protobuf binaries.
+serialisation (OA-SLAM, GOReloc, VOOM): a YAML header naming protobuf binaries.
 
-The header (OpenCV's ``%YAML:1.0``) gives ``objectsFile``, ``keyframesFile``,
-``graphsFile`` and their counts ``nObjects``, ``nKeyframes``, ``nGraphs``, the files beside
-it. Each binary is one protobuf message (proto3) holding a repeated field of its records:
+The header (OpenCV's ``%YAML:1.0``) names the files beside it with their counts: GOReloc's
+and VOOM's ``objectsFile``/``nObjects``, OA-SLAM's ``mapobjectsFile``/``nMapobjects`` and
+``objecttracksFile``/``nObjectTracks``; both ``keyframesFile``/``nKeyframes`` and
+GOReloc's and VOOM's ``graphsFile``/``nGraphs``. Each binary is one protobuf message (proto3)
+holding a repeated field of its records:
 
-- objects (``SerializedObjectArray``): per object its dual quadric Q* (16 floats, row
-  major), its id, and the histogram of the detector's category ids that voted for it
-  (``cat_ids``, ``cat_counts``; COCO's 80 classes in YOLO's 0-indexed order);
+- objects (``SerializedObjectArray``; OA-SLAM's ``SerializedMapobjectArray`` has the same
+  fields): per object its dual quadric Q* (16 floats, row major), its id (OA-SLAM: its
+  track's), and the histogram of the detector's category ids that voted for it (``cat_ids``,
+  ``cat_counts``; COCO's 80 classes in YOLO's 0-indexed order; GOReloc only);
+- object tracks (OA-SLAM, ``SerializedObjectTrackArray``): each track's id and category;
 - keyframes (``SerializedKeyframeArray``): id, T_cw (the first 12 floats of the 4×4 matrix,
-  row major) and the image's timestamp (a double);
+  row major) and the image's timestamp: a double, or (a fork of OA-SLAM) a message of
+  seconds and nanoseconds — the keyframes are decoded both ways and the one that holds every
+  keyframe's time is kept;
 - graphs (``SerializedGraphArray``): per keyframe its object nodes (category id, object id),
   read only for objects whose own histogram is empty (VOOM's objects carry none).
 
@@ -35,9 +41,13 @@ from ._parse import SequenceFormatError, read_text
 
 __all__ = ["OsmapMap", "OSMAP_MESSAGES", "osmap_messages", "read_osmap"]
 
-#: The header's keys naming the binaries, with their count keys.
-_FILES = {"objects": ("objectsFile", "nObjects"), "keyframes": ("keyframesFile", "nKeyframes"),
-          "graphs": ("graphsFile", "nGraphs")}
+#: The header's keys naming the binaries, with their count keys, and the message each holds
+#: (with its repeated field) — for GOReloc's and VOOM's layout, and what OA-SLAM's differs in.
+_FILES = {"objects": ("objectsFile", "nObjects", "SerializedObjectArray", "object"),
+          "keyframes": ("keyframesFile", "nKeyframes", "SerializedKeyframeArray", "keyframe"),
+          "graphs": ("graphsFile", "nGraphs", "SerializedGraphArray", "graph")}
+_OA_SLAM_FILES = {**_FILES, "objects": ("mapobjectsFile", "nMapobjects", "SerializedObjectArray", "object"),
+                  "tracks": ("objecttracksFile", "nObjectTracks", "SerializedObjectTrackArray", "objecttrack")}
 #: An object id or category the writer left unset (uint32 −1).
 _UNSET = 2**32 - 1
 
@@ -54,6 +64,13 @@ OSMAP_MESSAGES: dict[str, list[tuple[str, int, str, bool, str | None]]] = {
                            ("pose", 2, "message", False, "SerializedPose"),
                            ("timestamp", 6, "double", False, None)],
     "SerializedKeyframeArray": [("keyframe", 1, "message", True, "SerializedKeyframe")],
+    "SerializedTimestamp": [("sec", 1, "uint32", False, None), ("nsec", 2, "uint32", False, None)],
+    "SerializedKeyframeStamped": [("id", 1, "uint32", False, None),
+                                  ("pose", 2, "message", False, "SerializedPose"),
+                                  ("timestamp", 6, "message", False, "SerializedTimestamp")],
+    "SerializedKeyframeStampedArray": [("keyframe", 1, "message", True, "SerializedKeyframeStamped")],
+    "SerializedObjectTrack": [("id", 1, "uint32", False, None), ("cat", 2, "uint32", False, None)],
+    "SerializedObjectTrackArray": [("objecttrack", 1, "message", True, "SerializedObjectTrack")],
     "SerializedNode": [("node_id", 1, "uint32", False, None),
                        ("category_id", 2, "uint32", False, None),
                        ("object_id", 4, "uint32", False, None)],
@@ -116,14 +133,14 @@ def _count(path: Path, header: dict, key: str) -> int | None:
     return n
 
 
-def _message(path: Path, header: dict, what: str, required: bool):
-    """The binary ``what`` named by the header, parsed (None when not named and not
+def _message(path: Path, header: dict, files: dict, what: str, required: bool, message: str | None = None):
+    """The binary ``what`` named by the header (``files``: the layout's keys), parsed as its
+    message (or ``message``, with the same repeated field) (None when not named and not
     ``required``), with its record count checked against the header's."""
-    file_key, count_key = _FILES[what]
+    file_key, count_key, name_of, field = files[what]
     if file_key not in header:
         if required:
-            raise MapFormatError(f"{path}: expected the key {file_key} (the {what} file), got none: "
-                                 "not a map of GOReloc's or VOOM's layout")
+            raise MapFormatError(f"{path}: expected the key {file_key} (the {what} file), got none")
         return None
     name, line = header[file_key]
     binary = path.parent / name
@@ -134,20 +151,36 @@ def _message(path: Path, header: dict, what: str, required: bool):
                              f"{e.strerror or type(e).__name__}") from None
     from google.protobuf.message import DecodeError
 
-    cls = osmap_messages()[{"objects": "SerializedObjectArray", "keyframes": "SerializedKeyframeArray",
-                            "graphs": "SerializedGraphArray"}[what]]
+    cls = osmap_messages()[message or name_of]
     msg = cls()
     try:
         msg.ParseFromString(data)
     except DecodeError as e:
         raise MapFormatError(f"{binary}: expected a protobuf {cls.DESCRIPTOR.name}, got bytes it cannot "
                              f"decode ({e})") from None
-    records = getattr(msg, {"objects": "object", "keyframes": "keyframe", "graphs": "graph"}[what])
+    records = getattr(msg, field)
     n = _count(path, header, count_key)
     if n is not None and len(records) != n:
         raise MapFormatError(f"{binary}: expected {n} {what} ({count_key} in {path.name}), got {len(records)} "
                              "(a truncated or foreign file)")
     return records
+
+
+def _keyframes(path: Path, header: dict, files: dict):
+    """(the keyframes' records, their times (n,)), or None without a keyframes file: decoded
+    with the time as a message of seconds and nanoseconds where every keyframe has one (a
+    double's bytes are another wire type: then none has), else as a double."""
+    stamped = _message(path, header, files, "keyframes", False, "SerializedKeyframeStampedArray")
+    if stamped is None:
+        return None
+    if len(stamped) and all(k.HasField("timestamp") for k in stamped):
+        return stamped, np.array([k.timestamp.sec + 1e-9 * k.timestamp.nsec for k in stamped])
+    plain = _message(path, header, files, "keyframes", False)
+    times = np.array([k.timestamp for k in plain], dtype=float)
+    if len(times) > 1 and not np.any(times):  # proto3 writes no zero: none was written
+        raise MapFormatError(f"{path.parent / header[files['keyframes'][0]][0]}: expected each keyframe's "
+                             "timestamp, got none")
+    return plain, times
 
 
 def _label(binary: Path, oid: int, cats, counts, votes: dict) -> str | None:
@@ -189,14 +222,14 @@ def _ellipsoid(binary: Path, oid: int, elements) -> Ellipsoid:
     return Ellipsoid(P, t)
 
 
-def _trajectory(binary: Path, keyframes) -> np.ndarray:
-    """TUM rows (N, 8) of the keyframes' T_wc, sorted by time."""
+def _trajectory(binary: Path, keyframes, times) -> np.ndarray:
+    """TUM rows (N, 8) of the keyframes' T_wc at ``times``, sorted by time."""
     rows = []
-    for k in keyframes:
+    for k, stamp in zip(keyframes, times):
         e = np.asarray(k.pose.element, dtype=float)
-        if e.size != 12 or not np.all(np.isfinite(e)) or not np.isfinite(k.timestamp):
+        if e.size != 12 or not np.all(np.isfinite(e)) or not np.isfinite(stamp):
             raise MapFormatError(f"{binary}: expected keyframe {k.id}'s pose as 12 finite numbers and a finite "
-                                 f"timestamp, got {e.size} numbers, timestamp {k.timestamp}")
+                                 f"timestamp, got {e.size} numbers, timestamp {stamp}")
         T = e.reshape(3, 4)
         U, s, Vt = np.linalg.svd(T[:, :3])
         if abs(s - 1.0).max() > 1e-3:
@@ -204,7 +237,7 @@ def _trajectory(binary: Path, keyframes) -> np.ndarray:
                                  f"values {np.round(s, 4).tolist()}")
         R_cw = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
         R_wc = R_cw.T
-        rows.append(np.concatenate([[k.timestamp], -R_wc @ T[:, 3], matrix_to_quat(R_wc)]))
+        rows.append(np.concatenate([[stamp], -R_wc @ T[:, 3], matrix_to_quat(R_wc)]))
     out = np.array(rows).reshape(-1, 8)
     return out[np.argsort(out[:, 0], kind="stable")]
 
@@ -213,16 +246,19 @@ def read_osmap(path) -> SavedMap:
     """The objects and keyframes of an Osmap map (its ``.yaml`` header; module docstring)."""
     path = Path(path)
     header = _header(path)
-    objects_msg = _message(path, header, "objects", required=True)
-    keyframes = _message(path, header, "keyframes", required=False)
-    binary = path.parent / header["objectsFile"][0]
+    files = _OA_SLAM_FILES if "mapobjectsFile" in header else _FILES
+    objects_msg = _message(path, header, files, "objects", required=True)
+    keyframes = _keyframes(path, header, files)
+    binary = path.parent / header[files["objects"][0]][0]
     votes: dict = {}
     if any(len(o.cat_ids) == 0 for o in objects_msg):
-        for g in _message(path, header, "graphs", required=False) or ():
+        for g in _message(path, header, files, "graphs", required=False) or ():
             for nd in g.node:
                 if nd.object_id != _UNSET and nd.category_id != _UNSET:
                     tally = votes.setdefault(nd.object_id, {})
                     tally[nd.category_id] = tally.get(nd.category_id, 0) + 1
+        for tr in (_message(path, header, files, "tracks", required=True) if "tracks" in files else ()):
+            votes[tr.id] = {tr.cat: 1}  # OA-SLAM: the object's track's category
     objects, unlabelled, seen = [], [], set()
     for o in objects_msg:
         oid = int(o.object_id)
@@ -242,7 +278,7 @@ def read_osmap(path) -> SavedMap:
         notes.append("no keyframes file: the map has no trajectory (an evaluation compares its objects as "
                      "they are, not aligned to the ground truth)")
     else:
-        trajectory = _trajectory(path.parent / header["keyframesFile"][0], keyframes)
+        trajectory = _trajectory(path.parent / header["keyframesFile"][0], *keyframes)
     doc = peer_document(OsmapMap.name, path, objects, 0 if trajectory is None else len(trajectory), notes)
     return SavedMap(doc, objects, trajectory, OsmapMap.name, path, notes)
 
@@ -251,8 +287,8 @@ class OsmapMap(MapFormat):
     """An Osmap map of GOReloc or VOOM (module docstring)."""
 
     name = "osmap"
-    title = "an Osmap map (GOReloc, VOOM)"
-    layout = "a .yaml naming objectsFile, or a folder with one"
+    title = "an Osmap map (OA-SLAM, GOReloc, VOOM)"
+    layout = "a .yaml naming objectsFile or mapobjectsFile, or a folder with one"
     docs = "Osmap maps"
 
     @classmethod
