@@ -183,6 +183,31 @@ def test_the_group_operations_in_numpy_are_jaxlies(gen, scale):
     assert np.allclose(se3.right_jacobian_inverse(xi), np.asarray(J), rtol=0, atol=1e-11)
 
 
+@pytest.mark.parametrize("shape", ["sphere", "two equal radii", "elongated", "random"])
+def test_the_ellipsoid_s_numpy_retraction_and_pushforward_are_the_programs(gen, shape):
+    """``Ellipsoid``'s host retraction and pushforward (``geometry.manifold``) against the JAX
+    retraction and its forward-mode pushforward, at repeated eigenvalues too."""
+    from scipy.spatial.transform import Rotation
+
+    n = 16
+    R = Rotation.random(n, random_state=gen.rng).as_matrix()
+    r = {"sphere": np.full((n, 3), 0.3), "two equal radii": np.tile([0.2, 0.2, 0.5], (n, 1)),
+         "elongated": np.tile([0.01, 0.05, 2.0], (n, 1)), "random": gen.rng.uniform(0.02, 1.0, (n, 3))}[shape]
+    P = np.einsum("nij,nj,nkj->nik", R, r**2, R)
+    t = gen.rng.normal(size=(n, 3))
+    d = gen.rng.normal(scale=0.3, size=(n, 9))
+    ops = manifold.ops(Ellipsoid)
+    host = ops.host_retract(Ellipsoid(P, t), d)
+    prog = jax.vmap(lambda x, di: x.retract(di))(Ellipsoid(jnp.asarray(P), jnp.asarray(t)), jnp.asarray(d))
+    assert np.allclose(host.P, np.asarray(prog.P), rtol=0, atol=1e-13 * np.abs(P).max())
+    assert np.allclose(host.center, np.asarray(prog.center), rtol=0, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(host.P) > 0) and np.allclose(host.P, np.swapaxes(host.P, 1, 2), atol=0)
+    pf = ops.host_pushforward(Ellipsoid(P, t))
+    pj = pushforward(Ellipsoid, Ellipsoid(jnp.asarray(P), jnp.asarray(t)))
+    assert np.allclose(pf.P, np.asarray(pj.P), rtol=0, atol=1e-13 * np.abs(P).max())
+    assert np.array_equal(pf.center, np.asarray(pj.center))
+
+
 @pytest.mark.parametrize("scale", [1e-4, 0.05, 0.8])
 def test_pose_closed_forms_match_the_jax_jacobian(gen, scale):
     """Prior and between factors: residual and Jacobian against the JAX path (checked by
@@ -237,6 +262,9 @@ def test_a_pose_graph_linearises_alike_with_and_without_the_closed_forms(gen):
     assert np.allclose(np.asarray(new1[pose_type].wxyz_xyz), np.asarray(new0[pose_type].wxyz_xyz), rtol=0,
                        atol=1e-13)
     assert c1s == pytest.approx(c0s, rel=1e-11) and bad1 == bad0
+    lm_type = [i for i, ts in enumerate(closed.tspecs) if ts.cls is Ellipsoid][0]  # the landmarks too
+    for a, b in zip(jax.tree.leaves(new1[lm_type]), jax.tree.leaves(new0[lm_type])):
+        assert np.allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13 * max(1.0, np.abs(np.asarray(b)).max()))
     for k in range(len(closed.kernels.groups)):
         r0, J0, _ = general.group_terms(k)
         r1, J1, _ = closed.group_terms(k)

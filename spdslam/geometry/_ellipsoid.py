@@ -317,6 +317,47 @@ _pytree(EllipsoidFull, ["q"])
 #: R³; so(3), R³, R³; the 10 entries of Q*.
 _BLOCKS = {Ellipsoid: (6, 3), EllipsoidRTS: (3, 3, 3), EllipsoidFull: (10,)}
 
+#: The Frobenius-orthonormal basis Eₖ of symmetric matrices of ``spd.vec_to_sym`` (6, 3, 3).
+_SPD_BASIS = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+    _SPD_BASIS[_k, _i, _j] = _SPD_BASIS[_k, _j, _i] = 1.0 if _i == _j else 2.0**-0.5
+
+
+def _host_spectral(A, f):
+    """f(A) = V diag(f(λ)) Vᵀ of stacked symmetric matrices (…, 3, 3), NumPy."""
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    w, V = np.linalg.eigh(A)
+    return (V * f(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
+def _host_sqrt(P):
+    return _host_spectral(P, lambda w: np.sqrt(np.maximum(w, 1e-300)))
+
+
+def _ellipsoid_host_retract(x, d):
+    """``Ellipsoid.retract`` of stacked rows in NumPy: (P^½ Exp(Σ cₖ Eₖ) P^½, t + δt)."""
+    P, t, d = np.asarray(x.P, float), np.asarray(x.center, float), np.asarray(d, float)
+    Ph = _host_sqrt(P)
+    S = np.einsum("nk,kij->nij", d[:, :6], _SPD_BASIS)
+    new = Ph @ _host_spectral(S, np.exp) @ Ph
+    return Ellipsoid(0.5 * (new + np.swapaxes(new, -1, -2)), t + d[:, 6:])
+
+
+def _ellipsoid_host_pushforward(x):
+    """∂(x ⊞ δ)/∂δ|₀ of stacked rows in NumPy: (P^½ Eₖ P^½, 0) for the six SPD coordinates,
+    (0, eⱼ) for the centre's three (Exp's derivative at 0 is the identity)."""
+    P = np.asarray(x.P, float)
+    n = len(P)
+    Ph = _host_sqrt(P)
+    dP = np.zeros((n, 9, 3, 3))
+    dP[:, :6] = Ph[:, None] @ _SPD_BASIS[None] @ Ph[:, None]
+    dt = np.zeros((n, 9, 3))
+    dt[:, 6:] = np.eye(3)
+    return Ellipsoid(dP, dt)
+
+
+_HOST = {Ellipsoid: (_ellipsoid_host_retract, _ellipsoid_host_pushforward)}
+
 for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
     manifold.register(
         _cls,
@@ -325,6 +366,8 @@ for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
         retract=_cls.retract,
         local=_cls.local,
         regularize=getattr(_cls, "regularized", None),
+        host_retract=_HOST.get(_cls, (None, None))[0],
+        host_pushforward=_HOST.get(_cls, (None, None))[1],
     )
 
 #: Any landmark parameterisation.

@@ -12,7 +12,10 @@ Every optimisation variable is a JAX pytree of one registered type. For each typ
   isotropic damping scales each block by its own curvature;
 - ``host_retract(xs, deltas)``: optionally, ``retract`` of stacked rows in NumPy (leaves
   and deltas (rows, …)), equal to it to round-off: the solver then steps that type without
-  a compiled program (``solver.closed_forms``).
+  a compiled program (``solver.closed_forms``);
+- ``host_pushforward(xs)``: optionally, ∂(x ⊞ δ)/∂δ|₀ of stacked rows in NumPy, the images of
+  the tangent basis vectors as a pytree of leaves (rows, dim, …) (``solver``'s
+  ``pushforward``), equal to it to round-off.
 
 The functions act on one element; the solver vmaps them over all variables of a type.
 ``jaxlie.SE3`` (camera-to-world poses ``T_wc``) is registered here with jaxlie's right
@@ -51,6 +54,7 @@ class ManifoldOps:
     regularize: Callable[[Any], Any] | None = None
     blocks: tuple[int, ...] = ()
     host_retract: Callable[[Any, Any], Any] | None = None
+    host_pushforward: Callable[[Any], Any] | None = None
 
 
 _REGISTRY: dict[type, ManifoldOps] = {}
@@ -65,12 +69,13 @@ def register(
     regularize: Callable | None = None,
     blocks: tuple[int, ...] | None = None,
     host_retract: Callable | None = None,
+    host_pushforward: Callable | None = None,
 ) -> None:
     """Register a pytree class as an optimisation variable type."""
     blocks = (int(tangent_dim),) if blocks is None else tuple(int(b) for b in blocks)
     if sum(blocks) != tangent_dim or min(blocks, default=1) < 1:
         raise ValueError(f"blocks {blocks} must be positive and sum to tangent_dim {tangent_dim}")
-    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize, blocks, host_retract)
+    _REGISTRY[cls] = ManifoldOps(tangent_dim, retract, local, regularize, blocks, host_retract, host_pushforward)
 
 
 def is_registered(cls: type) -> bool:

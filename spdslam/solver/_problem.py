@@ -461,7 +461,9 @@ class _Kernels:
         host = closed_forms_enabled()
         self.retract = [_host_retraction(ts) if host and manifold.ops(ts.cls).host_retract is not None
                         else _retract_kernel(ts) for ts in tspecs]
-        self.pushforward = [_pushforward_kernel(ts) if need else None for ts, need in zip(tspecs, needs_push)]
+        self.pushforward = [None if not need else manifold.ops(ts.cls).host_pushforward
+                            if host and manifold.ops(ts.cls).host_pushforward is not None
+                            else _pushforward_kernel(ts) for ts, need in zip(tspecs, needs_push)]
 
     def _pushforwards(self, vars_):
         """Per type: the pushforwards of its rows, on the host like ``_host``'s variables
