@@ -28,7 +28,7 @@ right-handed rotation whose columns are the axes, ``dual_quadric()``, ``volume()
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -356,7 +356,8 @@ def _ellipsoid_host_pushforward(x):
     return Ellipsoid(dP, dt)
 
 
-_HOST = {Ellipsoid: (_ellipsoid_host_retract, _ellipsoid_host_pushforward)}
+#: The types' NumPy retraction and pushforward (the other parameterisations have none).
+_HOST: dict[type, tuple[Any, Any]] = {Ellipsoid: (_ellipsoid_host_retract, _ellipsoid_host_pushforward)}
 
 for _cls in (Ellipsoid, EllipsoidRTS, EllipsoidFull):
     manifold.register(
