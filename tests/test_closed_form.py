@@ -208,6 +208,62 @@ def test_the_ellipsoid_s_numpy_retraction_and_pushforward_are_the_programs(gen, 
     assert np.array_equal(pf.center, np.asarray(pj.center))
 
 
+def _landmarks(gen, shape: str, n: int = 24):
+    """n Ellipsoids (NumPy) of a shape: random radii, two equal, all equal, elongated."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.random(n, random_state=gen.rng).as_matrix()
+    r = {"sphere": np.full((n, 3), 0.3), "two equal radii": np.tile([0.2, 0.2, 0.5], (n, 1)),
+         "elongated": np.tile([0.01, 0.05, 2.0], (n, 1)), "random": gen.rng.uniform(0.02, 1.0, (n, 3))}[shape]
+    return Ellipsoid(np.einsum("nij,nj,nkj->nik", R, r**2, R), gen.rng.normal(size=(n, 3)))
+
+
+@pytest.mark.parametrize("shape", ["random", "two equal radii", "sphere", "elongated"])
+def test_object_prior_closed_forms_match_the_jax_jacobian(gen, shape):
+    """Orientation, shape, size and radius-floor priors on SPD landmarks: residual and
+    Jacobian against the JAX path (forward mode through the chart, ``matfun``'s tie rules;
+    checked against central differences where the radii are distinct), the floor both active
+    and not."""
+    from spdslam.factors import (
+        orientation_linearization,
+        orientation_residual,
+        radius_floor_linearization,
+        radius_floor_residual,
+        shape_linearization,
+        shape_residual,
+        size_linearization,
+        size_residual,
+        tangent_jacobians,
+    )
+
+    lm = _landmarks(gen, shape)
+    n = len(lm.P)
+    m = gen.rng.normal(size=(n, 3))
+    m[0] = [0.0, 0.0, 1.0]
+    cases = [(orientation_residual, orientation_linearization, m),
+             (shape_residual, shape_linearization, gen.rng.uniform(1.0, 4.0, (n, 2))),
+             (size_residual, size_linearization, gen.rng.normal(size=n)),
+             (radius_floor_residual, radius_floor_linearization,
+              np.log(np.sqrt(np.linalg.eigvalsh(lm.P)[:, 0])) + gen.rng.choice([-0.5, 0.5], n))]
+    jl = Ellipsoid(jnp.asarray(lm.P), jnp.asarray(lm.center))
+    for residual, linearize, data in cases:
+        if shape == "random":
+            r_jax, (J_jax,) = check_jacobians(residual, (jl,), (jnp.asarray(data),))
+        else:
+            r_jax, (J_jax,) = jax.vmap(lambda x, a, f=residual: tangent_jacobians(f, (x,), (a,)))(jl, jnp.asarray(data))
+        r, J, valid = linearize((lm,), None, (data,), True)
+        assert valid is None and J.shape == np.asarray(J_jax).shape, residual.__name__
+        # to round-off at the radii's conditioning (LAPACK's eigh here, XLA's there)
+        r_jax, J_jax = np.asarray(r_jax), np.asarray(J_jax)
+        assert np.allclose(r, r_jax, rtol=0, atol=1e-10 * (1.0 + np.abs(r_jax).max())), residual.__name__
+        assert np.allclose(J, J_jax, rtol=0, atol=1e-10 * (1.0 + np.abs(J_jax).max())), \
+            (residual.__name__, np.abs(J - J_jax).max())
+        r2, J2, _ = linearize((lm,), None, (data,), False)
+        assert J2 is None and np.array_equal(r2, r)
+        assert closed_form(residual, None, (Ellipsoid,)).linearize is linearize
+        assert closed_form(residual, None, (EllipsoidRTS,)) is None  # the other charts: the JAX path
+
+
 @pytest.mark.parametrize("scale", [1e-4, 0.05, 0.8])
 def test_pose_closed_forms_match_the_jax_jacobian(gen, scale):
     """Prior and between factors: residual and Jacobian against the JAX path (checked by

@@ -22,6 +22,14 @@ the sign giving u_min or u_max by the sign of g (v alike with G₁₁, G₁₂, 
 the pose's δ: dG = G[ω]× − [ω]×G + ρ mᵀ + m ρᵀ; under the landmark's (dP, dt):
 dG = A dP Aᵀ − dm mᵀ − m dmᵀ with dm = A dt.
 
+Object priors on an ``Ellipsoid`` (``orientation_residual``, ``shape_residual``,
+``size_residual``, ``radius_floor_residual``). With P = V diag(w) Vᵀ (w ascending) the
+landmark's SPD directions are dPₖ = P^½ Eₖ P^½ (its chart's, ``geometry.spd``), so that
+Vᵀ dPₖ V = (√w √wᵀ) ∘ (Vᵀ Eₖ V); its centre directions change none of them. Then
+dwᵢ = (Vᵀ dPₖ V)ᵢᵢ, averaged over the eigenvalues tied with wᵢ (``matfun.eigh``'s rule);
+d log det P = tr Eₖ; and d log P = V (F ∘ Vᵀ dPₖ V) Vᵀ with Fᵢⱼ = (log wᵢ − log wⱼ)/(wᵢ − wⱼ),
+1/((wᵢ + wⱼ)/2) at ties (``matfun.spectral``'s Daleckii–Krein rule).
+
 Pose prior and between factors (``pose_prior_residual``, ``pose_between_residual``). With
 E = T̄⁻¹ T (prior) or E = T̄₁₂⁻¹ D, D = T₁⁻¹ T₂ (between), r = Log(E), and
 
@@ -40,6 +48,7 @@ import jaxlie
 import numpy as np
 
 from ..geometry import Ellipsoid
+from ..geometry.matfun import TIE_RTOL
 from ..geometry.se3 import (
     adjoint_params,
     compose_params,
@@ -49,10 +58,12 @@ from ..geometry.se3 import (
     right_jacobian_inverse,
 )
 from ._box import box_visible, inverse_box_residual
+from ._object import orientation_residual, radius_floor_residual, shape_residual, size_residual
 from ._pose import pose_between_residual, pose_prior_residual
 
 __all__ = ["ClosedForm", "closed_form", "inverse_box_linearization", "pose_prior_linearization",
-           "pose_between_linearization"]
+           "pose_between_linearization", "orientation_linearization", "shape_linearization",
+           "size_linearization", "radius_floor_linearization"]
 
 
 @dataclass(frozen=True)
@@ -214,8 +225,99 @@ def pose_between_linearization(xs, Ts, args, jacobian: bool = True):
     return r, np.concatenate([-Jr @ adjoint_params(inverse_params(D)), Jr], axis=2), None
 
 
+#: The Frobenius-orthonormal basis Eₖ of symmetric matrices (``geometry.spd.vec_to_sym``).
+_SPD_E = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
+    _SPD_E[_k, _i, _j] = _SPD_E[_k, _j, _i] = 1.0 if _i == _j else 2.0**-0.5
+
+
+def _spectrum(landmark):
+    """(w (n, 3) ascending, V (n, 3, 3), Vᵀ dPₖ V (n, 6, 3, 3), the tie mask (n, 3, 3)) of
+    stacked Ellipsoids' P (symmetrised, as ``matfun.eigh`` takes it)."""
+    P = np.asarray(landmark.P, float)
+    w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, 1, 2)))
+    M = np.einsum("nai,kab,nbj->nkij", V, _SPD_E, V)
+    rw = np.sqrt(np.maximum(w, 0.0))
+    dE = (rw[:, :, None] * rw[:, None, :])[:, None] * M
+    scale = np.maximum(np.abs(w).max(axis=1), 1e-300)
+    tie = np.abs(w[:, :, None] - w[:, None, :]) <= TIE_RTOL * scale[:, None, None]
+    return w, V, dE, tie
+
+
+def _eigenvalue_steps(dE, tie):
+    """dwᵢ (n, 6, 3) per SPD direction: the diagonal of Vᵀ dPₖ V averaged over ties."""
+    t = tie.astype(float)
+    return np.einsum("nij,nkj->nki", t, np.diagonal(dE, axis1=2, axis2=3)) / t.sum(axis=2)[:, None, :]
+
+
+def _landmark_jacobian(J6):
+    """(n, m, 6) SPD columns → (n, m, 9): the centre's three columns are zero."""
+    return np.concatenate([J6, np.zeros(J6.shape[:2] + (3,))], axis=2)
+
+
+def orientation_linearization(xs, Ts, args, jacobian: bool = True):
+    """``orientation_residual`` of n stacked Ellipsoids: r = (Log(P) m) × m (n, 3), J (n, 3, 9)."""
+    (lm,), (m,) = xs, args
+    m = np.asarray(m, float)
+    m = m / np.linalg.norm(m, axis=1, keepdims=True)
+    w, V, dE, tie = _spectrum(lm)
+    lw = np.log(np.maximum(w, 1e-300))
+    L = (V * lw[:, None, :]) @ np.swapaxes(V, 1, 2)
+    r = np.cross(np.einsum("nij,nj->ni", L, m), m)
+    if not jacobian:
+        return r, None, None
+    wi, wj = w[:, :, None], w[:, None, :]
+    F = np.where(tie, 1.0 / np.maximum(0.5 * (wi + wj), 1e-300),
+                 (lw[:, :, None] - lw[:, None, :]) / np.where(tie, 1.0, wi - wj))
+    dL = V[:, None] @ (F[:, None] * dE) @ np.swapaxes(V, 1, 2)[:, None]  # (n, 6, 3, 3)
+    dr = np.cross(np.einsum("nkij,nj->nki", dL, m), m[:, None, :])  # (n, 6, 3)
+    return r, _landmark_jacobian(np.swapaxes(dr, 1, 2)), None
+
+
+def shape_linearization(xs, Ts, args, jacobian: bool = True):
+    """``shape_residual`` of n stacked Ellipsoids: [s₁/s₃, s₂/s₃] − prior (n, 2), J (n, 2, 9)."""
+    (lm,), (prior,) = xs, args
+    w, _, dE, tie = _spectrum(lm)
+    s = np.sqrt(np.maximum(w[:, ::-1], 1e-300))  # s₁ ≥ s₂ ≥ s₃
+    r = s[:, :2] / s[:, 2:3] - np.asarray(prior, float)
+    if not jacobian:
+        return r, None, None
+    ds = _eigenvalue_steps(dE, tie)[:, :, ::-1] / (2.0 * s[:, None, :])  # (n, 6, 3)
+    J = ds[:, :, :2] / s[:, None, 2:3] - (s[:, :2] / s[:, 2:3] ** 2)[:, None, :] * ds[:, :, 2:3]
+    return r, _landmark_jacobian(np.swapaxes(J, 1, 2)), None
+
+
+def size_linearization(xs, Ts, args, jacobian: bool = True):
+    """``size_residual`` of n stacked Ellipsoids: (½ log det P − log abc)/3 (n, 1); its
+    derivative along dPₖ is tr Eₖ / 6, the same at every P."""
+    (lm,), (log_volume,) = xs, args
+    logdet = np.linalg.slogdet(np.asarray(lm.P, float))[1]
+    r = ((0.5 * logdet - np.asarray(log_volume, float)) / 3.0)[:, None]
+    if not jacobian:
+        return r, None, None
+    J6 = np.broadcast_to(np.trace(_SPD_E, axis1=1, axis2=2) / 6.0, (len(r), 1, 6))
+    return r, _landmark_jacobian(np.ascontiguousarray(J6)), None
+
+
+def radius_floor_linearization(xs, Ts, args, jacobian: bool = True):
+    """``radius_floor_residual`` of n stacked Ellipsoids: max(0, log ρ − ½ log w₀) (n, 1);
+    its derivative −½ dw₀/w₀ where positive (half of it at 0, as JAX's max)."""
+    (lm,), (log_floor,) = xs, args
+    w, _, dE, tie = _spectrum(lm)
+    x = np.asarray(log_floor, float) - 0.5 * np.log(np.maximum(w[:, 0], 1e-300))
+    r = np.maximum(0.0, x)[:, None]
+    if not jacobian:
+        return r, None, None
+    share = np.where(x > 0, 1.0, np.where(x == 0, 0.5, 0.0))
+    J6 = (share / np.maximum(w[:, 0], 1e-300))[:, None] * -0.5 * _eigenvalue_steps(dE, tie)[:, :, 0]
+    return r, _landmark_jacobian(J6[:, None, :]), None
+
+
 _register(ClosedForm(inverse_box_residual, box_visible, (jaxlie.SE3, Ellipsoid), inverse_box_linearization,
                      (False, True)))
 _register(ClosedForm(pose_prior_residual, None, (jaxlie.SE3,), pose_prior_linearization, (False,)))
 _register(ClosedForm(pose_between_residual, None, (jaxlie.SE3, jaxlie.SE3), pose_between_linearization,
                      (False, False)))
+for _residual, _linearize in ((orientation_residual, orientation_linearization), (shape_residual, shape_linearization),
+                              (size_residual, size_linearization), (radius_floor_residual, radius_floor_linearization)):
+    _register(ClosedForm(_residual, None, (Ellipsoid,), _linearize, (False,)))
