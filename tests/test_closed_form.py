@@ -72,6 +72,11 @@ def test_inverse_box_closed_form_matches_the_jax_jacobian_and_central_difference
     J_ref = np.concatenate([J_pose, J_lm], axis=2)
     assert np.max(np.abs(J - J_ref) / (1.0 + np.abs(J_ref).max(axis=(1, 2), keepdims=True))) < 1e-9
     assert np.array_equal(valid, np.asarray(jax.vmap(lambda T, e: box_visible(T, e, None, None))(poses, lm)))
+    astray = _host(poses)  # a pose a step sent astray (NaN): not finite there, no error, the others as before
+    astray = jaxlie.SE3(np.where(np.arange(len(r))[:, None] == 0, np.nan, np.asarray(astray.wxyz_xyz)))
+    with np.errstate(all="ignore"):
+        rb, Jb, _ = inverse_box_linearization((astray, _host(lm)), Ts, host_args)
+    assert not np.isfinite(rb[0]).all() and np.array_equal(rb[1:], r[1:]) and np.array_equal(Jb[1:], J[1:])
     # central differences of the closed form's own residual, on the manifolds
     h = 1e-6
     for k in range(15):
@@ -202,6 +207,11 @@ def test_the_ellipsoid_s_numpy_retraction_and_pushforward_are_the_programs(gen, 
     assert np.allclose(host.P, np.asarray(prog.P), rtol=0, atol=1e-13 * np.abs(P).max())
     assert np.allclose(host.center, np.asarray(prog.center), rtol=0, atol=1e-15)
     assert np.all(np.linalg.eigvalsh(host.P) > 0) and np.allclose(host.P, np.swapaxes(host.P, 1, 2), atol=0)
+    bad = d.copy()
+    bad[0, 0], bad[1, 1] = np.nan, 1e5  # a step that is not finite, or too long: not finite, no error
+    stepped = ops.host_retract(Ellipsoid(P, t), bad)
+    assert not np.isfinite(stepped.P[0]).all() and not np.isfinite(stepped.P[1]).all()
+    assert np.isfinite(stepped.P[2:]).all()
     pf = ops.host_pushforward(Ellipsoid(P, t))
     pj = pushforward(Ellipsoid, Ellipsoid(jnp.asarray(P), jnp.asarray(t)))
     assert np.allclose(pf.P, np.asarray(pj.P), rtol=0, atol=1e-13 * np.abs(P).max())
@@ -262,6 +272,12 @@ def test_object_prior_closed_forms_match_the_jax_jacobian(gen, shape):
         assert J2 is None and np.array_equal(r2, r)
         assert closed_form(residual, None, (Ellipsoid,)).linearize is linearize
         assert closed_form(residual, None, (EllipsoidRTS,)) is None  # the other charts: the JAX path
+        P_bad = np.array(lm.P)
+        P_bad[0] = np.nan  # a landmark a step sent astray: not finite, no error, the others as before
+        with np.errstate(all="ignore"):
+            rb, Jb, _ = linearize((Ellipsoid(P_bad, lm.center),), None, (data,), True)
+        assert not np.isfinite(rb[0]).all(), residual.__name__
+        assert np.allclose(rb[1:], r[1:], rtol=0, atol=0) and np.allclose(Jb[1:], J[1:], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("scale", [1e-4, 0.05, 0.8])

@@ -69,8 +69,8 @@ from ._pose import pose_prior_residual as pose_prior_residual
 from ._closed_form import ClosedForm as ClosedForm
 from ._closed_form import closed_form as closed_form
 from ._closed_form import inverse_box_linearization as inverse_box_linearization
-from ._closed_form import pose_between_linearization as pose_between_linearization
 from ._closed_form import orientation_linearization as orientation_linearization
+from ._closed_form import pose_between_linearization as pose_between_linearization
 from ._closed_form import pose_prior_linearization as pose_prior_linearization
 from ._closed_form import radius_floor_linearization as radius_floor_linearization
 from ._closed_form import shape_linearization as shape_linearization

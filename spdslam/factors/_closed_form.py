@@ -167,7 +167,9 @@ def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     box, cam = args[0], args[1]
     keep = args[2] if len(args) > 2 else None
     q = np.asarray(pose.wxyz_xyz)
-    R = quat_to_matrix(q[:, [1, 2, 3, 0]])  # jaxlie's wxyz as xyzw
+    ok = np.all(np.isfinite(q), axis=1) & np.any(q[:, :4] != 0, axis=1)  # a pose a step sent astray: NaN out
+    R = quat_to_matrix(np.where(ok[:, None], q[:, [1, 2, 3, 0]], [0.0, 0.0, 0.0, 1.0]))  # jaxlie's wxyz as xyzw
+    R = np.where(ok[:, None, None], R, np.nan)
     A = np.swapaxes(R, 1, 2)
     P, t = np.asarray(lm.P), np.asarray(lm.center)
     m = np.einsum("nij,nj->ni", A, t - q[:, 4:])
@@ -235,7 +237,9 @@ def _spectrum(landmark):
     """(w (n, 3) ascending, V (n, 3, 3), Vᵀ dPₖ V (n, 6, 3, 3), the tie mask (n, 3, 3)) of
     stacked Ellipsoids' P (symmetrised, as ``matfun.eigh`` takes it)."""
     P = np.asarray(landmark.P, float)
-    w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, 1, 2)))
+    finite = np.all(np.isfinite(P), axis=(1, 2))  # a step gone astray: NaN out, as the program's
+    w, V = np.linalg.eigh(np.where(finite[:, None, None], 0.5 * (P + np.swapaxes(P, 1, 2)), np.eye(3)))
+    w, V = np.where(finite[:, None], w, np.nan), np.where(finite[:, None, None], V, np.nan)
     M = np.einsum("nai,kab,nbj->nkij", V, _SPD_E, V)
     rw = np.sqrt(np.maximum(w, 0.0))
     dE = (rw[:, :, None] * rw[:, None, :])[:, None] * M

@@ -324,10 +324,13 @@ for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
 
 
 def _host_spectral(A, f):
-    """f(A) = V diag(f(λ)) Vᵀ of stacked symmetric matrices (…, 3, 3), NumPy."""
+    """f(A) = V diag(f(λ)) Vᵀ of stacked symmetric matrices (…, 3, 3), NumPy; NaN where A is
+    not finite (as the program's result there, where LAPACK would raise)."""
     A = 0.5 * (A + np.swapaxes(A, -1, -2))
-    w, V = np.linalg.eigh(A)
-    return (V * f(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+    finite = np.all(np.isfinite(A), axis=(-2, -1))
+    w, V = np.linalg.eigh(np.where(finite[..., None, None], A, np.eye(3)))
+    out = (V * f(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return np.where(finite[..., None, None], out, np.nan)
 
 
 def _host_sqrt(P):
@@ -337,9 +340,10 @@ def _host_sqrt(P):
 def _ellipsoid_host_retract(x, d):
     """``Ellipsoid.retract`` of stacked rows in NumPy: (P^½ Exp(Σ cₖ Eₖ) P^½, t + δt)."""
     P, t, d = np.asarray(x.P, float), np.asarray(x.center, float), np.asarray(d, float)
-    Ph = _host_sqrt(P)
-    S = np.einsum("nk,kij->nij", d[:, :6], _SPD_BASIS)
-    new = Ph @ _host_spectral(S, np.exp) @ Ph
+    with np.errstate(over="ignore", invalid="ignore"):  # a step too long: not finite, as the program's
+        Ph = _host_sqrt(P)
+        S = np.einsum("nk,kij->nij", d[:, :6], _SPD_BASIS)
+        new = Ph @ _host_spectral(S, np.exp) @ Ph
     return Ellipsoid(0.5 * (new + np.swapaxes(new, -1, -2)), t + d[:, 6:])
 
 
