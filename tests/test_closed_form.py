@@ -194,6 +194,9 @@ def test_the_ellipsoid_s_numpy_retraction_and_pushforward_are_the_programs(gen, 
     retraction and its forward-mode pushforward, at repeated eigenvalues too."""
     from scipy.spatial.transform import Rotation
 
+    from spdslam.geometry import spd
+
+    assert np.array_equal(spd.BASIS, np.asarray(spd.vec_to_sym(jnp.eye(6))))  # the NumPy basis is the chart's
     n = 16
     R = Rotation.random(n, random_state=gen.rng).as_matrix()
     r = {"sphere": np.full((n, 3), 0.3), "two equal radii": np.tile([0.2, 0.2, 0.5], (n, 1)),

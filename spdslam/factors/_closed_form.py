@@ -47,7 +47,7 @@ from typing import Callable
 import jaxlie
 import numpy as np
 
-from ..geometry import Ellipsoid
+from ..geometry import Ellipsoid, spd
 from ..geometry.matfun import TIE_RTOL
 from ..geometry.se3 import (
     adjoint_params,
@@ -227,12 +227,6 @@ def pose_between_linearization(xs, Ts, args, jacobian: bool = True):
     return r, np.concatenate([-Jr @ adjoint_params(inverse_params(D)), Jr], axis=2), None
 
 
-#: The Frobenius-orthonormal basis Eₖ of symmetric matrices (``geometry.spd.vec_to_sym``).
-_SPD_E = np.zeros((6, 3, 3))
-for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
-    _SPD_E[_k, _i, _j] = _SPD_E[_k, _j, _i] = 1.0 if _i == _j else 2.0**-0.5
-
-
 def _spectrum(landmark):
     """(w (n, 3) ascending, V (n, 3, 3), Vᵀ dPₖ V (n, 6, 3, 3), the tie mask (n, 3, 3)) of
     stacked Ellipsoids' P (symmetrised, as ``matfun.eigh`` takes it)."""
@@ -240,7 +234,7 @@ def _spectrum(landmark):
     finite = np.all(np.isfinite(P), axis=(1, 2))  # a step gone astray: NaN out, as the program's
     w, V = np.linalg.eigh(np.where(finite[:, None, None], 0.5 * (P + np.swapaxes(P, 1, 2)), np.eye(3)))
     w, V = np.where(finite[:, None], w, np.nan), np.where(finite[:, None, None], V, np.nan)
-    M = np.einsum("nai,kab,nbj->nkij", V, _SPD_E, V)
+    M = np.einsum("nai,kab,nbj->nkij", V, spd.BASIS, V)
     rw = np.sqrt(np.maximum(w, 0.0))
     dE = (rw[:, :, None] * rw[:, None, :])[:, None] * M
     scale = np.maximum(np.abs(w).max(axis=1), 1e-300)
@@ -299,7 +293,7 @@ def size_linearization(xs, Ts, args, jacobian: bool = True):
     r = ((0.5 * logdet - np.asarray(log_volume, float)) / 3.0)[:, None]
     if not jacobian:
         return r, None, None
-    J6 = np.broadcast_to(np.trace(_SPD_E, axis1=1, axis2=2) / 6.0, (len(r), 1, 6))
+    J6 = np.broadcast_to(np.trace(spd.BASIS, axis1=1, axis2=2) / 6.0, (len(r), 1, 6))
     return r, _landmark_jacobian(np.ascontiguousarray(J6)), None
 
 

@@ -317,12 +317,6 @@ _pytree(EllipsoidFull, ["q"])
 #: R³; so(3), R³, R³; the 10 entries of Q*.
 _BLOCKS = {Ellipsoid: (6, 3), EllipsoidRTS: (3, 3, 3), EllipsoidFull: (10,)}
 
-#: The Frobenius-orthonormal basis Eₖ of symmetric matrices of ``spd.vec_to_sym`` (6, 3, 3).
-_SPD_BASIS = np.zeros((6, 3, 3))
-for _k, (_i, _j) in enumerate(((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))):
-    _SPD_BASIS[_k, _i, _j] = _SPD_BASIS[_k, _j, _i] = 1.0 if _i == _j else 2.0**-0.5
-
-
 def _host_spectral(A, f):
     """f(A) = V diag(f(λ)) Vᵀ of stacked symmetric matrices (…, 3, 3), NumPy; NaN where A is
     not finite (as the program's result there, where LAPACK would raise)."""
@@ -342,7 +336,7 @@ def _ellipsoid_host_retract(x, d):
     P, t, d = np.asarray(x.P, float), np.asarray(x.center, float), np.asarray(d, float)
     with np.errstate(over="ignore", invalid="ignore"):  # a step too long: not finite, as the program's
         Ph = _host_sqrt(P)
-        S = np.einsum("nk,kij->nij", d[:, :6], _SPD_BASIS)
+        S = np.einsum("nk,kij->nij", d[:, :6], spd.BASIS)
         new = Ph @ _host_spectral(S, np.exp) @ Ph
     return Ellipsoid(0.5 * (new + np.swapaxes(new, -1, -2)), t + d[:, 6:])
 
@@ -354,7 +348,7 @@ def _ellipsoid_host_pushforward(x):
     n = len(P)
     Ph = _host_sqrt(P)
     dP = np.zeros((n, 9, 3, 3))
-    dP[:, :6] = Ph[:, None] @ _SPD_BASIS[None] @ Ph[:, None]
+    dP[:, :6] = Ph[:, None] @ spd.BASIS[None] @ Ph[:, None]
     dt = np.zeros((n, 9, 3))
     dt[:, 6:] = np.eye(3)
     return Ellipsoid(dP, dt)

@@ -39,12 +39,20 @@ __all__ = [
     "inner",
     "vec_to_sym",
     "sym_to_vec",
+    "BASIS",
     "tangent_basis",
     "is_spd",
 ]
 
 _S = 2.0**-0.5
 _IDX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+#: The basis E₀ … E₅ of ``vec_to_sym`` as a NumPy array (6, 3, 3) (the closed forms and the
+#: NumPy retraction use it).
+BASIS = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate(_IDX):
+    BASIS[_k, _i, _j] = BASIS[_k, _j, _i] = 1.0 if _i == _j else _S
+BASIS.flags.writeable = False
 
 
 def vec_to_sym(c):
