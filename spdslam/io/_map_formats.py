@@ -21,8 +21,9 @@ registers it::
             ...  # a SavedMap
 
 ``load_map`` finds a path's format: the one that claims it; ``spdslam evaluate``,
-``localize --map`` and ``view`` take any registered map (docs/map-reuse.md, "From another
-system's map"). Every malformed file gives a one-line ``MapFormatError`` naming the file.
+``localize --map``, ``merge``, ``view`` and ``export`` take any registered map
+(docs/map-reuse.md, "From another system's map"). Every malformed file gives a one-line
+``MapFormatError`` naming the file.
 """
 
 from __future__ import annotations
