@@ -370,6 +370,8 @@ def test_cli_refuses_broken_peer_maps_in_one_line_and_writes_nothing(coco_room, 
     _, header, _ = coco_room
     assert_error(invoke("merge", header, header, "--out", tmp_path / "m"), "the map records no sequence",
                  "--sequence-a")
+    assert_error(invoke("check", base / "room", "--map", header), "another system's map (osmap)",
+                 "spdslam localize --map")
     bare = write_osmap(tmp_path / "bare", [(0, load_map(header).objects[0].ellipsoid, {41: 1})])  # no keyframes
     assert_error(invoke("merge", bare, header, "--sequence-a", base / "room", "--sequence-b", base / "room",
                         "--out", tmp_path / "m"), "--sequence-a", "has no keyframes")

@@ -65,10 +65,9 @@ def check(
         SequenceFormatError,
         check_sequence_path,
         dumps_strict,
-        read_map,
+        load_map,
         read_measured_boxes,
         read_sequence,
-        read_tum,
     )
 
     if not (math.isfinite(min_iou) and 0 < min_iou < 1):
@@ -90,15 +89,13 @@ def check(
     objects = poses = None
     if map_ is not None:
         try:
-            _, objects = read_map(map_)
+            saved = load_map(map_)
         except MapFormatError as e:
             fail(str(e))
-        traj = (map_ if map_.is_dir() else map_.parent) / "trajectory.txt"
-        if traj.is_file():
-            try:
-                poses = read_tum(traj, str(traj))
-            except SequenceFormatError as e:
-                fail(str(e))
+        if not saved.is_spdslam:  # its frame is not the sequence's: the boxes would not fall on it
+            fail(f"--map: {map_} is another system's map ({saved.format}): check projects a map made from "
+                 "this sequence (spdslam run); spdslam localize --map puts the sequence into its frame")
+        objects, poses = saved.objects, saved.trajectory
         if not objects:
             fail(f"--map: {map_} has no mapped objects to project")
     elif not seq.objects_gt:
