@@ -230,10 +230,7 @@ def pose_between_linearization(xs, Ts, args, jacobian: bool = True):
 def _spectrum(landmark):
     """(w (n, 3) ascending, V (n, 3, 3), Vᵀ dPₖ V (n, 6, 3, 3), the tie mask (n, 3, 3)) of
     stacked Ellipsoids' P (symmetrised, as ``matfun.eigh`` takes it)."""
-    P = np.asarray(landmark.P, float)
-    finite = np.all(np.isfinite(P), axis=(1, 2))  # a step gone astray: NaN out, as the program's
-    w, V = np.linalg.eigh(np.where(finite[:, None, None], 0.5 * (P + np.swapaxes(P, 1, 2)), np.eye(3)))
-    w, V = np.where(finite[:, None], w, np.nan), np.where(finite[:, None, None], V, np.nan)
+    w, V = spd.host_eigh(landmark.P)  # a step gone astray: NaN out, as the program's
     M = np.einsum("nai,kab,nbj->nkij", V, spd.BASIS, V)
     rw = np.sqrt(np.maximum(w, 0.0))
     dE = (rw[:, :, None] * rw[:, None, :])[:, None] * M

@@ -320,11 +320,8 @@ _BLOCKS = {Ellipsoid: (6, 3), EllipsoidRTS: (3, 3, 3), EllipsoidFull: (10,)}
 def _host_spectral(A, f):
     """f(A) = V diag(f(λ)) Vᵀ of stacked symmetric matrices (…, 3, 3), NumPy; NaN where A is
     not finite (as the program's result there, where LAPACK would raise)."""
-    A = 0.5 * (A + np.swapaxes(A, -1, -2))
-    finite = np.all(np.isfinite(A), axis=(-2, -1))
-    w, V = np.linalg.eigh(np.where(finite[..., None, None], A, np.eye(3)))
-    out = (V * f(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
-    return np.where(finite[..., None, None], out, np.nan)
+    w, V = spd.host_eigh(A)
+    return (V * f(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
 
 
 def _host_sqrt(P):

@@ -40,6 +40,7 @@ __all__ = [
     "vec_to_sym",
     "sym_to_vec",
     "BASIS",
+    "host_eigh",
     "tangent_basis",
     "is_spd",
 ]
@@ -77,6 +78,16 @@ def sym_to_vec(S):
         + [S[..., i, j] / _S for i, j in _IDX[3:]],
         -1,
     )
+
+
+def host_eigh(A):
+    """(w ascending, V) of stacked symmetric matrices (…, 3, 3) symmetrised, NumPy; NaN rows
+    where A is not finite (as a program's result there, where LAPACK would raise)."""
+    A = np.asarray(A, dtype=float)
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    finite = np.all(np.isfinite(A), axis=(-2, -1))
+    w, V = np.linalg.eigh(np.where(finite[..., None, None], A, np.eye(3)))
+    return np.where(finite[..., None], w, np.nan), np.where(finite[..., None, None], V, np.nan)
 
 
 def tangent_basis(P):
