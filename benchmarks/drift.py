@@ -128,7 +128,14 @@ def row_of(seq, result, seconds: float, **more) -> dict:
     t = result.trajectory or {}
     return {**more, "ate_input_mm": a_in, "ate_mm": a_out, "ratio": a_out / a_in, "start": t.get("start"),
             **loops_of(result), "objects": len(result.objects), "seconds": seconds,
-            "checks": t.get("checks", []), "loop_errors": loop_errors(seq, result)}
+            "checks": t.get("checks", []), "refinement": refinement_of(t), "loop_errors": loop_errors(seq, result)}
+
+
+def refinement_of(t: dict) -> dict | None:
+    """The cross-validated refinement by the boxes (map.json's ``trajectory.refinement``):
+    accepted, the two halves' ratios, why not."""
+    f = t.get("refinement")
+    return None if f is None else {k: f[k] for k in ("accepted", "ratios", "reason")}
 
 
 def recording_rows(a, settings, seconds: float) -> list:
@@ -179,7 +186,16 @@ def show(r: dict) -> None:
     print(f"{what}: ATE {r['ate_input_mm']:.1f} → {r['ate_mm']:.1f} mm ({r['ratio']:.2f}×), start {r['start']}, "
           f"{loops} (found/verified/rejected), {r['objects']} objects, {r['seconds']:.1f} s"
           + (f"; refused by the check against the odometry: {', '.join(refused)}" if refused else "")
+          + refinement_figures(r)
           + (online_figures(r) if "frame_ms" in r else "") + error_figures(r), flush=True)
+
+
+def refinement_figures(r: dict) -> str:
+    f = r.get("refinement")
+    if not f:
+        return ""
+    ratios = "/".join(f"{x:.2f}" for x in f["ratios"] if x is not None) or "–"
+    return f"; boxes' refinement {'accepted' if f['accepted'] else 'refused'} (ratios {ratios})"
 
 
 def error_figures(r: dict) -> str:

@@ -314,11 +314,13 @@ def test_a_joined_recording_replayed_online_has_no_odometry_across_the_join():
         OnlineMapper(seq.camera, seq.priors, "multi-spd").add_frame(0.0, seq.poses_tum[0], new_segment=True)
 
 
-def test_cli_run_of_a_drifting_room_moves_its_poses_only_by_loops_and_says_so(drifting, tmp_path):
-    """By default (``initial_poses="auto"`` → loops) the boxes do not move the poses of a
-    trajectory without a bound on each pose: without a verified loop the run's trajectory is
-    its input, exactly; report.md, map.json's ``trajectory`` and map_top.png say how the poses
-    came about; loops asked for with a held trajectory are refused in one line."""
+def test_cli_run_of_a_drifting_room_moves_its_poses_only_by_loops_or_a_validated_refinement(drifting, tmp_path):
+    """By default (``initial_poses="auto"`` → loops) the boxes move the poses of a trajectory
+    without a bound on each pose only when the cross-validation between halves of the labels
+    accepts it: without it and without a verified loop the run's trajectory is its input,
+    exactly; never above the input's ATE; report.md, map.json's ``trajectory`` and
+    map_top.png say how the poses came about; loops asked for with a held trajectory are
+    refused in one line."""
     from spdslam.io import read_map
 
     folder = tmp_path / "room"
@@ -329,14 +331,93 @@ def test_cli_run_of_a_drifting_room_moves_its_poses_only_by_loops_and_says_so(dr
     t = m["trajectory"]
     assert t["start"] == "loops" and "loop_closure" in t
     rows = np.loadtxt(out / "trajectory.txt")
-    if not any(lp["status"] == "verified" for lp in t["loop_closure"]["loops"]):
+    refined = t["refinement"]["accepted"]
+    if not refined and not any(lp["status"] == "verified" for lp in t["loop_closure"]["loops"]):
         np.testing.assert_allclose(rows[:, 1:], drifting.poses_tum, atol=1e-6)
     assert _ate(rows, drifting) <= _ate(drifting.poses_tum, drifting) * (1 + 1e-6)
     assert any(n.startswith("loop closure: 8 submaps") for n in m["notes"])
-    assert any(n.startswith("trajectory held at the") for n in m["notes"])
+    assert any(n.startswith("poses refined by the boxes" if refined else "poses not refined by the boxes")
+               for n in m["notes"])
+    assert refined or any(n.startswith("trajectory held at the") for n in m["notes"])
     report = (out / "report.md").read_text()
-    assert "## Drift" in report and "Loop closure:" in report
+    assert "## Drift" in report and "Loop closure:" in report and "Poses refined by the boxes" in report
     assert (out / "map_top.png").stat().st_size > 0
     assert_error(invoke("run", folder, "--out", tmp_path / "x", "--initial-poses", "loops", "--hold-trajectory"),
                  "--initial-poses: loops move the poses, which hold_trajectory holds")
     assert not (tmp_path / "x").exists()
+
+
+# --- the boxes' refinement, cross-validated between halves of the labels ----------------------
+
+
+def test_label_halves_split_the_boxes_evenly_by_label():
+    from spdslam.mapping._refine import label_halves
+
+    a, b = label_halves(["cup"] * 5 + ["book"] * 4 + ["tv"] * 2 + ["mouse"] * 2 + ["bowl"])
+    assert a | b == {"cup", "book", "tv", "mouse", "bowl"} and not a & b
+    assert {a, b} == {frozenset({"cup", "tv"}), frozenset({"book", "mouse", "bowl"})}  # 7 and 7 boxes
+    assert label_halves(["cup"] * 9) is None and label_halves([]) is None
+
+
+@pytest.mark.parametrize("costs, moved, accepted, said", [
+    ({"given": 10.0, "moved": 5.0}, True, True, ""),
+    ({"given": 10.0, "moved": 9.0}, True, False, "at 90 % of their cost"),
+    ({"given": 10.0, "moved": 5.0}, False, False, "did not move the poses (a camera 9σ away)"),
+])
+def test_the_refinement_is_accepted_only_when_each_half_confirms_the_other(costs, moved, accepted, said):
+    """Each half refines the poses, the other half's boxes judge them: both must fit the
+    refined poses at most ``REFINE_MAX_RATIO`` of their cost on the poses given."""
+    from spdslam.mapping._refine import REFINE_MAX_RATIO, validate_refinement
+
+    asked = []
+
+    def refine(half):
+        asked.append(("refine", sorted(half)))
+        return np.zeros((3, 7)) if moved else "a camera 9σ away"
+
+    def held_cost(half, poses):
+        asked.append(("cost", sorted(half), poses is None))
+        return costs["given"] if poses is None else costs["moved"]
+
+    got = validate_refinement(["cup", "cup", "tv", "book"], refine, held_cost)
+    assert got.accepted is accepted and said in got.reason
+    assert got.note().startswith("poses refined by the boxes" if accepted else "poses not refined by the boxes")
+    if accepted:
+        assert got.ratios == (0.5, 0.5) and max(got.ratios) <= REFINE_MAX_RATIO
+        # each half refined once and judged by the other, on the poses given and the refined ones
+        assert asked == [("refine", ["cup"]), ("cost", ["book", "tv"], True), ("cost", ["book", "tv"], False),
+                         ("refine", ["book", "tv"]), ("cost", ["cup"], True), ("cost", ["cup"], False)]
+    assert not validate_refinement(["cup"] * 4, refine, held_cost).accepted
+
+
+def _biased(seq, px: float, seed: int):
+    """The room's boxes, each object's shifted by the same offset (σ ``px`` per coordinate)
+    in every view: a detector's bias, shared over the object's views; ids dropped."""
+    rng = np.random.default_rng(seed)
+    off = {k: rng.normal(0.0, px, 4) for k in sorted({d.instance for d in seq.detections})}
+    return replace(seq, detections=[replace(d, box=d.box + off[d.instance], instance=None) for d in seq.detections])
+
+
+def test_biased_boxes_on_an_odometry_that_barely_drifts_do_not_move_it():
+    """Biased boxes (8 px per object, the same in each view) on a trajectory that drifts
+    0.5 mm a step: the poses one half of the labels refines fit the other half's boxes no
+    better (they moved for the first half's biases): refused, and the trajectory is the
+    input, exactly."""
+    seq = _biased(make_room_sequence(1, frames=80, objects=5, drift=0.0005), 8.0, 1)
+    res = run_sequence(seq, "multi-spd")
+    rf = res.trajectory["refinement"]
+    assert not rf["accepted"] and "refined at" in rf["reason"], rf
+    np.testing.assert_allclose(res.poses_tum[:, 1:], seq.poses_tum, atol=1e-9)
+    assert any(n.startswith("poses not refined by the boxes: the boxes of") for n in res.notes)
+
+
+def test_a_drifting_room_is_refined_by_its_boxes_when_the_halves_agree(drifting):
+    """The drifting room (no bound on each pose, no ids, boxes with independent noise): each
+    half of the labels fits the poses the other refined far better; the run refines the poses
+    with every box and ends well below the input's ATE, within the odometry's walk."""
+    res = run_sequence(drifting, "multi-spd")
+    rf = res.trajectory["refinement"]
+    assert rf["accepted"] and max(rf["ratios"]) <= 0.5, rf
+    assert _ate(res.poses_tum, drifting) <= 0.6 * _ate(drifting.poses_tum, drifting)
+    (check,) = [c for c in res.trajectory["checks"] if c["step"] == "pose refinement"]
+    assert check["accepted"] and check["worst_sigma"] <= WALK_LIMIT

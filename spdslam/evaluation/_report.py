@@ -376,6 +376,14 @@ def trajectory_section(t: dict) -> list:
                 lines.append(f"| {lp['earlier_frames'][0]}–{lp['earlier_frames'][1]} | {lp['later_frames'][0]}–"
                              f"{lp['later_frames'][1]} | {lp['status']} | {lp['matches']} | {agree or '–'} | "
                              f"{lp.get('reason') or '–'} |")
+    rf = t.get("refinement")
+    if rf:
+        halves = " and ".join("{" + ", ".join(h) + "}" for h in rf.get("halves") or [])
+        ratios = " and ".join(f"{100 * r:.0f} %" for r in rf.get("ratios") or [] if r is not None)
+        lines += ["", f"Poses refined by the boxes (cross-validated between the halves of the labels {halves or '–'}: "
+                      f"each half's box cost on the poses the other half refined, {ratios or '–'} of it on the poses "
+                      f"given, the limit {100 * rf['limit']:.0f} %): "
+                      + ("**accepted**." if rf["accepted"] else f"not accepted: {rf['reason']}.")]
     return lines + [""]
 
 

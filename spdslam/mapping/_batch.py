@@ -43,7 +43,7 @@ import numpy as np
 
 from ..frontend import estimate_support_planes, screen_detections
 from ..geometry import as_ellipsoid
-from ..geometry.se3 import to_tum
+from ..geometry.se3 import from_tum, to_tum
 from ..io import Sequence, without_class_table
 from ..solver import L, LevenbergMarquardt, Values, X
 from ._context import SequenceContext
@@ -59,6 +59,7 @@ from ._loops import HeldMap, close_loops, stretch_objects
 from ._methods import Method
 from ._odometry import absolute_sigma, check_trajectory, walk_covariances
 from ._online import replayed_start
+from ._refine import Refinement, box_cost_per_box, validate_refinement
 from ._run import (
     OBJECT_ERRORS,
     MapResult,
@@ -150,10 +151,61 @@ def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings
         mapped = mapper.map(held_run, seq=corrected, hold_note="trajectory held at the poses the loop closure "
                                                                "corrected")
     else:
-        mapped = held
-    trajectory = {"start": "loops", "loop_closure": closure.as_dict(),
-                  "checks": [] if closure.check is None else [closure.check.as_dict()]}
-    return dataclasses.replace(mapped.opened_by(closure.notes()), trajectory=trajectory)
+        corrected, mapped = mapper.seq, held
+    checks = [] if closure.check is None else [closure.check.as_dict()]
+    refinement, refined, more = _refined(mapper, corrected, ctx, s, run, say)
+    trajectory = {"start": "loops", "loop_closure": closure.as_dict(), "refinement": refinement.as_dict(),
+                  "checks": checks + more}
+    return dataclasses.replace((refined or mapped).opened_by(closure.notes() + [refinement.note()]),
+                               trajectory=trajectory)
+
+
+def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, run: RunSettings, say
+             ) -> tuple[Refinement, "_Mapped | None", list]:
+    """The poses of ``seq`` (the input's, or the loops' corrected) refined by the boxes when
+    the cross-validation between halves of the labels accepts it (``_refine``): the joint
+    optimisation with every box from them, checked against the odometry's walk from the input
+    (``ctx``); None when refused, with the checks made (``TrajectoryCheck.as_dict``)."""
+    if mapper.tracks is not None:
+        return Refinement(reason="the tracks were given: the halves of the labels need the run's association"), \
+            None, []
+    quiet = dataclasses.replace(mapper, progress=None, verbose=False)
+    free_run = run.replace(initial_poses=InitialPoses.INPUT)
+    held_run = run.replace(hold_trajectory=True, initial_poses=InitialPoses.INPUT)
+
+    def part(half, poses=None) -> Sequence:
+        moved = seq if poses is None else dataclasses.replace(seq, poses_tum=poses)
+        return dataclasses.replace(moved, detections=[d for d in moved.detections if d.label in half])
+
+    def refine(half):
+        result = quiet.map(free_run, seq=part(half)).result
+        refused = [c for c in result.trajectory.get("checks", []) if not c["accepted"]]
+        if refused:
+            return f"they would move a camera {refused[-1]['worst_sigma']:.3g}σ of the odometry's walk"
+        return np.asarray(result.poses_tum)[:, 1:]
+
+    def held_cost(half, poses) -> float:
+        return box_cost_per_box(quiet.map(held_run, seq=part(half, poses)).result)
+
+    say("pose refinement: the boxes' refinement cross-validated between two halves of the labels")
+    with step("pose refinement"):
+        refinement = validate_refinement([d.label for d in seq.detections], refine, held_cost)
+    say(refinement.note())
+    if not refinement.accepted:
+        return refinement, None, []
+    joint = mapper.map(free_run, seq=seq)
+    checks = list(joint.result.trajectory.get("checks", []))
+    if any(not c["accepted"] for c in checks):
+        return dataclasses.replace(refinement, accepted=False, reason="the joint optimisation with every box "
+                                   "moved a camera beyond the odometry's walk"), None, checks
+    q = ctx.wxyz_xyz
+    final = np.asarray(from_tum(np.asarray(joint.result.poses_tum)[:, 1:]).wxyz_xyz)
+    check = check_trajectory("pose refinement", q, final, walk_covariances(q, s, ctx.seq.segments))
+    checks.append(check.as_dict())
+    if not check.accepted:
+        return dataclasses.replace(refinement, accepted=False, reason="the refined trajectory departs from the "
+                                   "input beyond the odometry's walk"), None, checks
+    return refinement, joint, checks
 
 
 @dataclass(frozen=True)
