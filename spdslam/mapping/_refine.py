@@ -28,8 +28,6 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
-
 __all__ = ["REFINE_MAX_RATIO", "Refinement", "box_cost_per_box", "label_halves", "validate_refinement"]
 
 #: The largest ratio of a half's box cost per box on the poses the other half refined to its
