@@ -103,7 +103,8 @@ FACTS: dict[str, Any] = {
             "where the poses come from on a trajectory without a bound on each pose (trajectory_absolute_sigma: .inf): "
             "input (the joint optimisation starts from the input poses), incremental (the frames replayed through the "
             "online mapper first), loops (the drift taken out by loops closed between submaps, the poses then held at "
-            "the corrected trajectory: the boxes do not move the poses; online, as the frames come); auto: loops "
+            "the corrected trajectory, refined by the boxes only where a cross-validation between halves of the labels "
+            "accepts it; online, the loops as the frames come); auto: loops "
             "(docs/drift.md)",
         ),
     },

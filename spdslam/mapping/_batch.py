@@ -7,7 +7,9 @@ composes the steps (``_run``), each inside ``step(name)`` (docs/core.md draws th
         auto, loops                the objects mapped on the input poses held (``_map``), then
                                    ``close_loops`` (``_loops``): submaps, verified loops, a
                                    pose graph; the objects mapped again on the corrected
-                                   poses held. The boxes do not move the poses.
+                                   poses held. The boxes move the poses only when a
+                                   cross-validation between halves of the labels says they
+                                   help (``_refine``), then from the corrected poses.
         input                      the joint optimisation from the input poses, each pose as
                                    free as the odometry lets it (the boxes move the poses)
         incremental                ``replayed_start``: the frames through the online mapper
@@ -138,7 +140,8 @@ def run_sequence(
 
 def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings, say) -> MapResult:
     """A trajectory without a bound on each pose, ``initial_poses`` auto or loops (module
-    docstring): the boxes do not move the poses; the drift is taken out by loops only."""
+    docstring): the drift is taken out by loops, and by the boxes only where the
+    cross-validation between halves of the labels accepts it (``_refined``)."""
     held_run = run.replace(hold_trajectory=True, initial_poses=InitialPoses.INPUT)
     say("objects on the input poses, held")
     held = mapper.map(held_run, hold_note="trajectory held at the input poses (no bound on each pose: the boxes "

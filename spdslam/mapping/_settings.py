@@ -67,7 +67,8 @@ class InitialPoses(enum.StrEnum):
     (its objects and, with automatic association, its tracks are taken too); loops: the
     objects mapped on the input poses held, the drift taken out by the loops their objects
     close between submaps (``close_loops``), and the poses then held at the corrected
-    trajectory (the boxes do not move the poses). auto: loops on a trajectory without a bound
+    trajectory; the boxes move them only when a cross-validation between halves of the
+    labels says they help (``_refine``). auto: loops on a trajectory without a bound
     on each pose (neither ``hold_trajectory`` nor a drift interval), else input. Every
     trajectory a step proposes is checked against the odometry's walk
     (``check_trajectory``)."""
@@ -242,7 +243,8 @@ class RunSettings:
         "(trajectory_absolute_sigma: .inf): input (the joint optimisation starts from the input "
         "poses), incremental (the frames replayed through the online mapper first), loops (the "
         "drift taken out by loops closed between submaps, the poses then held at the corrected "
-        "trajectory: the boxes do not move the poses; online, as the frames come); auto: loops "
+        "trajectory, refined by the boxes only where a cross-validation between halves of the labels "
+        "accepts it; online, the loops as the frames come); auto: loops "
         "(docs/drift.md)"))
     screen: bool = field(default=True, metadata=_help(
         "leave out detections that cannot be a box of an object first"))
