@@ -341,6 +341,7 @@ def test_cli_run_of_a_drifting_room_moves_its_poses_only_by_loops_or_a_validated
     assert refined or any(n.startswith("trajectory held at the") for n in m["notes"])
     report = (out / "report.md").read_text()
     assert "## Drift" in report and "Loop closure:" in report and "Poses refined by the boxes" in report
+    assert ("its poses: loops, then refined by the boxes" in report) is refined
     assert (out / "map_top.png").stat().st_size > 0
     assert_error(invoke("run", folder, "--out", tmp_path / "x", "--initial-poses", "loops", "--hold-trajectory"),
                  "--initial-poses: loops move the poses, which hold_trajectory holds")

@@ -354,7 +354,8 @@ def trajectory_section(t: dict) -> list:
     ``trajectory``): where the poses came from, each check against the odometry, the loops."""
     if not t:
         return []
-    lines = ["## Drift", "", f"The trajectory has no bound on each pose; its poses: {t.get('start', 'input')} "
+    refined = ", then refined by the boxes" if (t.get("refinement") or {}).get("accepted") else ""
+    lines = ["## Drift", "", f"The trajectory has no bound on each pose; its poses: {t.get('start', 'input')}{refined} "
                              "(docs/drift.md)."]
     for c in t.get("checks") or []:
         verdict = "accepted" if c["accepted"] else "**refused** (the poses it started from were kept)"
