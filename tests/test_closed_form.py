@@ -345,3 +345,25 @@ def test_a_pose_graph_linearises_alike_with_and_without_the_closed_forms(gen):
         r1, J1, _ = closed.group_terms(k)
         assert np.allclose(np.asarray(r1), np.asarray(r0), atol=1e-9)
         assert np.allclose(np.asarray(J1), np.asarray(J0), atol=1e-8)
+
+
+@pytest.mark.parametrize("shape", ["random", "two equal radii", "sphere", "elongated"])
+def test_the_objects_uncertainty_jacobian_in_numpy_matches_the_jax_one(gen, shape):
+    """The Jacobian of (centre, log sorted radii, P's upper triangle) in the SPD chart that
+    carries each object's marginal covariance into map.json (``mapping``'s uncertainty):
+    NumPy's, stacked, against JAX's forward mode through the chart and ``matfun.eigh`` (its
+    tie rule at equal radii), to round-off; a landmark that is not finite gives NaN rows
+    there only."""
+    from spdslam.mapping._run import _summary_jacobian, _summary_jacobians
+
+    lm = _landmarks(gen, shape, n=8)
+    rows = [Ellipsoid(lm.P[i], lm.center[i]) for i in range(8)]
+    J = _summary_jacobians(rows)
+    J_jax = np.stack([np.asarray(_summary_jacobian(Ellipsoid(jnp.asarray(e.P), jnp.asarray(e.center))))
+                      for e in rows])
+    assert J.shape == J_jax.shape == (8, 12, 9)
+    assert np.allclose(J, J_jax, rtol=0, atol=1e-10 * (1.0 + np.abs(J_jax).max())), np.abs(J - J_jax).max()
+    bad = [Ellipsoid(np.full((3, 3), np.nan), rows[0].center)] + rows[1:]
+    with np.errstate(all="ignore"):
+        Jb = _summary_jacobians(bad)
+    assert not np.isfinite(Jb[0]).all() and np.array_equal(Jb[1:], J[1:])

@@ -61,7 +61,7 @@ from ._box import box_visible, inverse_box_residual
 from ._object import orientation_residual, radius_floor_residual, shape_residual, size_residual
 from ._pose import pose_between_residual, pose_prior_residual
 
-__all__ = ["ClosedForm", "closed_form", "inverse_box_linearization", "pose_prior_linearization",
+__all__ = ["ClosedForm", "closed_form", "eigenvalue_steps", "inverse_box_linearization", "pose_prior_linearization",
            "pose_between_linearization", "orientation_linearization", "shape_linearization",
            "size_linearization", "radius_floor_linearization"]
 
@@ -243,6 +243,14 @@ def _eigenvalue_steps(dE, tie):
     """dwᵢ (n, 6, 3) per SPD direction: the diagonal of Vᵀ dPₖ V averaged over ties."""
     t = tie.astype(float)
     return np.einsum("nij,nkj->nki", t, np.diagonal(dE, axis1=2, axis2=3)) / t.sum(axis=2)[:, None, :]
+
+
+def eigenvalue_steps(landmark):
+    """(w (n, 3) ascending, dw (n, 6, 3)): the eigenvalues of stacked Ellipsoids' P and
+    their derivatives along the six SPD chart directions dPₖ = P^½ Eₖ P^½ (``matfun.eigh``'s
+    rule at tied eigenvalues: the mean of the tied ones' changes)."""
+    w, _, dE, tie = _spectrum(landmark)
+    return w, _eigenvalue_steps(dE, tie)
 
 
 def _landmark_jacobian(J6):

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..factors import eigenvalue_steps
 from ..frontend import (
     InitializationError,
     MultiFit,
@@ -293,6 +294,23 @@ def _summary_jacobian(lm):
     return jax.jacfwd(lambda d: _summary(lm, d))(jnp.zeros(manifold.tangent_dim(lm)))
 
 
+def _summary_jacobians(landmarks: list) -> np.ndarray:
+    """``_summary_jacobian`` of Ellipsoids in NumPy, stacked (n, 12, 9): the centre's rows
+    [0 | I], the log radii's ½ dwᵢ/wᵢ (``factors.eigenvalue_steps``, its rule at tied radii),
+    P's upper triangle from the chart's pushforward P^½ Eₖ P^½ (``manifold``'s
+    ``host_pushforward``)."""
+    stacked = Ellipsoid(np.stack([np.asarray(e.P, float) for e in landmarks]),
+                        np.stack([np.asarray(e.center, float) for e in landmarks]))
+    w, dw = eigenvalue_steps(stacked)
+    dP = np.asarray(manifold.ops(Ellipsoid).host_pushforward(stacked).P)  # (n, 9, 3, 3)
+    J = np.zeros((len(w), 12, 9))
+    J[:, 0:3, 6:9] = np.eye(3)
+    with np.errstate(invalid="ignore"):  # a landmark not finite: NaN rows, as the program's
+        J[:, 3:6, 0:6] = 0.5 * np.swapaxes(dw, 1, 2) / np.maximum(w, 1e-300)[:, :, None]
+    J[:, 6:12, :] = np.swapaxes(dP[:, :, _UPPER[0], _UPPER[1]], 1, 2)
+    return J
+
+
 def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
     """{id: {"center_sigma": [3] (m, along the world axes), "center_sigma_max" (m, along
     the worst direction), "log_radius_sigma": [3] (of the sorted radii, smallest first),
@@ -310,9 +328,11 @@ def object_uncertainty(graph, values, ids, fixed=(), result=None) -> dict:
         cov = marginal_covariances(graph, values, keys, fixed=fixed)
     out = {}
     inf = [float("inf")] * 3
+    spd_ids = [k for k in ids if type(values[L(k)]) is Ellipsoid]  # in NumPy; the others' by JAX
+    host = dict(zip(spd_ids, _summary_jacobians([values[L(k)] for k in spd_ids]))) if spd_ids else {}
     for k in ids:
         lm, S = values[L(k)], cov[L(k)]
-        J = np.asarray(_summary_jacobian(lm)) if np.all(np.isfinite(S)) else None
+        J = (host[k] if k in host else np.asarray(_summary_jacobian(lm))) if np.all(np.isfinite(S)) else None
         if J is None or not np.all(np.isfinite(J)):  # not determined, or no chart there
             out[k] = {"center_sigma": inf, "center_sigma_max": float("inf"), "log_radius_sigma": inf,
                       "covariance": None}
