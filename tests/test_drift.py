@@ -422,3 +422,19 @@ def test_a_drifting_room_is_refined_by_its_boxes_when_the_halves_agree(drifting)
     assert _ate(res.poses_tum, drifting) <= 0.6 * _ate(drifting.poses_tum, drifting)
     (check,) = [c for c in res.trajectory["checks"] if c["step"] == "pose refinement"]
     assert check["accepted"] and check["worst_sigma"] <= WALK_LIMIT
+
+
+def test_a_half_of_the_labels_that_cannot_be_mapped_refuses_the_refinement_and_the_run_goes_on():
+    """One label of the two left with two boxes: its half maps no object (its mapping
+    fails for the whole half); the refinement is refused and says why, the run maps the
+    other label's objects on the input poses, exactly."""
+    seq = make_room_sequence(1, frames=80, objects=5, drift=0.01)
+    big, small = sorted({d.label for d in seq.detections})[1], sorted({d.label for d in seq.detections})[0]
+    few = [d for d in seq.detections if d.label == small][:2]
+    seq = replace(seq, detections=[replace(d, instance=None) for d in seq.detections if d.label == big or d in few])
+    res = run_sequence(seq, "multi-spd")
+    rf = res.trajectory["refinement"]
+    assert not rf["accepted"] and rf["reason"], rf
+    assert any(n.startswith("poses not refined by the boxes: ") for n in res.notes)
+    assert {o.label for o in res.objects} == {big}
+    np.testing.assert_allclose(res.poses_tum[:, 1:], seq.poses_tum, atol=1e-9)

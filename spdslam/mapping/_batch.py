@@ -181,14 +181,20 @@ def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, ru
         return dataclasses.replace(moved, detections=[d for d in moved.detections if d.label in half])
 
     def refine(half):
-        result = quiet.map(free_run, seq=part(half)).result
+        try:
+            result = quiet.map(free_run, seq=part(half)).result
+        except OBJECT_ERRORS as e:  # a half that cannot be mapped (a MappingError too) refutes nothing
+            return f"mapping them alone failed: {e}"
         refused = [c for c in result.trajectory.get("checks", []) if not c["accepted"]]
         if refused:
             return f"they would move a camera {refused[-1]['worst_sigma']:.3g}σ of the odometry's walk"
         return np.asarray(result.poses_tum)[:, 1:]
 
     def held_cost(half, poses) -> float:
-        return box_cost_per_box(quiet.map(held_run, seq=part(half, poses)).result)
+        try:
+            return box_cost_per_box(quiet.map(held_run, seq=part(half, poses)).result)
+        except OBJECT_ERRORS:
+            return float("nan")
 
     say("pose refinement: the boxes' refinement cross-validated between two halves of the labels")
     with step("pose refinement"):
@@ -196,7 +202,11 @@ def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, ru
     say(refinement.note())
     if not refinement.accepted:
         return refinement, None, []
-    joint = mapper.map(free_run, seq=seq)
+    try:
+        joint = mapper.map(free_run, seq=seq)
+    except OBJECT_ERRORS as e:
+        return dataclasses.replace(refinement, accepted=False, reason=f"the joint optimisation with every box "
+                                   f"failed: {e}"), None, []
     checks = list(joint.result.trajectory.get("checks", []))
     if any(not c["accepted"] for c in checks):
         return dataclasses.replace(refinement, accepted=False, reason="the joint optimisation with every box "

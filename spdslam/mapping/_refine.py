@@ -28,6 +28,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
+
 __all__ = ["REFINE_MAX_RATIO", "Refinement", "box_cost_per_box", "label_halves", "validate_refinement"]
 
 #: The largest ratio of a half's box cost per box on the poses the other half refined to its
@@ -88,9 +90,9 @@ class Refinement:
 def validate_refinement(labels, refine: Callable, held_cost: Callable) -> Refinement:
     """The cross-validation of the module docstring over the boxes' ``labels``:
     ``refine(half) -> poses | str`` the poses the boxes of the labels ``half`` refine from the
-    current ones (or why they refused to move them), ``held_cost(half, poses) -> float`` the
+    current ones (or why they did not move them), ``held_cost(half, poses) -> float`` the
     box cost per box of the labels ``half`` with the poses held at ``poses`` (None: the
-    current ones)."""
+    current ones; NaN when they could not be mapped)."""
     halves = label_halves(labels)
     if halves is None:
         return Refinement(reason="one label only: no half of the objects to check the other with")
@@ -103,9 +105,13 @@ def validate_refinement(labels, refine: Callable, held_cost: Callable) -> Refine
             return Refinement(halves, tuple(ratios), reason=f"the boxes of {name} did not move the poses "
                                                             f"({poses})", details=details)
         given, moved = held_cost(test, None), held_cost(test, poses)
-        ratio = moved / given if given > 0 else float("nan")
         details.append({"refined_by": sorted(train), "checked_by": sorted(test), "cost_per_box_given": given,
                         "cost_per_box_refined": moved})
+        if not (np.isfinite(given) and np.isfinite(moved) and given > 0):
+            return Refinement(halves, tuple(ratios), details=details,
+                              reason=f"the objects of {', '.join(sorted(test))} were not mapped on both the poses "
+                                     f"given and those {name} refined: nothing to judge them by")
+        ratio = moved / given
         ratios.append(ratio)
         if not ratio <= REFINE_MAX_RATIO:
             return Refinement(halves, tuple(ratios), details=details,
