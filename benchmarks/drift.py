@@ -131,11 +131,11 @@ def row_of(seq, result, seconds: float, **more) -> dict:
             "checks": t.get("checks", []), "refinement": refinement_of(t), "loop_errors": loop_errors(seq, result)}
 
 
-def refinement_of(t: dict) -> dict | None:
-    """The cross-validated refinement by the boxes (map.json's ``trajectory.refinement``):
-    accepted, the two halves' ratios, why not."""
+def refinement_of(t: dict) -> list | None:
+    """The cross-validated refinement by the boxes, round by round (map.json's
+    ``trajectory.refinement``): accepted, the two halves' ratios, why not."""
     f = t.get("refinement")
-    return None if f is None else {k: f[k] for k in ("accepted", "ratios", "reason")}
+    return None if f is None else [{k: rf[k] for k in ("round", "accepted", "ratios", "reason")} for rf in f]
 
 
 def recording_rows(a, settings, seconds: float) -> list:
@@ -194,8 +194,9 @@ def refinement_figures(r: dict) -> str:
     f = r.get("refinement")
     if not f:
         return ""
-    ratios = "/".join(f"{x:.2f}" for x in f["ratios"] if x is not None) or "–"
-    return f"; boxes' refinement {'accepted' if f['accepted'] else 'refused'} (ratios {ratios})"
+    rounds = ", ".join(f"{'accepted' if rf['accepted'] else 'refused'} {'/'.join(f'{x:.2f}' for x in rf['ratios']) or '–'}"
+                       for rf in f)
+    return f"; the boxes' refinement in {sum(rf['accepted'] for rf in f)} rounds ({rounds})"
 
 
 def error_figures(r: dict) -> str:

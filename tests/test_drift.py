@@ -331,17 +331,21 @@ def test_cli_run_of_a_drifting_room_moves_its_poses_only_by_loops_or_a_validated
     t = m["trajectory"]
     assert t["start"] == "loops" and "loop_closure" in t
     rows = np.loadtxt(out / "trajectory.txt")
-    refined = t["refinement"]["accepted"]
+    rounds = t["refinement"]
+    refined = rounds[0]["accepted"]
+    # round by round until the halves refuse (or the most rounds): only the last may be refused
+    assert all(rf["accepted"] for rf in rounds[:-1]) and [rf["round"] for rf in rounds] == list(range(1, len(rounds) + 1))
     if not refined and not any(lp["status"] == "verified" for lp in t["loop_closure"]["loops"]):
         np.testing.assert_allclose(rows[:, 1:], drifting.poses_tum, atol=1e-6)
     assert _ate(rows, drifting) <= _ate(drifting.poses_tum, drifting) * (1 + 1e-6)
     assert any(n.startswith("loop closure: 8 submaps") for n in m["notes"])
-    assert any(n.startswith("poses refined by the boxes" if refined else "poses not refined by the boxes")
-               for n in m["notes"])
+    assert any(n.startswith("poses refined by the boxes, round 1" if refined
+                            else "poses not refined by the boxes, round 1") for n in m["notes"])
     assert refined or any(n.startswith("trajectory held at the") for n in m["notes"])
     report = (out / "report.md").read_text()
     assert "## Drift" in report and "Loop closure:" in report and "Poses refined by the boxes" in report
     assert ("its poses: loops, then refined by the boxes" in report) is refined
+    assert report.count("- round ") == len(rounds)
     assert (out / "map_top.png").stat().st_size > 0
     assert_error(invoke("run", folder, "--out", tmp_path / "x", "--initial-poses", "loops", "--hold-trajectory"),
                  "--initial-poses: loops move the poses, which hold_trajectory holds")
@@ -382,7 +386,8 @@ def test_the_refinement_is_accepted_only_when_each_half_confirms_the_other(costs
 
     got = validate_refinement(["cup", "cup", "tv", "book"], refine, held_cost)
     assert got.accepted is accepted and said in got.reason
-    assert got.note().startswith("poses refined by the boxes" if accepted else "poses not refined by the boxes")
+    assert got.note().startswith("poses refined by the boxes, round 1" if accepted
+                                 else "poses not refined by the boxes, round 1")
     if accepted:
         assert got.ratios == (0.5, 0.5) and max(got.ratios) <= REFINE_MAX_RATIO
         # each half refined once and judged by the other, on the poses given and the refined ones
@@ -406,22 +411,27 @@ def test_biased_boxes_on_an_odometry_that_barely_drifts_do_not_move_it():
     input, exactly."""
     seq = _biased(make_room_sequence(1, frames=80, objects=5, drift=0.0005), 8.0, 1)
     res = run_sequence(seq, "multi-spd")
-    rf = res.trajectory["refinement"]
+    (rf,) = res.trajectory["refinement"]
     assert not rf["accepted"] and "refined at" in rf["reason"], rf
     np.testing.assert_allclose(res.poses_tum[:, 1:], seq.poses_tum, atol=1e-9)
-    assert any(n.startswith("poses not refined by the boxes: the boxes of") for n in res.notes)
+    assert any(n.startswith("poses not refined by the boxes, round 1: the boxes of") for n in res.notes)
 
 
 def test_a_drifting_room_is_refined_by_its_boxes_when_the_halves_agree(drifting):
     """The drifting room (no bound on each pose, no ids, boxes with independent noise): each
     half of the labels fits the poses the other refined far better; the run refines the poses
-    with every box and ends well below the input's ATE, within the odometry's walk."""
+    with every box, again from there until the halves refuse, and ends well below the input's
+    ATE, each round within the odometry's walk from the input."""
+    from spdslam.mapping._refine import REFINE_MAX_ROUNDS
+
     res = run_sequence(drifting, "multi-spd")
-    rf = res.trajectory["refinement"]
-    assert rf["accepted"] and max(rf["ratios"]) <= 0.5, rf
+    rounds = res.trajectory["refinement"]
+    assert rounds[0]["accepted"] and max(rounds[0]["ratios"]) <= 0.5, rounds
+    assert not rounds[-1]["accepted"] or len(rounds) == REFINE_MAX_ROUNDS
     assert _ate(res.poses_tum, drifting) <= 0.6 * _ate(drifting.poses_tum, drifting)
-    (check,) = [c for c in res.trajectory["checks"] if c["step"] == "pose refinement"]
-    assert check["accepted"] and check["worst_sigma"] <= WALK_LIMIT
+    checks = [c for c in res.trajectory["checks"] if c["step"] == "pose refinement"]
+    assert len(checks) == sum(rf["accepted"] for rf in rounds)
+    assert all(c["accepted"] and c["worst_sigma"] <= WALK_LIMIT for c in checks)
 
 
 def test_a_half_of_the_labels_that_cannot_be_mapped_refuses_the_refinement_and_the_run_goes_on():
@@ -433,8 +443,8 @@ def test_a_half_of_the_labels_that_cannot_be_mapped_refuses_the_refinement_and_t
     few = [d for d in seq.detections if d.label == small][:2]
     seq = replace(seq, detections=[replace(d, instance=None) for d in seq.detections if d.label == big or d in few])
     res = run_sequence(seq, "multi-spd")
-    rf = res.trajectory["refinement"]
+    (rf,) = res.trajectory["refinement"]
     assert not rf["accepted"] and rf["reason"], rf
-    assert any(n.startswith("poses not refined by the boxes: ") for n in res.notes)
+    assert any(n.startswith("poses not refined by the boxes, round 1: ") for n in res.notes)
     assert {o.label for o in res.objects} == {big}
     np.testing.assert_allclose(res.poses_tum[:, 1:], seq.poses_tum, atol=1e-9)

@@ -354,7 +354,9 @@ def trajectory_section(t: dict) -> list:
     ``trajectory``): where the poses came from, each check against the odometry, the loops."""
     if not t:
         return []
-    refined = ", then refined by the boxes" if (t.get("refinement") or {}).get("accepted") else ""
+    rounds = t.get("refinement") or []
+    done = sum(rf["accepted"] for rf in rounds)
+    refined = f", then refined by the boxes ({done} round{'s' * (done > 1)})" if done else ""
     lines = ["## Drift", "", f"The trajectory has no bound on each pose; its poses: {t.get('start', 'input')}{refined} "
                              "(docs/drift.md)."]
     for c in t.get("checks") or []:
@@ -377,14 +379,16 @@ def trajectory_section(t: dict) -> list:
                 lines.append(f"| {lp['earlier_frames'][0]}–{lp['earlier_frames'][1]} | {lp['later_frames'][0]}–"
                              f"{lp['later_frames'][1]} | {lp['status']} | {lp['matches']} | {agree or '–'} | "
                              f"{lp.get('reason') or '–'} |")
-    rf = t.get("refinement")
-    if rf:
-        halves = " and ".join("{" + ", ".join(h) + "}" for h in rf.get("halves") or [])
-        ratios = " and ".join(f"{100 * r:.0f} %" for r in rf.get("ratios") or [] if r is not None)
-        lines += ["", f"Poses refined by the boxes (cross-validated between the halves of the labels {halves or '–'}: "
-                      f"each half's box cost on the poses the other half refined, {ratios or '–'} of it on the poses "
-                      f"given, the limit {100 * rf['limit']:.0f} %): "
-                      + ("**accepted**." if rf["accepted"] else f"not accepted: {rf['reason']}.")]
+    if rounds:
+        lines += ["", f"Poses refined by the boxes, cross-validated between two halves of the labels: each half's "
+                      f"box cost on the poses the other half refined, as a share of it on the poses given (the "
+                      f"limit {100 * rounds[0]['limit']:.0f} %), round by round from the poses the last one refined:",
+                  ""]
+        for rf in rounds:
+            halves = " and ".join("{" + ", ".join(h) + "}" for h in rf.get("halves") or [])
+            ratios = " and ".join(f"{100 * r:.0f} %" for r in rf.get("ratios") or [])
+            lines.append(f"- round {rf['round']}: halves {halves or '–'}, {ratios or '–'}: "
+                         + ("**accepted**." if rf["accepted"] else f"not accepted ({rf['reason']})."))
     return lines + [""]
 
 

@@ -61,7 +61,7 @@ from ._loops import HeldMap, close_loops, stretch_objects
 from ._methods import Method
 from ._odometry import absolute_sigma, check_trajectory, walk_covariances
 from ._online import replayed_start
-from ._refine import Refinement, box_cost_per_box, validate_refinement
+from ._refine import REFINE_MAX_ROUNDS, Refinement, box_cost_per_box, validate_refinement
 from ._run import (
     OBJECT_ERRORS,
     MapResult,
@@ -156,22 +156,32 @@ def _drifting(mapper: "_Mapper", ctx: SequenceContext, s: dict, run: RunSettings
     else:
         corrected, mapped = mapper.seq, held
     checks = [] if closure.check is None else [closure.check.as_dict()]
-    refinement, refined, more = _refined(mapper, corrected, ctx, s, run, say)
-    trajectory = {"start": "loops", "loop_closure": closure.as_dict(), "refinement": refinement.as_dict(),
-                  "checks": checks + more}
-    return dataclasses.replace((refined or mapped).opened_by(closure.notes() + [refinement.note()]),
+    rounds: list = []
+    refined = None
+    for _ in range(REFINE_MAX_ROUNDS):  # again from the refined poses, until the halves refuse
+        refinement, got, more = _refined(mapper, corrected, ctx, s, run, say, len(rounds) + 1)
+        rounds.append(refinement)
+        checks += more
+        if got is None:
+            break
+        refined = got
+        corrected = dataclasses.replace(corrected, poses_tum=np.asarray(got.result.poses_tum)[:, 1:])
+    trajectory = {"start": "loops", "loop_closure": closure.as_dict(),
+                  "refinement": [rf.as_dict() for rf in rounds], "checks": checks}
+    return dataclasses.replace((refined or mapped).opened_by(closure.notes() + [rf.note() for rf in rounds]),
                                trajectory=trajectory)
 
 
-def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, run: RunSettings, say
-             ) -> tuple[Refinement, "_Mapped | None", list]:
-    """The poses of ``seq`` (the input's, or the loops' corrected) refined by the boxes when
-    the cross-validation between halves of the labels accepts it (``_refine``): the joint
-    optimisation with every box from them, checked against the odometry's walk from the input
-    (``ctx``); None when refused, with the checks made (``TrajectoryCheck.as_dict``)."""
+def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, run: RunSettings, say,
+             round_: int = 1) -> tuple[Refinement, "_Mapped | None", list]:
+    """The poses of ``seq`` (the input's, the loops' corrected, or the last round's refined)
+    refined by the boxes when the cross-validation between halves of the labels accepts it
+    (``_refine``): the joint optimisation with every box from them, checked against the
+    odometry's walk from the input (``ctx``); None when refused, with the checks made
+    (``TrajectoryCheck.as_dict``)."""
     if mapper.tracks is not None:
-        return Refinement(reason="the tracks were given: the halves of the labels need the run's association"), \
-            None, []
+        return Refinement(reason="the tracks were given: the halves of the labels need the run's association",
+                          round=round_), None, []
     quiet = dataclasses.replace(mapper, progress=None, verbose=False)
     free_run = run.replace(initial_poses=InitialPoses.INPUT)
     held_run = run.replace(hold_trajectory=True, initial_poses=InitialPoses.INPUT)
@@ -196,9 +206,10 @@ def _refined(mapper: "_Mapper", seq: Sequence, ctx: SequenceContext, s: dict, ru
         except OBJECT_ERRORS:
             return float("nan")
 
-    say("pose refinement: the boxes' refinement cross-validated between two halves of the labels")
+    say(f"pose refinement, round {round_}: the boxes' refinement cross-validated between two halves of the labels")
     with step("pose refinement"):
-        refinement = validate_refinement([d.label for d in seq.detections], refine, held_cost)
+        refinement = dataclasses.replace(validate_refinement([d.label for d in seq.detections], refine, held_cost),
+                                         round=round_)
     say(refinement.note())
     if not refinement.accepted:
         return refinement, None, []

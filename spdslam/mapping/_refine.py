@@ -19,7 +19,9 @@ is measured here, not assumed, by a cross-validation between objects
 The refinement is accepted when both ratios are at most ``REFINE_MAX_RATIO``: each half's
 boxes fit the poses the other half refined clearly better than the poses it was given, a
 correction they took no part in. The run then optimises the poses with every box, from the
-current poses, its trajectory checked against the odometry's walk from the input.
+current poses, its trajectory checked against the odometry's walk from the input; and tries
+again from the refined poses, up to ``REFINE_MAX_ROUNDS`` rounds, until the halves refuse (a
+joint optimisation from far away stops short of the truth; from nearer it goes further).
 """
 
 from __future__ import annotations
@@ -30,11 +32,14 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["REFINE_MAX_RATIO", "Refinement", "box_cost_per_box", "label_halves", "validate_refinement"]
+__all__ = ["REFINE_MAX_RATIO", "REFINE_MAX_ROUNDS", "Refinement", "box_cost_per_box", "label_halves",
+           "validate_refinement"]
 
 #: The largest ratio of a half's box cost per box on the poses the other half refined to its
 #: cost on the poses given, for the refinement to be accepted (module docstring).
 REFINE_MAX_RATIO = 0.8
+#: The most rounds of the refinement, each from the poses the last one refined.
+REFINE_MAX_ROUNDS = 4
 
 
 def label_halves(labels) -> tuple[frozenset, frozenset] | None:
@@ -64,27 +69,28 @@ def box_cost_per_box(result) -> float:
 @dataclass(frozen=True)
 class Refinement:
     """The cross-validation's answer (module docstring): the two halves' labels, each
-    half's ratio (its boxes on the other half's refined poses over the poses given; None
-    where it was not reached), whether the refinement is accepted, and why not."""
+    half's ratio (its boxes on the other half's refined poses over the poses given, those
+    reached), whether the refinement is accepted, why not, and its round (1 from the input
+    or the loops' poses)."""
 
     halves: tuple = ()
     ratios: tuple = ()
     accepted: bool = False
     reason: str = ""
     details: list = field(default_factory=list)
+    round: int = 1
 
     def note(self) -> str:
         if self.accepted:
-            return ("poses refined by the boxes: each half of the labels' boxes fits the poses the other half "
-                    f"refined at {' and '.join(f'{100 * r:.0f} %' for r in self.ratios)} of its cost on the "
-                    f"poses given (the limit {100 * REFINE_MAX_RATIO:.0f} %)")
-        return f"poses not refined by the boxes: {self.reason}"
+            return (f"poses refined by the boxes, round {self.round}: each half of the labels' boxes fits the "
+                    f"poses the other half refined at {' and '.join(f'{100 * r:.0f} %' for r in self.ratios)} of "
+                    f"its cost on the poses given (the limit {100 * REFINE_MAX_RATIO:.0f} %)")
+        return f"poses not refined by the boxes, round {self.round}: {self.reason}"
 
     def as_dict(self) -> dict:
-        return {"halves": [sorted(h) for h in self.halves], "ratios": [None if r is None else float(r)
-                                                                       for r in self.ratios],
-                "accepted": self.accepted, "reason": self.reason, "limit": REFINE_MAX_RATIO,
-                "details": list(self.details)}
+        return {"round": self.round, "halves": [sorted(h) for h in self.halves],
+                "ratios": [float(r) for r in self.ratios], "accepted": self.accepted, "reason": self.reason,
+                "limit": REFINE_MAX_RATIO, "details": list(self.details)}
 
 
 def validate_refinement(labels, refine: Callable, held_cost: Callable) -> Refinement:
