@@ -302,7 +302,9 @@ def _summary_jacobians(landmarks: list) -> np.ndarray:
     stacked = Ellipsoid(np.stack([np.asarray(e.P, float) for e in landmarks]),
                         np.stack([np.asarray(e.center, float) for e in landmarks]))
     w, dw = eigenvalue_steps(stacked)
-    dP = np.asarray(manifold.ops(Ellipsoid).host_pushforward(stacked).P)  # (n, 9, 3, 3)
+    push = manifold.ops(Ellipsoid).host_pushforward
+    assert push is not None  # Ellipsoid registers one (geometry's _ellipsoid)
+    dP = np.asarray(push(stacked).P)  # (n, 9, 3, 3)
     J = np.zeros((len(w), 12, 9))
     J[:, 0:3, 6:9] = np.eye(3)
     with np.errstate(invalid="ignore"):  # a landmark not finite: NaN rows, as the program's
