@@ -28,11 +28,14 @@ capture): rotation error, and translation error at the last quarter's middle cam
 Synthetic rooms: ``make_room_sequence`` (``--room-frames``, ``--room-objects``, ``--room-drift``
 m per step and half that in rad), seeds of ``--room-seeds``, with the detector's failures of
 ``--room-failures`` (outliers, missed, truncation: ``outliers=0.1, missed=0.1,
-truncation=True``) and without instance ids.
+truncation=True``) and without instance ids; with ``--room-bias PX`` each object's boxes are
+shifted by one offset (σ PX per coordinate, drawn per object) in every view: a detector's bias,
+shared over an object's views, as real boxes have it (the refinement by the boxes must not
+follow it).
 
     python3 benchmarks/drift.py [--recordings fr2,office] [--rates 0.0005:0.025,0.001:0.05,0.003:0.15]
         [--seeds 0,1,2] [--online] [--background] [--realtime] [--compare input] [--rooms/--no-rooms]
-        [--submap-seconds 5] [--localize] [--out FILE] [--against EARLIER.json]
+        [--submap-seconds 5] [--localize] [--room-bias PX] [--out FILE] [--against EARLIER.json]
 
 ``--submap-seconds 2.5,5,10``: every recording row again with the loop closure's submaps of
 each length (``LOOP_SUBMAP_SECONDS``), the rows then named by it: how the loops' registration
@@ -180,7 +183,8 @@ def frame_times(records, result) -> dict:
 
 
 def show(r: dict) -> None:
-    what = " ".join(f"{k} {r[k]}" for k in ("recording", "room", "rate", "seed", "mode", "submap_seconds") if k in r)
+    what = " ".join(f"{k} {r[k]}" for k in ("recording", "room", "rate", "seed", "mode", "submap_seconds", "bias_px")
+                    if k in r)
     loops = f"loops {r['loops_found']}/{r['loops_verified']}/{r['loops_rejected']}"
     refused = [c["step"] for c in r["checks"] if not c["accepted"]]
     print(f"{what}: ATE {r['ate_input_mm']:.1f} → {r['ate_mm']:.1f} mm ({r['ratio']:.2f}×), start {r['start']}, "
@@ -272,6 +276,8 @@ def main() -> None:
     ap.add_argument("--room-objects", type=int, default=24)
     ap.add_argument("--room-drift", default="0.005,0.01,0.02", help="m per step (and half in rad), comma-separated")
     ap.add_argument("--room-seeds", default="0,1,2")
+    ap.add_argument("--room-bias", type=float, default=0.0,
+                    help="px: each object's boxes shifted by one offset of this σ per coordinate in every view")
     ap.add_argument("--room-failures", action=argparse.BooleanOptionalAction, default=True,
                     help="outliers 0.1, missed 0.1 and truncation")
     ap.add_argument("--localize", action="store_true", help="instead, the office's last quarter localised against "
@@ -290,12 +296,11 @@ def main() -> None:
     for drift in (float(x) for x in a.room_drift.split(",") if x and a.rooms):
         for seed in (int(x) for x in a.room_seeds.split(",") if x):
             room = make_room_sequence(seed, frames=a.room_frames, objects=a.room_objects, drift=drift, **failures)
-            room = dataclasses.replace(room, detections=[dataclasses.replace(d, instance=None)
-                                                         for d in room.detections])
+            room = biased(room, a.room_bias, seed)
             t0 = time.perf_counter()
             result = run_sequence(room, settings)
             r = row_of(room, result, time.perf_counter() - t0, room=f"{a.room_objects} objects, {a.room_frames} frames",
-                       rate=drift, seed=seed, mode="default")
+                       rate=drift, seed=seed, mode="default", **({"bias_px": a.room_bias} if a.room_bias else {}))
             rooms.append(r)
             show(r)
     # an input at the ground truth (the office's motion capture, undrifted) has an ATE of
@@ -311,6 +316,17 @@ def main() -> None:
     if a.against:
         doc["against"] = {"file": str(a.against), **compare_rows(rows + rooms, json.loads(a.against.read_text()))}
     write_out(a, doc)
+
+
+def biased(room, px: float, seed: int):
+    """The room's detections without instance ids, each object's boxes shifted by one offset
+    ~ N(0, px² I₄) (drawn per object, in the order of their ids, from ``seed``) in every view;
+    the false boxes (instance −1) as they are."""
+    rng = np.random.default_rng(seed)
+    ids = sorted({d.instance for d in room.detections if d.instance is not None and d.instance >= 0})
+    off = {k: rng.normal(0.0, px, 4) for k in ids} if px > 0 else {}
+    return dataclasses.replace(room, detections=[
+        dataclasses.replace(d, box=d.box + off.get(d.instance, 0.0), instance=None) for d in room.detections])
 
 
 def compare_rows(rows: list, earlier: dict) -> dict:
