@@ -320,13 +320,19 @@ def main() -> None:
 
 def biased(room, px: float, seed: int):
     """The room's detections without instance ids, each object's boxes shifted by one offset
-    ~ N(0, px² I₄) (drawn per object, in the order of their ids, from ``seed``) in every view;
-    the false boxes (instance −1) as they are."""
+    ~ N(0, px² I₄) (drawn per object, in the order of their ids, from ``seed``) in every view
+    (a box the offset would leave less than a pixel wide or high, a sliver at the image's
+    border, as it is); the false boxes (instance −1) as they are."""
     rng = np.random.default_rng(seed)
     ids = sorted({d.instance for d in room.detections if d.instance is not None and d.instance >= 0})
     off = {k: rng.normal(0.0, px, 4) for k in ids} if px > 0 else {}
+
+    def shifted(box, k):
+        b = box + off.get(k, 0.0)
+        return b if b[2] - b[0] >= 1.0 and b[3] - b[1] >= 1.0 else box
+
     return dataclasses.replace(room, detections=[
-        dataclasses.replace(d, box=d.box + off.get(d.instance, 0.0), instance=None) for d in room.detections])
+        dataclasses.replace(d, box=shifted(d.box, d.instance), instance=None) for d in room.detections])
 
 
 def compare_rows(rows: list, earlier: dict) -> dict:
