@@ -22,7 +22,8 @@ ALLOWED = {
     "solver": {"geometry", "factors"},
     "io": {"geometry", "factors", "solver"},
     "synthetic": {"geometry", "io"},
-    "frontend": {"geometry", "solver", "io"},  # solver: its stored programs (stored_jit)
+    "frontend": {"geometry", "factors", "solver", "io"},  # solver: its stored programs (stored_jit); factors:
+    # the box's closed form
     "mapping": {"geometry", "factors", "solver", "io", "frontend"},
     "evaluation": {"geometry", "io"},
     "experiments": {"geometry", "factors", "solver", "io", "synthetic", "mapping", "evaluation"},

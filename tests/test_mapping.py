@@ -183,18 +183,15 @@ def test_degenerate_objects_are_reported_not_mapped(monkeypatch):
     assert not degenerate(Ellipsoid(np.diag([1.0, 1.0, 0.01]), np.zeros(3)))
 
     seq = make_room_sequence(3, frames=60, objects=3)
-    real = run_mod.multi_initialize
-    calls = {"n": 0}
+    real = run_mod.multi_initialize_batch
 
-    def flat_first(*a, **kw):
-        e = real(*a, **kw)
-        calls["n"] += 1
-        if calls["n"] == 1:  # the first object: a disc of zero thickness
-            w, V = np.linalg.eigh(np.asarray(e.P))
-            return Ellipsoid((V * np.r_[0.0, w[1:]]) @ V.T, e.center)
-        return e
+    def flat_first(objects, *a, **kw):  # the first object: a disc of zero thickness
+        got = real(objects, *a, **kw)
+        w, V = np.linalg.eigh(np.asarray(got[0].P))
+        got[0] = Ellipsoid((V * np.r_[0.0, w[1:]]) @ V.T, got[0].center)
+        return got
 
-    monkeypatch.setattr(run_mod, "multi_initialize", flat_first)
+    monkeypatch.setattr(run_mod, "multi_initialize_batch", flat_first)
     r = run_sequence(seq, "multi-spd", initial_poses="input")  # the batch's initialisation
     assert len(r.objects) == 2 and len(r.failed) == 1
     (why,) = r.failed.values()

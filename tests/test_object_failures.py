@@ -115,16 +115,17 @@ def test_an_object_the_initialiser_cannot_fit_fails_alone(monkeypatch):
     import spdslam.mapping._run as run_mod
 
     seq = make_room_sequence(3, frames=60, objects=3)
-    real = run_mod.multi_initialize
+    real = run_mod.multi_initialize_batch
     calls = {"n": 0}
 
-    def singular_first(*a, **kw):
+    def singular_first(objects, *a, **kw):  # the batch answers each object: the first's is an error
         calls["n"] += 1
+        got = real(objects, *a, **kw)
         if calls["n"] == 1:
-            raise np.linalg.LinAlgError("Singular matrix")
-        return real(*a, **kw)
+            got[0] = np.linalg.LinAlgError("Singular matrix")
+        return got
 
-    monkeypatch.setattr(run_mod, "multi_initialize", singular_first)
+    monkeypatch.setattr(run_mod, "multi_initialize_batch", singular_first)
     r = run_sequence(seq, "multi-spd", initial_poses="input")  # the batch's initialisation
     assert len(r.objects) == 2 and len(r.failed) == 1
     (why,) = r.failed.values()

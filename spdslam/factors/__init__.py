@@ -69,6 +69,7 @@ from ._pose import pose_prior_residual as pose_prior_residual
 from ._closed_form import ClosedForm as ClosedForm
 from ._closed_form import closed_form as closed_form
 from ._closed_form import eigenvalue_steps as eigenvalue_steps
+from ._closed_form import ellipsoid_boxes as ellipsoid_boxes
 from ._closed_form import inverse_box_linearization as inverse_box_linearization
 from ._closed_form import orientation_linearization as orientation_linearization
 from ._closed_form import pose_between_linearization as pose_between_linearization

@@ -61,8 +61,8 @@ from ._box import box_visible, inverse_box_residual
 from ._object import orientation_residual, radius_floor_residual, shape_residual, size_residual
 from ._pose import pose_between_residual, pose_prior_residual
 
-__all__ = ["ClosedForm", "closed_form", "eigenvalue_steps", "inverse_box_linearization", "pose_prior_linearization",
-           "pose_between_linearization", "orientation_linearization", "shape_linearization",
+__all__ = ["ClosedForm", "closed_form", "eigenvalue_steps", "ellipsoid_boxes", "inverse_box_linearization",
+           "pose_prior_linearization", "pose_between_linearization", "orientation_linearization", "shape_linearization",
            "size_linearization", "radius_floor_linearization"]
 
 
@@ -129,12 +129,23 @@ def _entry_jacobians(G, m, A, T_landmark):
     dG[:, 3, 3], dG[:, 3, 4], dG[:, 3, 5] = -g01, g00 - g22, g12
     dG[:, 4, 3], dG[:, 4, 4], dG[:, 4, 5] = g22 - g11, g01, -g02
     # the landmark
-    AI, AJ = A[:, _I], A[:, _J]
-    dGP = (AI[:, :, :, None] * AJ[:, :, None, :]).reshape(n, 5, 9)
-    dGt = -(m[:, _J, None] * AI + m[:, _I, None] * AJ)
-    TP, Tt = np.asarray(T_landmark.P), np.asarray(T_landmark.center)
-    dG[:, :, 6:] = dGP @ np.swapaxes(TP.reshape(n, -1, 9), 1, 2) + dGt @ np.swapaxes(Tt, 1, 2)
+    dG[:, :, 6:] = _landmark_entries(A[:, None], m[:, None], np.asarray(T_landmark.P),
+                                     np.asarray(T_landmark.center))[:, 0]
     return dG
+
+
+def _landmark_entries(A, m, TP, Tt):
+    """∂G_e/∂(the landmark's directions) (B, K, 5, Q) for the entries e of ``_I``, ``_J``:
+    a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt, each of B landmarks seen from K cameras (A (B, K,
+    3, 3), m (B, K, 3)) along its Q directions (dP (B, Q, 3, 3), dt (B, Q, 3)): one product
+    per landmark of the views' coefficients (B, 5K, 12) by its directions (B, 12, Q)."""
+    B, K = m.shape[:2]
+    Q = TP.shape[1]
+    AI, AJ = A[:, :, _I], A[:, :, _J]
+    W = np.concatenate([np.einsum("bkei,bkej->bkeij", AI, AJ).reshape(B, K, 5, 9),
+                        -(m[:, :, _J, None] * AI + m[:, :, _I, None] * AJ)], axis=-1)
+    D = np.concatenate([TP.reshape(B, Q, 9), Tt], axis=-1)
+    return (W.reshape(B, K * 5, 12) @ np.swapaxes(D, 1, 2)).reshape(B, K, 5, Q)
 
 
 def _edges(a, b, g, f, c0, jacobian: bool):
@@ -160,11 +171,46 @@ def _edges(a, b, g, f, c0, jacobian: bool):
     return out
 
 
+def _box_of_entries(g, cam, jacobian: bool):
+    """The box [u_min, v_min, u_max, v_max] (…, 4) of G's entries g (…, 5) = (G₀₀, G₁₁, G₂₂,
+    G₀₂, G₁₂) (module docstring) and with ``jacobian`` its derivative (…, 4, 5) by them."""
+    fx, fy, cx, cy = (np.asarray(v, dtype=float) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+    (u0, du0), (u1, du1) = _edges(g[..., 0], g[..., 3], g[..., 2], fx, cx, jacobian)
+    (v0, dv0), (v1, dv1) = _edges(g[..., 1], g[..., 4], g[..., 2], fy, cy, jacobian)
+    box = np.stack([u0, v0, u1, v1], axis=-1)
+    if not jacobian:
+        return box, None
+    dr = np.zeros(box.shape + (5,))
+    for row, d, (ia, ib) in ((0, du0, (0, 3)), (2, du1, (0, 3)), (1, dv0, (1, 4)), (3, dv1, (1, 4))):
+        dr[..., row, ia] = d[..., 0]
+        dr[..., row, ib] = d[..., 1]
+        dr[..., row, 2] = d[..., 2]
+    return box, dr
+
+
+def ellipsoid_boxes(A, c, P, t, camera, directions=None):
+    """The boxes [u_min, v_min, u_max, v_max] (B, K, 4) of B ellipsoids (P (B, 3, 3), centres
+    t (B, 3)), each seen from K cameras (A = R_wcᵀ (B, K, 3, 3), centres c (B, K, 3)), by
+    the inverse box model's closed form (module docstring); with ``directions`` = (dP (B, Q,
+    3, 3), dt (B, Q, 3)) also their derivatives (B, K, 4, Q) along each ellipsoid's Q
+    directions, shared by its K views. Only meaningful in front of each camera."""
+    A, P, t = (np.asarray(x, dtype=float) for x in (A, P, t))
+    B, K = A.shape[:2]
+    Af = A.reshape(B, K * 3, 3)
+    m = (Af @ t[:, :, None]).reshape(B, K, 3) - np.einsum("bkij,bkj->bki", A, c)
+    AP = (Af @ P).reshape(B, K, 3, 3)  # rows a_iᵀ P
+    g = np.einsum("bkei,bkei->bke", AP[:, :, _I], A[:, :, _J]) - m[:, :, _I] * m[:, :, _J]
+    box, dbox = _box_of_entries(g, camera, directions is not None)
+    if directions is None:
+        return box, None
+    return box, dbox @ _landmark_entries(A, m, np.asarray(directions[0]), np.asarray(directions[1]))
+
+
 def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     """``inverse_box_residual`` of n stacked (pose, Ellipsoid) pairs: (r (n, 4), J (n, 4, 15)
     or None, ``box_visible`` (n,)). See the module docstring for the derivation."""
     pose, lm = xs
-    box, cam = args[0], args[1]
+    box_obs, cam = args[0], args[1]
     keep = args[2] if len(args) > 2 else None
     q = np.asarray(pose.wxyz_xyz)
     ok = np.all(np.isfinite(q), axis=1) & np.any(q[:, :4] != 0, axis=1)  # a pose a step sent astray: NaN out
@@ -174,24 +220,14 @@ def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     P, t = np.asarray(lm.P), np.asarray(lm.center)
     m = np.einsum("nij,nj->ni", A, t - q[:, 4:])
     G = A @ P @ R - m[:, :, None] * m[:, None, :]
-    fx, fy, cx, cy = (np.asarray(v, dtype=float) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
-    (u0, du0), (u1, du1) = _edges(G[:, 0, 0], G[:, 0, 2], G[:, 2, 2], fx, cx, jacobian)
-    (v0, dv0), (v1, dv1) = _edges(G[:, 1, 1], G[:, 1, 2], G[:, 2, 2], fy, cy, jacobian)
-    r = np.stack([u0, v0, u1, v1], axis=-1) - box
+    box, dbox = _box_of_entries(G[:, _I, _J], cam, jacobian)
+    r = box - np.asarray(box_obs)
     valid = _in_front(A, P, m)
     if keep is not None:
         r = r * keep
     if not jacobian:
         return r, None, valid
-    n = len(r)
-    # ∂r/∂(G₀₀, G₁₁, G₂₂, G₀₂, G₁₂) (n, 4, 5)
-    dr = np.zeros((n, 4, 5))
-    for row, d, (ia, ib) in ((0, du0, (0, 3)), (2, du1, (0, 3)), (1, dv0, (1, 4)), (3, dv1, (1, 4))):
-        dr[:, row, ia] = d[:, 0]
-        dr[:, row, ib] = d[:, 1]
-        dr[:, row, 2] = d[:, 2]
-    if keep is not None:
-        dr = dr * keep[:, :, None]
+    dr = dbox if keep is None else dbox * keep[:, :, None]
     dG = _entry_jacobians(G, m, A, Ts[1])
     return r, dr @ dG, valid
 

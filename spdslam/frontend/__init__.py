@@ -14,6 +14,7 @@ from ._association import tracks_from_instances as tracks_from_instances
 from ._initialization import InitializationError as InitializationError
 from ._initialization import MultiFit as MultiFit
 from ._initialization import multi_initialize as multi_initialize
+from ._initialization import multi_initialize_batch as multi_initialize_batch
 from ._initialization import svd_initialize as svd_initialize
 from ._initialization import triangulate_rays as triangulate_rays
 from ._scene import SupportPlanes as SupportPlanes

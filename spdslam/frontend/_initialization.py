@@ -21,9 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import jax
 import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
 from ..geometry import (
@@ -32,18 +30,18 @@ from ..geometry import (
     Ellipsoid,
     EllipsoidFull,
     box_planes,
-    project_box,
-    project_cuboid_box,
     truncation_mask,
 )
 from ..geometry.se3 import as_pose, quat_to_matrix
 from ..solver import stored_jit
+from ._multi_fit import MultiProblem, fit_multi
 
 __all__ = [
     "MultiFit",
     "TILT_SIGMA",
     "InitializationError",
     "multi_initialize",
+    "multi_initialize_batch",
     "svd_initialize",
     "triangulate_rays",
 ]
@@ -138,8 +136,6 @@ _ELLIPSOID_OF_QUADRIC = stored_jit(_ellipsoid_of_quadric, "frontend.ellipsoid_of
 #: horizontal orientation, and each start is refined by LM.
 _YAW_STARTS = np.arange(6) * np.pi / 6
 _START_ASPECT = 1.4  # a/b of each start: a start with a = b has zero yaw gradient
-_MULTI_ITERS = 60
-_PX_SIGMA = 2.0
 #: σ (rad) of the prior that holds the multi-constraint start's tilt near upright
 #: (``multi_initialize``): of the order of the error of an up direction
 #: estimated from the cameras (docs/sequences.md gives the measurement and the choice).
@@ -188,87 +184,6 @@ def _box_rays(boxes, rows, camera):
     return rows[:, 4:], np.einsum("kij,kj->ki", Rs, rays_c), Rs
 
 
-def _multi_model(theta, frame, has_plane):
-    """θ = [u, v, w, log a, log b, log c, ψ, α, β] → Ellipsoid: axes R = Exp(α e1 + β e2)
-    [cosψ e1 + sinψ e2, −sinψ e1 + cosψ e2, n] (yaw ψ about n, then a tilt by the rotation
-    vector α e1 + β e2), centre u e1 + v e2 + h n with h = w, or on the plane
-    h = w0 + √(nᵀPn) (the object's lowest point on it)."""
-    e1, e2, n, w0 = frame
-    u, v, w, la, lb, lc, psi, alpha, beta = (theta[i] for i in range(9))
-    r = jnp.exp(jnp.stack([la, lb, lc]))
-    x1 = jnp.cos(psi) * e1 + jnp.sin(psi) * e2
-    x2 = -jnp.sin(psi) * e1 + jnp.cos(psi) * e2
-    tilt = jaxlie.SO3.exp(alpha * e1 + beta * e2).as_matrix()
-    R = tilt @ jnp.stack([x1, x2, n], axis=1)
-    half_height = jnp.sqrt(jnp.sum((r * (n @ R)) ** 2))
-    h = jnp.where(has_plane, w0 + half_height, w)
-    return Ellipsoid.from_axes(R, u * e1 + v * e2 + h * n, r)
-
-
-def _multi_fit(theta0, frame, has_plane, views, camera, prior, shape, tilt_w):
-    """LM on the box residuals of the constrained model, batched over the starts ``theta0``
-    (upright, α = β = 0): with ``tilt_w`` > 0 the tilt (α, β) is free under a prior of weight
-    ``tilt_w`` (1/σ) towards upright, with 0 it is held at 0 (the upright model). ``views``:
-    (poses, boxes, mask), ``mask`` (k, 4) weighting each box edge (0: padding or truncated);
-    ``prior``: (sorted log radii, weight). Returns per start the cost and the fitted
-    ellipsoid's (P, centre)."""
-    box_of = project_cuboid_box if shape == "cuboid" else project_box
-    poses, boxes, mask = views
-    prior_log, prior_w = prior
-
-    def residual(theta):
-        e = _multi_model(theta, frame, has_plane)
-        r_box = jax.vmap(lambda T, b: box_of(e, T, camera) - b)(poses, boxes)
-        r_box = (r_box / _PX_SIGMA) * mask
-        r_prior = prior_w * (jnp.sort(theta[3:6]) - prior_log)
-        return jnp.concatenate([r_box.ravel(), r_prior, tilt_w * theta[7:9]])
-
-    def cost(theta):
-        r = residual(theta)
-        return jnp.sum(jnp.where(jnp.isfinite(r), r**2, jnp.inf))
-
-    def lm(theta):
-        def body(_, state):
-            th, lam, c = state
-            r = residual(th)
-            J = jax.jacfwd(residual)(th)
-            J = jnp.where(has_plane, J.at[:, 2].set(0.0), J)
-            J = jnp.where(tilt_w > 0, J, J.at[:, 7:9].set(0.0))
-            H = J.T @ J
-            g = J.T @ r
-            # damping isotropic per block of θ (centre, log radii, yaw and tilt), as the back
-            # end's LM (solver._lm, "isotropic"): Marquardt's diag(H) leaves a log radius whose
-            # curvature vanishes undamped, and it runs to −∞ (a zero radius)
-            d = jnp.diagonal(H)
-            D = jnp.concatenate([jnp.full(3, jnp.max(d[:3])), jnp.full(3, jnp.max(d[3:6])), d[6:]])
-            step = -jnp.linalg.solve(H + lam * jnp.diag(D + 1e-9), g)
-            cand = th + step
-            cc = cost(cand)
-            ok = cc < c
-            return (jnp.where(ok, cand, th), jnp.where(ok, lam * 0.3, lam * 10.0), jnp.where(ok, cc, c))
-
-        th, _, c = jax.lax.fori_loop(0, _MULTI_ITERS, body, (theta, 1e-3, cost(theta)))
-        return th, c
-
-    def fit(th):
-        th, c = lm(th)
-        e = _multi_model(th, frame, has_plane)
-        return c, e.P, e.center
-
-    return jax.vmap(fit)(theta0)
-
-
-def _fit_of(shape: str):
-    def fit(theta0, frame, has_plane, views, camera, prior, tilt_w):
-        return _multi_fit(theta0, frame, has_plane, views, camera, prior, shape, tilt_w)
-
-    return fit
-
-
-#: ``_multi_fit`` per object shape, compiled once and kept on disk (``solver.stored_jit``)
-_MULTI_FIT = {s: stored_jit(_fit_of(s), f"frontend.multi_fit {s}") for s in OBJECT_SHAPES}
-
-
 @dataclass(frozen=True)
 class MultiFit:
     """What the Quadric-Multi fit (``multi_initialize``) assumes beyond the boxes: the class
@@ -310,37 +225,58 @@ def multi_initialize(boxes, poses, camera: Camera, up, support_plane=None, fit: 
     Each start is upright (one axis along ``up``); with ``fit.tilt_sigma`` (rad, default
     ``TILT_SIGMA``) the tilt is free under a prior of that σ towards upright, so that the
     axes end where the boxes put them rather than snapped to ``up``; None holds them upright.
+    ``multi_initialize_batch`` fits many objects at once.
     """
+    got = multi_initialize_batch([(boxes, poses, support_plane, fit)], camera, up, min_views)[0]
+    if isinstance(got, Exception):
+        raise got
+    return got
+
+
+def multi_initialize_batch(objects, camera: Camera, up, min_views: int = 2) -> list:
+    """``multi_initialize`` of each of ``objects`` (boxes, poses, support_plane, fit), every
+    start of every object in one batch (``_multi_fit``): per object its Ellipsoid, or the
+    ``InitializationError`` (or other object error) that it alone raised."""
+    if up is None:
+        raise ValueError("multi-constraint initialisation needs the up direction")
+    out: list = [None] * len(objects)
+    problems, where = [], []
+    for i, (boxes, poses, plane, fit) in enumerate(objects):
+        try:
+            problems.append(_multi_problem(boxes, poses, camera, up, plane, fit, min_views))
+            where.append(i)
+        except (ValueError, ArithmeticError) as e:  # this object only (InitializationError among them)
+            out[i] = e
+    for i, (costs, Ps, centers) in zip(where, fit_multi(problems, camera)):
+        if not np.any(np.isfinite(costs)):
+            out[i] = InitializationError("the constrained fit diverged from every start")
+            continue
+        best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
+        out[i] = Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
+    return out
+
+
+def _multi_problem(boxes, poses, camera: Camera, up, support_plane, fit: MultiFit, min_views: int) -> MultiProblem:
+    """One object's fit (``MultiProblem``): its views (at most ``MULTI_FIT_VIEWS``), the
+    edges kept, the frame of its plane, its starts and priors."""
     boxes, poses = _views(boxes, poses, max(min_views, 2))
     if len(boxes) > MULTI_FIT_VIEWS:
         pick = np.unique(np.linspace(0, len(boxes) - 1, MULTI_FIT_VIEWS).round().astype(int))
         boxes, poses = boxes[pick], [poses[i] for i in pick]
-    if up is None:
-        raise ValueError("multi-constraint initialisation needs the up direction")
     keep = _keep(boxes, camera, fit.truncation_margin)
     if not keep.any():
         raise InitializationError("every box edge is truncated by the image border")
     frame = _plane_frame(up, support_plane)
     rows = np.stack([np.asarray(T.wxyz_xyz, dtype=float) for T in poses])  # on the host once
     starts = _multi_starts(boxes, rows, camera, keep, frame, support_plane is not None)
-    pad = MULTI_FIT_VIEWS - len(boxes)
-    poses_b = jaxlie.SE3(np.concatenate([rows, np.repeat(rows[:1], pad, axis=0)]))  # type: ignore[arg-type]
-    boxes_b = np.concatenate([boxes, np.repeat(boxes[:1], pad, axis=0)])
-    mask = np.concatenate([keep.astype(float), np.zeros((pad, 4))])
     if fit.prior_radii is None:
         prior_log, prior_w = np.zeros(3), 0.0
     else:
         prior_log, prior_w = np.sort(np.log(np.asarray(fit.prior_radii, dtype=float))), 1.0 / fit.prior_sigma
-    # the inputs as NumPy (the program takes them as they are) and its outputs read back once
-    frame_h = tuple(np.asarray(f, dtype=float) for f in frame)
     tilt_w = 0.0 if fit.tilt_sigma is None else 1.0 / float(fit.tilt_sigma)
-    costs, Ps, centers = (np.asarray(a) for a in _MULTI_FIT[fit.shape](
-        np.asarray(starts, dtype=float), frame_h, np.asarray(support_plane is not None),
-        (poses_b, boxes_b, mask), camera, (prior_log, prior_w), tilt_w))
-    if not np.any(np.isfinite(costs)):
-        raise InitializationError("the constrained fit diverged from every start")
-    best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
-    return Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
+    return MultiProblem(np.asarray(starts, dtype=float), tuple(np.asarray(f, dtype=float) for f in frame),
+                        support_plane is not None, rows, boxes, keep.astype(float), prior_log, prior_w, tilt_w,
+                        fit.shape)
 
 
 def _multi_starts(boxes, rows, camera: Camera, keep, frame, on_plane: bool) -> list:

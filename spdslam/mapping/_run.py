@@ -29,7 +29,7 @@ from ..frontend import (
     SupportPlanes,
     Track,
     estimate_support_planes,
-    multi_initialize,
+    multi_initialize_batch,
     svd_initialize,
     tracks_from_instances,
 )
@@ -231,6 +231,8 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
         notes.append("no up direction or support plane in the priors: Quadric-SVD initialisation")
         use_multi = False
     prior_planes = ctx.support_planes()
+    fitted: dict = {}
+    multi: list = []  # (id, (boxes, poses, plane, fit)): fitted together (``multi_initialize_batch``)
     for tr in tracks:
         Ts = [ctx.poses[i] for i in tr.frames]
         if len(tr.frames) < min_views:
@@ -249,14 +251,23 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
                 cp = ctx.class_prior(tr.label)
                 fit = MultiFit(None if cp is None else cp.radii, 0.2 if cp is None else max(cp.sigma, 0.05),
                                object_shape(method, priors, tr.label), method.margin)
-                e = multi_initialize(tr.boxes, Ts, ctx.camera, ctx.up, plane, fit)
+                multi.append((tr.id, (tr.boxes, Ts, plane, fit)))
             else:
-                e = svd_initialize(tr.boxes, Ts, ctx.camera, truncation_margin=method.margin)
-        except InitializationError as err:
-            failed[tr.id] = str(err)
+                fitted[tr.id] = svd_initialize(tr.boxes, Ts, ctx.camera, truncation_margin=method.margin)
+        except OBJECT_ERRORS as err:
+            fitted[tr.id] = err
+    if multi:
+        got = multi_initialize_batch([m for _, m in multi], ctx.camera, ctx.up)
+        fitted.update(zip([i for i, _ in multi], got))
+    for tr in tracks:  # in the tracks' order
+        e = fitted.get(tr.id)
+        if e is None:
             continue
-        except OBJECT_ERRORS as err:  # a singular or non-finite fit: this object only
-            failed[tr.id] = f"initialisation: {type(err).__name__}: {err}"
+        if isinstance(e, InitializationError):
+            failed[tr.id] = str(e)
+            continue
+        if isinstance(e, Exception):  # a singular or non-finite fit: this object only
+            failed[tr.id] = f"initialisation: {type(e).__name__}: {e}"
             continue
         why = degenerate(e, min_radius=0.0, min_ratio=SINGULAR_RATIO)
         if why:  # not a point of SPD(3) the solver can start from (a flat start is one)
