@@ -137,15 +137,14 @@ def _entry_jacobians(G, m, A, T_landmark):
 def _landmark_entries(A, m, TP, Tt):
     """∂G_e/∂(the landmark's directions) (B, K, 5, Q) for the entries e of ``_I``, ``_J``:
     a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt, each of B landmarks seen from K cameras (A (B, K,
-    3, 3), m (B, K, 3)) along its Q directions (dP (B, Q, 3, 3), dt (B, Q, 3)): one product
-    per landmark of the views' coefficients (B, 5K, 12) by its directions (B, 12, Q)."""
+    3, 3), m (B, K, 3)) along its Q directions (dP (B, Q, 3, 3), dt (B, Q, 3)): per landmark
+    the views' coefficients (5K rows) times its directions."""
     B, K = m.shape[:2]
     Q = TP.shape[1]
     AI, AJ = A[:, :, _I], A[:, :, _J]
-    W = np.concatenate([np.einsum("bkei,bkej->bkeij", AI, AJ).reshape(B, K, 5, 9),
-                        -(m[:, :, _J, None] * AI + m[:, :, _I, None] * AJ)], axis=-1)
-    D = np.concatenate([TP.reshape(B, Q, 9), Tt], axis=-1)
-    return (W.reshape(B, K * 5, 12) @ np.swapaxes(D, 1, 2)).reshape(B, K, 5, Q)
+    dGP = np.einsum("bkei,bkej->bkeij", AI, AJ).reshape(B, K * 5, 9)
+    dGt = -(m[:, :, _J, None] * AI + m[:, :, _I, None] * AJ).reshape(B, K * 5, 3)
+    return (dGP @ np.swapaxes(TP.reshape(B, Q, 9), 1, 2) + dGt @ np.swapaxes(Tt, 1, 2)).reshape(B, K, 5, Q)
 
 
 def _edges(a, b, g, f, c0, jacobian: bool):
