@@ -5,6 +5,7 @@ against forward-mode JAX through the model and central differences, the boxes' c
 from __future__ import annotations
 
 import dataclasses
+
 import jax
 import jax.numpy as jnp
 import jaxlie

@@ -65,25 +65,31 @@ class MultiProblem:
 
 
 def _hat(w) -> np.ndarray:
-    o = np.zeros(w.shape[:-1])
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    return np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], -2)
+    """[w]× (B, 3, 3) of w (B, 3)."""
+    F = np.zeros(w.shape[:-1] + (3, 3))
+    F[..., 0, 1], F[..., 0, 2], F[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    F[..., 1, 0], F[..., 2, 0], F[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return F
 
 
-def _exp_and_left_jacobian(phi):
-    """Exp(φ) and J_l(φ) = I + (1 − cos θ)/θ² Φ + (θ − sin θ)/θ³ Φ², Φ = [φ]×, (B, 3, 3)
-    each (series below θ = 1e-4)."""
-    th2 = np.sum(phi * phi, axis=-1)
+def _exp_and_left_jacobian(phi, jacobian: bool):
+    """Exp(φ) and with ``jacobian`` J_l(φ) = I + (1 − cos θ)/θ² Φ + (θ − sin θ)/θ³ Φ², Φ =
+    [φ]×, (B, 3, 3) each (series below θ = 1e-4)."""
+    th2 = np.einsum("bi,bi->b", phi, phi)
     small = th2 < 1e-8
-    th = np.sqrt(np.where(small, 1.0, th2))
-    sin_t = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / th)  # sin θ / θ
-    cos_t = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    cub_t = np.where(small, 1.0 / 6.0 - th2 / 120.0, (th - np.sin(th)) / (th * np.where(small, 1.0, th2)))
+    th2s = np.where(small, 1.0, th2)
+    th = np.sqrt(th2s)
+    sin_th, cos_th = np.sin(th), np.cos(th)
+    sin_t = np.where(small, 1.0 - th2 / 6.0, sin_th / th)  # sin θ / θ
+    cos_t = np.where(small, 0.5 - th2 / 24.0, (1.0 - cos_th) / th2s)
     F = _hat(phi)
     F2 = F @ F
     eye = np.eye(3)
-    return (eye + sin_t[:, None, None] * F + cos_t[:, None, None] * F2,
-            eye + cos_t[:, None, None] * F + cub_t[:, None, None] * F2)
+    tilt = eye + sin_t[:, None, None] * F + cos_t[:, None, None] * F2
+    if not jacobian:
+        return tilt, None
+    cub_t = np.where(small, 1.0 / 6.0 - th2 / 120.0, (th - sin_th) / (th * th2s))
+    return tilt, eye + cos_t[:, None, None] * F + cub_t[:, None, None] * F2
 
 
 @dataclass
@@ -145,19 +151,22 @@ def _model(theta, b: _Batch, jacobian: bool):
     psi = theta[:, 6]
     c, s = np.cos(psi)[:, None], np.sin(psi)[:, None]
     x1, x2 = c * b.e1 + s * b.e2, -s * b.e1 + c * b.e2
-    U = np.stack([x1, x2, b.n], axis=-1)
+    U = np.empty((B, 3, 3))
+    U[:, :, 0], U[:, :, 1], U[:, :, 2] = x1, x2, b.n
     phi = theta[:, 7, None] * b.e1 + theta[:, 8, None] * b.e2
-    tilt, Jl = _exp_and_left_jacobian(phi)
+    tilt, Jl = _exp_and_left_jacobian(phi, jacobian)
     R = tilt @ U
     r = np.exp(theta[:, 3:6])
-    P = (R * r[:, None, :] ** 2) @ np.swapaxes(R, 1, 2)
-    half = np.sqrt(np.einsum("bi,bij,bj->b", b.n, P, b.n))
+    P = (R * (r * r)[:, None, :]) @ np.swapaxes(R, 1, 2)
+    half = np.sqrt(np.einsum("bi,bi->b", (P @ b.n[:, :, None])[:, :, 0], b.n))
     h = np.where(b.has_plane, b.w0 + half, theta[:, 2])
     t = theta[:, 0, None] * b.e1 + theta[:, 1, None] * b.e2 + h[:, None] * b.n
     if not jacobian:
         return R, r, P, t, None
     dR = np.zeros((B, 9, 3, 3))
-    dR[:, 6] = tilt @ np.stack([x2, -x1, np.zeros_like(x1)], axis=-1)
+    V = np.zeros((B, 3, 3))
+    V[:, :, 0], V[:, :, 1] = x2, -x1
+    dR[:, 6] = tilt @ V
     dR[:, 7] = _hat(np.einsum("bij,bj->bi", Jl, b.e1)) @ R
     dR[:, 8] = _hat(np.einsum("bij,bj->bi", Jl, b.e2)) @ R
     dr = np.zeros((B, 9, 3))
