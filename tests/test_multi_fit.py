@@ -187,3 +187,25 @@ def test_an_object_whose_fit_fails_fails_alone():
     (cost_b, _, _), (cost_p, P, _) = fit_multi([broken, p], DEFAULT_CAMERA)
     assert not np.isfinite(cost_b).any() and np.isfinite(cost_p).all()
     np.testing.assert_allclose(P, fit_multi([p], DEFAULT_CAMERA)[0][1], atol=1e-12)
+
+
+def test_an_error_inside_the_batch_falls_back_to_each_object_alone(monkeypatch):
+    """The batch's arithmetic raising: each object is fitted alone, and only the one that
+    raises again fails."""
+    import spdslam.frontend._initialization as init_mod
+
+    real = init_mod.fit_multi
+
+    def fragile(problems, camera):
+        if len(problems) > 1 or problems[0].prior_w > 0:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(problems, camera)
+
+    monkeypatch.setattr(init_mod, "fit_multi", fragile)
+    e = upright_ellipsoid()
+    poses = ring_of_views(np.asarray(e.center), n=6)
+    boxes = np.stack([np.asarray(project_box(e, T, DEFAULT_CAMERA)) for T in poses])
+    got = multi_initialize_batch([(boxes, poses, None, MultiFit()), (boxes, poses, None, MultiFit((0.6, 0.35, 0.3)))],
+                                 DEFAULT_CAMERA, [0, 0, 1])
+    np.testing.assert_allclose(got[0].P, e.P, atol=1e-4)
+    assert isinstance(got[1], np.linalg.LinAlgError)

@@ -247,7 +247,20 @@ def multi_initialize_batch(objects, camera: Camera, up, min_views: int = 2) -> l
             where.append(i)
         except (ValueError, ArithmeticError) as e:  # this object only (InitializationError among them)
             out[i] = e
-    for i, (costs, Ps, centers) in zip(where, fit_multi(problems, camera)):
+    try:
+        fits: list = fit_multi(problems, camera)
+    except (ValueError, ArithmeticError):  # each alone, so that an object's error stays its own
+        fits = []
+        for p in problems:
+            try:
+                fits.append(fit_multi([p], camera)[0])
+            except (ValueError, ArithmeticError) as e:
+                fits.append(e)
+    for i, fitted in zip(where, fits):
+        if isinstance(fitted, Exception):
+            out[i] = fitted
+            continue
+        costs, Ps, centers = fitted
         if not np.any(np.isfinite(costs)):
             out[i] = InitializationError("the constrained fit diverged from every start")
             continue
