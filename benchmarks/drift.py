@@ -31,11 +31,13 @@ m per step and half that in rad), seeds of ``--room-seeds``, with the detector's
 truncation=True``) and without instance ids; with ``--room-bias PX`` each object's boxes are
 shifted by one offset (σ PX per coordinate, drawn per object) in every view: a detector's bias,
 shared over an object's views, as real boxes have it (the refinement by the boxes must not
-follow it).
+follow it). ``--start-jitter EPS`` multiplies every multi-constraint start θ by 1 + EPS (the
+front end's ``_multi_starts``): how far a row moves under a change of round-off's size.
 
     python3 benchmarks/drift.py [--recordings fr2,office] [--rates 0.0005:0.025,0.001:0.05,0.003:0.15]
         [--seeds 0,1,2] [--online] [--background] [--realtime] [--compare input] [--rooms/--no-rooms]
-        [--submap-seconds 5] [--localize] [--room-bias PX] [--out FILE] [--against EARLIER.json]
+        [--submap-seconds 5] [--localize] [--room-bias PX] [--start-jitter EPS] [--out FILE]
+        [--against EARLIER.json]
 
 ``--submap-seconds 2.5,5,10``: every recording row again with the loop closure's submaps of
 each length (``LOOP_SUBMAP_SECONDS``), the rows then named by it: how the loops' registration
@@ -280,6 +282,8 @@ def main() -> None:
                     help="px: each object's boxes shifted by one offset of this σ per coordinate in every view")
     ap.add_argument("--room-failures", action=argparse.BooleanOptionalAction, default=True,
                     help="outliers 0.1, missed 0.1 and truncation")
+    ap.add_argument("--start-jitter", type=float, default=0.0,
+                    help="multiply each multi-constraint start by 1 + this (round-off's sensitivity)")
     ap.add_argument("--localize", action="store_true", help="instead, the office's last quarter localised against "
                     "its first")
     ap.add_argument("--out", type=Path)
@@ -287,6 +291,8 @@ def main() -> None:
                     "row there (a refactoring's check: the same to 1e-9)")
     a = ap.parse_args()
     settings = RunSettings.of("multi-spd")
+    if a.start_jitter:
+        jitter_starts(a.start_jitter)
     if a.localize:
         return write_out(a, {"localize": localize_study(a, settings)})
     rooms: list = []
@@ -308,7 +314,8 @@ def main() -> None:
     exact = [r for r in rows + rooms if r["ate_input_mm"] < EXACT_MM]
     worst = max([r["ratio"] for r in rows + rooms if r not in exact] or [float("nan")])
     print(f"worst ratio to the input's ATE: {worst:.3f}")
-    doc = {"recordings": rows, "rooms": rooms, "worst_ratio": worst}
+    doc = {"recordings": rows, "rooms": rooms, "worst_ratio": worst,
+           **({"start_jitter": a.start_jitter} if a.start_jitter else {})}
     if exact:
         doc["worst_difference_mm_at_exact_input"] = max(r["ate_mm"] - r["ate_input_mm"] for r in exact)
         print(f"rows whose input is the ground truth (ATE below {EXACT_MM} mm): {len(exact)}, the run's ATE "
@@ -316,6 +323,18 @@ def main() -> None:
     if a.against:
         doc["against"] = {"file": str(a.against), **compare_rows(rows + rooms, json.loads(a.against.read_text()))}
     write_out(a, doc)
+
+
+def jitter_starts(eps: float) -> None:
+    """Every multi-constraint start θ times 1 + ``eps`` from now on (``--start-jitter``)."""
+    import spdslam.frontend._initialization as init_mod
+
+    real = init_mod._multi_starts
+
+    def jittered(*args, **kwargs):
+        return [list(np.asarray(s, dtype=float) * (1.0 + eps)) for s in real(*args, **kwargs)]
+
+    init_mod._multi_starts = jittered
 
 
 def biased(room, px: float, seed: int):
