@@ -394,3 +394,22 @@ def test_sorted_axes_of_a_batch(n):
         Rk, sk = (np.asarray(a) for a in sorted_axes(P[k]))
         np.testing.assert_allclose(Rb[k], Rk, atol=1e-12)
         np.testing.assert_allclose(sb[k], sk, atol=1e-12)
+
+
+def test_sorted_axes_in_numpy_equal_jax_to_the_bit():
+    """A NumPy P takes NumPy's path (what map.json's writer uses: nothing to compile); it is
+    the same LAPACK decomposition as JAX's, so the axes are the same to the bit, ties too."""
+    import jax.numpy as jnp
+
+    from spdslam.geometry import sorted_axes
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(200, 3, 3))
+    P = np.concatenate([A @ np.swapaxes(A, 1, 2) + 0.01 * np.eye(3),
+                        np.stack([np.diag([1.0, 1.0, 2.0]), np.eye(3), np.diag([3.0, 2.0, 2.0])])])
+    R, s = sorted_axes(P)
+    assert isinstance(R, np.ndarray) and isinstance(s, np.ndarray)
+    Rj, sj = sorted_axes(jnp.asarray(P))
+    np.testing.assert_array_equal(R, np.asarray(Rj))
+    np.testing.assert_array_equal(s, np.asarray(sj))
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)

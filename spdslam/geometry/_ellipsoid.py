@@ -68,7 +68,13 @@ def _rotation_matrix(rotation):
 
 def sorted_axes(P):
     """(R, s) of shape matrices P (…, 3, 3): columns of R are the axes, s₁ ≥ s₂ ≥ s₃,
-    det R = +1 (JAX)."""
+    det R = +1 (NumPy for a NumPy P, the same LAPACK decomposition as JAX's; else JAX)."""
+    if isinstance(P, np.ndarray):
+        w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, -1, -2)))
+        R = V[..., :, ::-1].copy()
+        det = np.linalg.det(R)
+        R[..., :, 2] *= (np.sign(det) + (det == 0))[..., None]
+        return R, np.sqrt(np.maximum(w[..., ::-1], 0.0))
     w, V = eigh(P)
     s = jnp.sqrt(jnp.maximum(w[..., ::-1], 0.0))
     R = V[..., :, ::-1]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import Ellipsoid
+from ..geometry import Ellipsoid, sorted_axes
 from ._json import dumps_strict
 from ._parse import SequenceFormatError, read_text
 
@@ -76,7 +76,7 @@ class MapObject:
     observed_by: tuple | None = None
 
     def as_dict(self) -> dict:
-        R, s = (np.asarray(a) for a in self.ellipsoid.axes())
+        R, s = sorted_axes(np.asarray(self.ellipsoid.to_ellipsoid().P, dtype=float))  # NumPy: nothing to compile
         out = {
             "id": int(self.id),
             "label": self.label,
