@@ -65,15 +65,7 @@ def to_matrix(T) -> np.ndarray:
 
 
 def from_tum(values) -> jaxlie.SE3:
-    """Pose(s) from TUM fields ``tx ty tz qx qy qz qw`` (shape (..., 7)); quaternions are normalised.
-    Host values are normalised on the host (nothing to compile), with the JAX path's rounding:
-    its sum of squares in the order (x² + z²) + (y² + w²), its division a multiplication by
-    the reciprocal (the same poses to the bit, ``tests/test_se3.py``)."""
-    if isinstance(values, (np.ndarray, list, tuple)):
-        h = np.asarray(values, dtype=float)
-        sq = h[..., 3:7] * h[..., 3:7]
-        q = h[..., 3:7] * (1.0 / np.sqrt((sq[..., 0:1] + sq[..., 2:3]) + (sq[..., 1:2] + sq[..., 3:4])))
-        return jaxlie.SE3(jnp.asarray(np.concatenate([q[..., 3:4], q[..., :3], h[..., :3]], axis=-1)))
+    """Pose(s) from TUM fields ``tx ty tz qx qy qz qw`` (shape (..., 7)); quaternions are normalised."""
     v = jnp.asarray(values, dtype=float)
     q_xyzw = v[..., 3:7]
     q = q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True)
