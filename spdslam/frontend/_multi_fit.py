@@ -211,7 +211,7 @@ def _cuboid_boxes(b: _Batch, R, r, t, d):
     box = np.stack([pick(u, iu0), pick(v, iv0), pick(u, iu1), pick(v, iv1)], -1) - b.boxes
     if d is None:
         return box, None
-    dP_unused, dt, dR, dr = d
+    _, dt, dR, dr = d
     dH = dR * r[:, None, None, :] + R[:, None] * dr[:, :, None, :]
     dX = dt[:, :, None, :] + np.einsum("bqij,cj->bqci", dH, _SIGNS)  # (B, 9, 8, 3)
     dp = np.einsum("bkij,bqcj->bkcqi", b.A, dX)  # (B, K, 8, 9, 3)
