@@ -236,7 +236,7 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
     for tr in tracks:
         Ts = [ctx.poses[i] for i in tr.frames]
         if len(tr.frames) < min_views:
-            failed[tr.id] = too_few_views(len(tr.frames), min_views)
+            fitted[tr.id] = InitializationError(too_few_views(len(tr.frames), min_views))
             continue
         try:
             if use_multi:
@@ -259,10 +259,8 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
     if multi:
         got = multi_initialize_batch([m for _, m in multi], ctx.camera, ctx.up)
         fitted.update(zip([i for i, _ in multi], got))
-    for tr in tracks:  # in the tracks' order
-        e = fitted.get(tr.id)
-        if e is None:
-            continue
+    for tr in tracks:  # in the tracks' order, failures too
+        e = fitted[tr.id]
         if isinstance(e, InitializationError):
             failed[tr.id] = str(e)
             continue
