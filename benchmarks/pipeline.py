@@ -18,7 +18,9 @@ screening, association, initialisation, graph (every ``build_graph``), each opti
 (``Optimizer.optimize``; the first includes tracing and compilation), of which the first
 linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls),
 uncertainty, write (the run folder: map.json, report, figures) and the whole process (wall).
-The older commit runs in a ``git worktree`` removed afterwards; the two checkouts alternate,
+The older commit runs in a ``git worktree`` removed afterwards; both checkouts' modules are
+compiled to bytecode first (as ``install.sh`` does), so that neither pays Python's compiler
+where ``PYTHONDONTWRITEBYTECODE`` is set; the two checkouts alternate,
 ``--repeats`` times each, and the table gives medians and the ratio. ``--tables`` prints the
 tables of an earlier ``--out`` file again. Before them, ``spdslam --help`` and ``spdslam run
 --help`` are timed the same way (wall time of a fresh process, median of ``--help-repeats``).
@@ -263,6 +265,9 @@ def main() -> None:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(wt), args.against],
                            check=True, capture_output=True)
             checkouts[args.against] = wt
+        for path in checkouts.values():  # both as install.sh leaves them: modules compiled to bytecode
+            subprocess.run([sys.executable, "-m", "compileall", "-q", str(path / "spdslam")], check=True,
+                           capture_output=True)
         helps: dict = {}
         if args.help_repeats:
             for label, cli in (("spdslam --help", ["--help"]), ("spdslam run --help", ["run", "--help"])):
