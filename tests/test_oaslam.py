@@ -50,6 +50,25 @@ def test_undistortion_inverts_the_radial_tangential_model():
     np.testing.assert_array_equal(q[2, 4097], undistort_points(many[2, 4097], CAM, DIST))
 
 
+def test_undistortion_sets_aside_settled_points_without_changing_a_bit(monkeypatch):
+    """Pruning the points a step leaves in place gives the same bits as every step on every
+    point, for any number of steps, with diverging and non-finite points among them."""
+    import spdslam.geometry._camera as camera_module
+
+    rng = np.random.default_rng(3)
+    uv = np.concatenate([rng.uniform([-40, -40], [680, 520], size=(20000, 2)),
+                         [[1e6, 1e6], [np.nan, 3.0], [np.inf, 0.0], [-3e4, 2e4]]])
+    heavy = (0.9, -2.5, 0.01, -0.02, 4.0)  # diverges in the corners
+    for steps in (1, 8, 9, 12, 13, 20, 30):
+        for d in (DIST, heavy):
+            pruned = undistort_points(uv, CAM, d, iterations=steps)
+            with monkeypatch.context() as m:
+                m.setattr(camera_module, "_UNDISTORT_PRUNE", ())
+                full = undistort_points(uv, CAM, d, iterations=steps)
+            np.testing.assert_array_equal(pruned, full)
+    assert camera_module._UNDISTORT_PRUNE  # the default prunes
+
+
 def test_undistorted_box_encloses_the_pinhole_outline_of_what_the_box_bounds():
     """Points inside a distorted box undistort to points inside the undistorted box."""
     box = np.array([20.0, 30.0, 250.0, 200.0])

@@ -358,12 +358,7 @@ def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
         yd = (part[:, 1] - camera.cy) / camera.fy
         x, y = xd.copy(), yd.copy()
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            for _ in range(iterations):
-                r2 = x * x + y * y
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-                dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-                x, y = (xd - dx) / radial, (yd - dy) / radial
+            _fixed_point(x, y, xd, yd, (k1, k2, p1, p2, k3), iterations)
         out[a : a + _UNDISTORT_CHUNK, 0] = camera.fx * x + camera.cx
         out[a : a + _UNDISTORT_CHUNK, 1] = camera.fy * y + camera.cy
     return out.reshape(uv.shape)
@@ -371,6 +366,40 @@ def undistort_points(uv, camera: Camera, distortion, iterations: int = 20):
 
 #: Points ``undistort_points`` iterates on together.
 _UNDISTORT_CHUNK = 16384
+
+#: Steps after which ``_fixed_point`` sets aside the points that no longer move.
+_UNDISTORT_PRUNE = (8, 12)
+
+
+def _fixed_point(x, y, xd, yd, coefficients, iterations: int) -> None:
+    """``iterations`` steps x ← (x_d − Δx(x, y)) / radial(x, y) (y alike) in place. A point
+    that a step leaves exactly where it was is at the map's fixed point and stays there, so
+    after the steps in ``_UNDISTORT_PRUNE`` only the points that still move are iterated:
+    the same result, to the bit, as every step on every point."""
+    k1, k2, p1, p2, k3 = coefficients
+    idx = None  # the points still iterated (None: all)
+    xs, ys, xds, yds = x, y, xd, yd
+    for it in range(iterations):
+        r2 = xs * xs + ys * ys
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2.0 * p1 * xs * ys + p2 * (r2 + 2.0 * xs * xs)
+        dy = p1 * (r2 + 2.0 * ys * ys) + 2.0 * p2 * xs * ys
+        xn, yn = (xds - dx) / radial, (yds - dy) / radial
+        if it in _UNDISTORT_PRUNE and it < iterations - 1:
+            moving = ~((xn == xs) & (yn == ys))
+            if idx is None:
+                x[:], y[:] = xn, yn
+                idx = np.flatnonzero(moving)
+            else:
+                x[idx], y[idx] = xn, yn
+                idx = idx[moving]
+            xs, ys, xds, yds = x[idx], y[idx], xd[idx], yd[idx]
+            continue
+        xs, ys = xn, yn
+    if idx is None:
+        x[:], y[:] = xs, ys
+    else:
+        x[idx], y[idx] = xs, ys
 
 
 def distort_points(uv, camera: Camera, distortion):
