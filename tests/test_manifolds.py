@@ -433,3 +433,25 @@ def test_every_manifold_declares_blocks_that_tile_its_tangent_space():
     with pytest.raises(ValueError, match="sum to tangent_dim"):
         manifold.register(type("Bad", (), {}), tangent_dim=3, retract=None, local=None,
                           blocks=(2, 2))
+
+
+def test_from_tum_slices_on_the_host_and_rounds_as_xla():
+    """``from_tum`` of host rows: the same bits as the eager JAX operations it replaced (XLA's
+    norm and division, the slicing and concatenation exact), in any shape; a traced call agrees
+    to round-off."""
+    from spdslam.geometry.se3 import from_tum
+
+    def eager(values):
+        v = jnp.asarray(values, dtype=float)
+        q = v[..., 3:7] / jnp.linalg.norm(v[..., 3:7], axis=-1, keepdims=True)
+        return jaxlie.SE3.from_rotation_and_translation(
+            jaxlie.SO3(jnp.concatenate([q[..., 3:4], q[..., :3]], axis=-1)), v[..., :3])
+
+    rng = np.random.default_rng(5)
+    for shape in [(7,), (1, 7), (3, 7), (8, 7), (400, 7), (2893, 7), (2, 5, 7)]:
+        v = rng.normal(size=shape) * rng.uniform(0.01, 100.0)
+        got = from_tum(v)
+        assert isinstance(got.wxyz_xyz, jax.Array)
+        np.testing.assert_array_equal(np.asarray(got.wxyz_xyz), np.asarray(eager(v).wxyz_xyz))
+        np.testing.assert_allclose(np.asarray(jax.jit(from_tum)(v).wxyz_xyz), np.asarray(got.wxyz_xyz),
+                                   rtol=1e-15, atol=1e-15)

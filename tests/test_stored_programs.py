@@ -122,6 +122,40 @@ def test_a_pose_graph_traces_no_group_program_at_all(store, monkeypatch):
     assert result.final_cost < 1e-12
 
 
+def test_a_box_problem_runs_no_xla_program_at_all(monkeypatch):
+    """Building and optimising poses and an ellipsoid under box factors and odometry (the
+    closed forms) instantiates no XLA program, not even one loaded from the cache: the host
+    arrays go to the device by transfer (``jnp.asarray`` of one runs a program per shape, and
+    with an empty cache compiles it)."""
+    import jax
+    import jax._src.compiler as compiler
+
+    from spdslam.factors import Cauchy, InverseBoxFactor
+    from spdslam.geometry import Camera, Ellipsoid, look_at, project_box
+    from spdslam.solver import L
+
+    cam = Camera(fx=520.0, fy=520.0, cx=320.0, cy=240.0, width=640.0, height=480.0)
+    rng = np.random.default_rng(0)
+    lm = Ellipsoid.from_axes(np.eye(3), np.array([0.0, 0.0, 0.5]), np.array([0.3, 0.2, 0.1]))
+    poses = [look_at(np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.5]), np.array([0.0, 0.0, 0.5]))
+             for a in np.linspace(0.0, 1.2, 8)]
+    boxes = np.array([np.asarray(project_box(lm, T, cam)) for T in poses]) + rng.normal(scale=1.0, size=(8, 4))
+    graph = NonlinearFactorGraph([PriorFactor(X(0), poses[0], sigma=0.01)] + [
+        BetweenFactor(X(i), X(i + 1), poses[i].inverse() @ poses[i + 1], sigma=0.05) for i in range(7)])
+    graph.add(InverseBoxFactor.many([X(i) for i in range(8)], [L(0)] * 8, boxes, cam, sigma=2.0, robust=Cauchy(1.0)))
+    values = Values({X(i): poses[i] for i in range(8)})
+    values.insert(L(0), Ellipsoid.from_axes(np.eye(3), np.array([0.05, 0.0, 0.45]), np.array([0.25, 0.25, 0.12])))
+    jax.clear_caches()  # as a new process
+    programs = []
+    instantiate = compiler.compile_or_get_cached
+    monkeypatch.setattr(compiler, "compile_or_get_cached", lambda *a, **k: programs.append(1) or instantiate(*a, **k))
+    result = LevenbergMarquardt().optimize(graph, values)
+    assert result.final_cost < 0.5 * result.initial_cost
+    assert programs == []
+    jax.numpy.asarray(np.arange(3.0) + 1e-3)  # the count sees a program when one runs
+    assert programs
+
+
 _PROCESS = """
 import sys
 import numpy as np

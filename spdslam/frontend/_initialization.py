@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -265,7 +266,7 @@ def multi_initialize_batch(objects, camera: Camera, up, min_views: int = 2) -> l
             out[i] = InitializationError("the constrained fit diverged from every start")
             continue
         best = int(np.nanargmin(np.where(np.isfinite(costs), costs, np.nan)))
-        out[i] = Ellipsoid(jnp.asarray(Ps[best]), jnp.asarray(centers[best]))
+        out[i] = Ellipsoid(jax.device_put(Ps[best]), jax.device_put(centers[best]))  # no program to run
     return out
 
 

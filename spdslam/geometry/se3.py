@@ -15,6 +15,7 @@ operation to round-off (tests/test_se3.py).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -66,11 +67,18 @@ def to_matrix(T) -> np.ndarray:
 
 def from_tum(values) -> jaxlie.SE3:
     """Pose(s) from TUM fields ``tx ty tz qx qy qz qw`` (shape (..., 7)); quaternions are normalised."""
-    v = jnp.asarray(values, dtype=float)
-    q_xyzw = v[..., 3:7]
-    q = q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True)
-    wxyz = jnp.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
-    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3(wxyz), v[..., :3])
+    if isinstance(values, jax.core.Tracer):  # inside a traced function
+        v = jnp.asarray(values, dtype=float)
+        q_xyzw = v[..., 3:7]
+        q = q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True)
+        wxyz = jnp.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+        return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3(wxyz), v[..., :3])
+    # the slicing and concatenation (exact) on the host; the norm and the division in XLA,
+    # whose rounding the results so far carry (NumPy's differs in the last bit)
+    v = np.asarray(values, dtype=float)
+    q_xyzw = jax.device_put(np.ascontiguousarray(v[..., 3:7]))
+    q = np.asarray(q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True))
+    return jaxlie.SE3(jax.device_put(np.concatenate([q[..., 3:4], q[..., :3], v[..., :3]], axis=-1)))
 
 
 def to_tum(T) -> np.ndarray:

@@ -200,6 +200,12 @@ def _residual_dim(f0, gb: _GroupBuild, values: list, layouts: list) -> int:
     return m
 
 
+def _on_device(a) -> jax.Array:
+    """``a`` as a JAX array: a host array is transferred (``jax.device_put``; ``jnp.asarray``
+    would run, and with an empty cache compile, a program per shape), a JAX array kept."""
+    return a if isinstance(a, jax.Array) else jax.device_put(np.asarray(a))
+
+
 def _pad_rows(a: np.ndarray, total: int) -> np.ndarray:
     """Append copies of row 0 up to ``total`` rows."""
     if len(a) == total:
@@ -401,7 +407,7 @@ def _host_retraction(ts: _TypeSpec):
         xh = jax.tree.map(np.asarray, x)
         y = host(xh, np.asarray(d, dtype=float))
         keep = np.asarray(fr)
-        return jax.tree.map(lambda a, b: jnp.asarray(np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)),
+        return jax.tree.map(lambda a, b: _on_device(np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)),
                             y, xh)
 
     return retract
@@ -666,7 +672,7 @@ class Problem:
         self.vars = tuple(
             jax.tree.unflatten(
                 td,
-                [jnp.asarray(_pad_rows(np.stack([np.asarray(lv[j]) for lv in leaves]), npad))
+                [_on_device(_pad_rows(np.stack([np.asarray(lv[j]) for lv in leaves]), npad))
                  for j in range(td.num_leaves)],
             )
             for td, leaves, npad in zip(t_treedef, t_leaves, nv_pad)
@@ -693,7 +699,7 @@ class Problem:
             off = np.concatenate([off, np.full(npad - len(off), -1)])
             tan = off[:, None] + np.arange(ts.dim)
             self.tan_idx.append(np.where(off[:, None] >= 0, tan, n))
-            free_j.append(jnp.asarray(off >= 0))
+            free_j.append(_on_device(off >= 0))
         self.free_j = tuple(free_j)
 
         # --- factor groups -------------------------------------------------------------
@@ -728,8 +734,8 @@ class Problem:
             fids, idx, stacked, W, kinds = gb.arrays()
             nf = len(fids)
             nf_pad = bucket(nf, rows.get(f0.kind, 8))
-            leaves = [jnp.asarray(_pad_rows(a, nf_pad)) for a in stacked]
-            W = jnp.asarray(_pad_rows(W, nf_pad)) if spec.has_sqrt_info else None
+            leaves = [_on_device(_pad_rows(a, nf_pad)) for a in stacked]
+            W = _on_device(_pad_rows(W, nf_pad)) if spec.has_sqrt_info else None
             mask = np.arange(nf_pad) < nf
             # global tangent index of each local coordinate, -1 where fixed
             cols = []
@@ -740,7 +746,7 @@ class Problem:
             G = np.concatenate(cols, axis=1)
             gspecs.append(spec)
             gdata.append((leaves, W))
-            gidx.append((_pad_rows(idx, nf_pad), jnp.asarray(mask)))
+            gidx.append((_pad_rows(idx, nf_pad), _on_device(mask)))
             self.group_fids.append(fids)
             self.group_kinds.append(kinds)
             self.group_cols.append(G)
