@@ -158,6 +158,31 @@ def test_a_problem_linearises_alike_with_and_without_the_closed_forms(gen, behin
     assert np.allclose(np.asarray(J1), np.asarray(J0), atol=1e-8)
 
 
+def test_residual_dimensions_come_from_the_closed_forms_without_tracing(gen, monkeypatch):
+    """With the closed forms a problem of box factors and odometry learns each group's
+    residual dimension from its closed form's residual of one row (NumPy), tracing nothing;
+    the dimensions are ``jax.eval_shape``'s."""
+    from spdslam.factors import BetweenFactor, PriorFactor
+    from spdslam.solver import _problem
+
+    graph, values = _graph(gen)
+    graph.add(PriorFactor(X(0), values[X(0)], sigma=0.1))
+    graph.add(BetweenFactor(X(0), X(1), values[X(0)].inverse() @ values[X(1)], sigma=0.1))
+    traced = []
+    eval_shape = jax.eval_shape
+    monkeypatch.setattr(jax, "eval_shape", lambda *a, **k: traced.append(a[0]) or eval_shape(*a, **k))
+    monkeypatch.setattr(_problem, "_RESIDUAL_DIM", {})
+    Problem(graph, values)
+    assert traced == []
+    dims = dict(_problem._RESIDUAL_DIM)
+    assert sorted(dims.values()) == [4, 6, 6]
+    monkeypatch.setattr(_problem, "_RESIDUAL_DIM", {})
+    with closed_forms(False):
+        Problem(graph, values)
+    assert len(traced) == 3
+    assert _problem._RESIDUAL_DIM == dims
+
+
 def _random_poses(gen, n, scale):
     """n poses Exp(ξ), ξ ~ N(0, scale²) per coordinate."""
     return jaxlie.SE3.exp(jnp.asarray(gen.rng.normal(size=(n, 6)) * scale))

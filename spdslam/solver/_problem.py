@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..factors import CustomFactor, FactorBatch, RobustKernel
+from ..factors import CustomFactor, FactorBatch, RobustKernel, closed_form
 from ..geometry import manifold
 from ._closed_form import ClosedFormGroup, closed_form_of, closed_forms_enabled
 from ._linearize import (
@@ -184,16 +184,24 @@ _RESIDUAL_DIM: dict[Any, int] = {}
 
 
 def _residual_dim(f0, gb: _GroupBuild, values: list, layouts: list) -> int:
-    """The residual dimension of group ``gb`` (``jax.eval_shape`` of its first factor
-    ``f0``), traced once per signature and variable layouts."""
+    """The residual dimension of group ``gb``: its closed form's residual of the first factor
+    ``f0`` (NumPy), else ``jax.eval_shape`` of it; once per signature and variable layouts."""
     key = (gb.sig[0], gb.sig[2], gb.sig[3], tuple(layouts))
     m = _RESIDUAL_DIM.get(key)
     if m is None:
+        cf = closed_form(f0.residual, f0.valid, tuple(layout[0] for layout in layouts))
         try:
-            out = jax.eval_shape(f0.residual, *values, *f0.args)
+            if cf is not None and closed_forms_enabled():  # the closed form of one row: no tracing
+                leaves, treedef, _ = f0.flat_args()
+                rows = [jax.tree.map(lambda a: np.asarray(a)[None], v) for v in values]
+                with np.errstate(all="ignore"):
+                    r = cf.linearize(rows, [None] * len(rows), treedef.unflatten([a[None] for a in leaves]), False)[0]
+                m = int(np.prod(np.shape(r)[1:]))
+            else:
+                out = jax.eval_shape(f0.residual, *values, *f0.args)
+                m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
         except Exception as e:
             raise ValueError(f"{_describe(f0, gb.first)}: residual failed: {e}") from e
-        m = int(np.prod(out.shape)) if hasattr(out, "shape") else 1
         if len(_RESIDUAL_DIM) > 4096:  # ad-hoc residuals (closures) must not pile up
             _RESIDUAL_DIM.clear()
         _RESIDUAL_DIM[key] = m
