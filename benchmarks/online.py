@@ -17,8 +17,11 @@ long synthetic room, against the batch map.
    the frames seen; the fitted exponent b of (mean time per frame over a block of frames) ∝
    (frames seen)^b over ``--blocks`` log-spaced blocks after the first ``--warmup`` frames
    (b ≈ 0: the cost per frame does not grow); after frame ``SETTLED`` (1 500) the slowest
-   frames, how many exceed 100 and 300 ms, and the growth of resident memory. The first
-   replay's blocks include the
+   frames, how many exceed 100 and 300 ms, the growth of resident memory, and Python's
+   garbage collector's full passes (generation 2: how many, the longest, in how many of the
+   5 slowest frames one ran); ``--freeze-gc``: ``gc.collect(); gc.freeze()`` before each
+   replay (docs/online.md, "Pauses of the garbage collector"). The first replay's blocks
+   include the
    compilations, which happen when the problem outgrows its padded shapes (a one-off cost,
    not one that grows with the frames).
 
@@ -33,12 +36,14 @@ long synthetic room, against the batch map.
 
     python3 benchmarks/online.py [--out benchmarks/results/online.json]
     python3 benchmarks/online.py --skip-fr2 --room-frames 2000
+    python3 benchmarks/online.py --skip-fr2 --room-frames 30000 --seeds "" [--freeze-gc]
     python3 benchmarks/online.py --live --skip-fr2 --skip-room --seeds ""
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import sys
@@ -215,14 +220,32 @@ def room(args) -> dict:
     for rep in ("first", "second"):
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
                          every=args.every, iterations=args.iterations, initial_poses="input")
+        if args.freeze_gc:  # docs/online.md: the objects alive now out of every full collection
+            gc.collect()
+            gc.freeze()
+        collections: list = []  # the collector's full passes: (start, seconds)
+        began: list = []
+
+        def watch(phase, info):
+            if info["generation"] == 2:
+                if phase == "start":
+                    began.append(time.perf_counter())
+                else:
+                    collections.append((began[-1], time.perf_counter() - began[-1]))
+
+        gc.callbacks.append(watch)
         t0 = time.perf_counter()
         rss_settled = None
+        starts = np.empty(len(seq))
         for i in range(len(seq)):
+            starts[i] = time.perf_counter()
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
             if i == SETTLED:
                 rss_settled = rss_mb()
         wall = time.perf_counter() - t0
         rss_end = rss_mb()
+        gc.callbacks.remove(watch)
+        gc.unfreeze()
         sec = np.array([r.seconds for r in m.records])
         late = sec[SETTLED:]
         slowest = np.argsort(late)[::-1][:5] + SETTLED
@@ -233,12 +256,16 @@ def room(args) -> dict:
                 mid.append(np.sqrt(a * b))
                 mean.append(sec[a:b].mean())
         b_exp, _ = np.polyfit(np.log(mid), np.log(mean), 1)
-        r = dict(frames=len(seq), objects=args.room_objects, detections=len(seq.detections),
+        r = dict(frames=len(seq), objects=args.room_objects, detections=len(seq.detections), freeze_gc=args.freeze_gc,
                  wall_s=wall, median_ms=1e3 * float(np.median(sec)), p99_ms=1e3 * float(np.percentile(sec, 99)),
                  exponent=float(b_exp), objects_mapped=len(m.landmarks),
                  max_ms_after_settled=1e3 * float(late.max()) if late.size else None,
                  over_300ms_after_settled=int((late > 0.3).sum()), over_100ms_after_settled=int((late > 0.1).sum()),
                  slowest_after_settled=[(int(k), 1e3 * float(sec[k])) for k in slowest],
+                 full_collections=len(collections),
+                 full_collection_max_ms=1e3 * max([d for _, d in collections] or [0.0]),
+                 slowest_with_a_full_collection=int(sum(any(starts[k] <= t0_ <= starts[k] + sec[k]
+                                                            for t0_, _ in collections) for k in slowest)),
                  rss_mb_settled=rss_settled, rss_mb_end=rss_end,
                  blocks=[dict(frames=float(x), mean_ms=1e3 * float(y)) for x, y in zip(mid, mean)])
         out[rep + "_replay"] = r
@@ -251,7 +278,9 @@ def room(args) -> dict:
             print(f"  after frame {SETTLED}: max {r['max_ms_after_settled']:.4g} ms, "
                   f"{r['over_300ms_after_settled']} frames over 300 ms, {r['over_100ms_after_settled']} over 100 ms; "
                   f"slowest {', '.join(f'{k}: {v:.0f} ms' for k, v in r['slowest_after_settled'])}; "
-                  f"resident memory {rss_settled} → {rss_end} MB ({grow})", flush=True)
+                  f"resident memory {rss_settled} → {rss_end} MB ({grow}); the collector's full passes: "
+                  f"{r['full_collections']}, at most {r['full_collection_max_ms']:.0f} ms, in "
+                  f"{r['slowest_with_a_full_collection']} of the 5 slowest frames", flush=True)
         for blk in r["blocks"]:
             print(f"  around frame {blk['frames']:7.0f}: {blk['mean_ms']:.3g} ms per frame")
     return out
@@ -273,6 +302,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=lambda t: [int(x) for x in t.split(",") if x.strip()],
                     default=[0, 1, 2, 3, 4], help="Demo rooms ('' for none).")
     ap.add_argument("--live", action="store_true", help="fr2_desk as a robot runs it (part 4)")
+    ap.add_argument("--freeze-gc", action="store_true",
+                    help="the room: gc.freeze() before each replay, as docs/online.md recommends for a long run")
     ap.add_argument("--live-modes", type=lambda t: [x for x in t.split(",") if x], default=["background"],
                     help="background and/or inline")
     ap.add_argument("--live-child", default=None, help=argparse.SUPPRESS)

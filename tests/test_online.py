@@ -5,6 +5,7 @@ and the input it refuses (frames out of order, duplicate timestamps, …)."""
 from __future__ import annotations
 
 import csv
+import gc
 import threading
 import time
 
@@ -317,8 +318,14 @@ def test_run_online_cli_writes_the_batch_outputs_and_the_latency(tmp_path, room)
     seq_dir = tmp_path / "room"
     write_sequence(room, seq_dir)
     out = tmp_path / "out"
-    r = cli_invoke("run", str(seq_dir), "--online", "--out", str(out), "--no-overlay")
+    gc.unfreeze()
+    try:
+        r = cli_invoke("run", str(seq_dir), "--online", "--out", str(out), "--no-overlay")
+        frozen = gc.get_freeze_count()  # the process is the mapper's: its long-lived objects frozen
+    finally:
+        gc.unfreeze()
     assert_cli_ok(r)
+    assert frozen > 1000
     assert "online: 90 frames, time per frame median" in r.stdout
     for name in ("map.json", "trajectory.txt", "map_top.png", "report.md", "metrics.json",
                  "latency.csv", "latency.png"):

@@ -3,6 +3,7 @@ saved map's frame, and recordings merged into one map."""
 
 from __future__ import annotations
 
+import gc
 import math
 from pathlib import Path
 
@@ -105,6 +106,9 @@ def run(
     if rerun is not None:
         check_recording(rerun, "--rerun")
     seq = load_sequence(sequence, options)
+    if online:  # the process is the mapper's: what lives now (JAX, the sequence) leaves the
+        gc.collect()  # collector's full passes, which would pause a frame (docs/online.md)
+        gc.freeze()
     result, metrics = run_and_write(seq, settings, out, overwrite, overlay, source=sequence)
     if rerun is not None:
         write_recording_file(rerun, "--rerun", result.objects, result.poses_tum, seq,
