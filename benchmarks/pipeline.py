@@ -17,7 +17,9 @@ inclusive (a stage's inner stages are part of it): import (``import spdslam.cli`
 screening, association, initialisation, graph (every ``build_graph``), each optimisation
 (``Optimizer.optimize``; the first includes tracing and compilation), of which the first
 linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls),
-uncertainty, write (the run folder: map.json, report, figures) and the whole process (wall).
+uncertainty, write (the run folder: map.json, report, figures), the XLA programs compiled or
+loaded from the cache (``jax._src.compiler.compile_or_get_cached``: seconds, and their
+number) and the whole process (wall).
 The older commit runs in a ``git worktree`` removed afterwards; both checkouts' modules are
 compiled to bytecode first (as ``install.sh`` does), so that neither pays Python's compiler
 where ``PYTHONDONTWRITEBYTECODE`` is set; the two checkouts alternate,
@@ -63,6 +65,7 @@ STAGES = [
     ("uncertainty", [("spdslam.mapping._run", "object_uncertainty")]),
     ("write", [("spdslam.experiments._run_folder", "write_run"),
                ("spdslam.evaluation._report", "write_run")]),
+    ("XLA programs", [("jax._src.compiler", "compile_or_get_cached")]),
 ]
 
 #: The driver run in each measured process: argv = [stages.json, output.json, cli args…].
@@ -187,10 +190,13 @@ def summarise(recs: list) -> dict:
     optimisations also one by one, the linearisations as the first and the rest)."""
     out: dict = {}
     keys = ["import", "read", "screening", "association", "initialisation", "graph",
-            "optimisation", "sparsity pattern", "uncertainty", "write", "wall"]
+            "optimisation", "sparsity pattern", "uncertainty", "write", "XLA programs", "wall"]
     for k in keys:
         vals = [sum(r[k]) if isinstance(r.get(k), list) else r.get(k) for r in recs]
+        if k == "XLA programs":  # none compiled or loaded: no call recorded
+            vals = [v or 0.0 for v in vals]
         out[k] = statistics.median(vals) if all(v is not None for v in vals) else None
+    out["XLA programs (number)"] = statistics.median(len(r.get("XLA programs") or []) for r in recs)
     n_opt = min(len(r.get("optimisation", [])) for r in recs)
     for i in range(n_opt):
         out[f"optimisation {i + 1}"] = statistics.median(r["optimisation"][i] for r in recs)
