@@ -30,7 +30,8 @@ long synthetic room, against the batch map.
    warm-up, and the frames are added at the recording's own rate (``run_online(realtime=True)``):
    with the optimisations in the background (``online.background``) and, with
    ``--live-modes background,inline``, in line as well. Per replay: the time ``add_frame``
-   took (median, 99th percentile, maximum, frames over a 30 Hz camera's 33 ms) and the map's
+   took (median, 99th percentile, maximum, frames over a 30 Hz camera's 33 ms; ``--freeze-gc``:
+   ``gc.freeze()`` once the recording is read, as ``spdslam run --online`` does) and the map's
    lag (seconds from a frame's arrival to the first published map that used it: median,
    maximum), and the mean IoU after the final batch against the batch map's.
 
@@ -115,12 +116,16 @@ def fr2(args) -> dict:
     return out
 
 
-def live_child(mode: str, out: Path) -> None:
-    """One fresh process of ``--live`` (``mode``: warm, background or inline): figures to ``out``."""
+def live_child(mode: str, out: Path, freeze_gc: bool = False) -> None:
+    """One fresh process of ``--live`` (``mode``: warm, background or inline): figures to ``out``;
+    ``freeze_gc``: ``gc.freeze()`` once the recording is read (as ``spdslam run --online``)."""
     from spdslam.io import read_sequence
     from spdslam.mapping import run_online, run_sequence
 
     seq = read_sequence(FR2)
+    if freeze_gc and mode != "warm":
+        gc.collect()
+        gc.freeze()
     if mode == "warm":  # fill the disk cache for both paths, and the batch map's IoU
         batch = run_sequence(seq, "multi-spd")
         run_online(seq, "multi-spd")
@@ -135,6 +140,7 @@ def live_child(mode: str, out: Path) -> None:
         frames=len(records), wall_s=time.perf_counter() - t0, median_ms=1e3 * float(np.median(sec)),
         p99_ms=1e3 * float(np.percentile(sec, 99)), max_ms=1e3 * float(sec.max()),
         over_33ms=int((sec > 1 / 30).sum()), lag_median_s=float(np.median(lag)), lag_max_s=float(lag.max()),
+        freeze_gc=freeze_gc,
         frames_with_lag=int(lag.size), mean_iou_final=mean_iou(result, seq), objects=len(result.objects))))
 
 
@@ -147,8 +153,8 @@ def live(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         for mode in ["warm"] + args.live_modes:
             path = Path(tmp) / f"{mode}.json"
-            subprocess.run([sys.executable, __file__, "--live-child", mode, "--live-out", str(path)],
-                           check=True)
+            subprocess.run([sys.executable, __file__, "--live-child", mode, "--live-out", str(path)]
+                           + (["--freeze-gc"] if args.freeze_gc else []), check=True)
             out[mode] = json.loads(path.read_text())
             if mode == "warm":
                 print(f"fr2_desk batch map: mean IoU {out[mode]['batch_mean_iou']:.3f}", flush=True)
@@ -303,14 +309,15 @@ def main() -> int:
                     default=[0, 1, 2, 3, 4], help="Demo rooms ('' for none).")
     ap.add_argument("--live", action="store_true", help="fr2_desk as a robot runs it (part 4)")
     ap.add_argument("--freeze-gc", action="store_true",
-                    help="the room: gc.freeze() before each replay, as docs/online.md recommends for a long run")
+                    help="gc.freeze() before each replay (the room's, and --live's once the recording is read), as "
+                         "docs/online.md recommends")
     ap.add_argument("--live-modes", type=lambda t: [x for x in t.split(",") if x], default=["background"],
                     help="background and/or inline")
     ap.add_argument("--live-child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--live-out", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.live_child:
-        live_child(args.live_child, args.live_out)
+        live_child(args.live_child, args.live_out, args.freeze_gc)
         return 0
     from spdslam.solver import clear_caches
 

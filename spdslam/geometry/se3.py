@@ -75,10 +75,10 @@ def from_tum(values) -> jaxlie.SE3:
         return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3(wxyz), v[..., :3])
     # the slicing and concatenation (exact) on the host; the norm and the division in XLA,
     # whose rounding the results so far carry (NumPy's differs in the last bit)
-    v = np.asarray(values, dtype=float)
-    q_xyzw = jax.device_put(np.ascontiguousarray(v[..., 3:7]))
-    q = np.asarray(q_xyzw / jnp.linalg.norm(q_xyzw, axis=-1, keepdims=True))
-    return jaxlie.SE3(jax.device_put(np.concatenate([q[..., 3:4], q[..., :3], v[..., :3]], axis=-1)))
+    rows = np.asarray(values, dtype=float)
+    q_dev = jax.device_put(np.ascontiguousarray(rows[..., 3:7]))
+    q = np.asarray(q_dev / jnp.linalg.norm(q_dev, axis=-1, keepdims=True))
+    return jaxlie.SE3(jax.device_put(np.concatenate([q[..., 3:4], q[..., :3], rows[..., :3]], axis=-1)))
 
 
 def to_tum(T) -> np.ndarray:
