@@ -197,6 +197,12 @@ class OnlineMapper:
     (``FrameRecord.lag`` says when each frame reached a map). ``wait`` blocks until the
     worker is idle; ``finish`` waits first. An error in the worker is raised by the next
     ``add_frame``, ``wait`` or ``finish``.
+
+    Python's garbage collector pauses every thread for 0.1–0.5 s in a full pass over a
+    process that has imported JAX; a process that maps for long should call ``gc.collect();
+    gc.freeze()`` once its long-lived objects exist (``spdslam run --online`` does;
+    docs/online.md, "Pauses of the garbage collector"). The mapper does not: the process is
+    its host application's.
     """
 
     #: whether a mapper of this class closes loops (``loop_closure``)
