@@ -31,7 +31,7 @@ long synthetic room, against the batch map.
    with the optimisations in the background (``online.background``) and, with
    ``--live-modes background,inline``, in line as well. Per replay: the time ``add_frame``
    took (median, 99th percentile, maximum, frames over a 30 Hz camera's 33 ms; ``--freeze-gc``:
-   ``gc.freeze()`` once the recording is read, as ``spdslam run --online`` does) and the map's
+   ``gc.freeze()`` once the recording is read, as ``spdslam run`` does) and the map's
    lag (seconds from a frame's arrival to the first published map that used it: median,
    maximum), and the mean IoU after the final batch against the batch map's.
 
@@ -118,7 +118,7 @@ def fr2(args) -> dict:
 
 def live_child(mode: str, out: Path, freeze_gc: bool = False) -> None:
     """One fresh process of ``--live`` (``mode``: warm, background or inline): figures to ``out``;
-    ``freeze_gc``: ``gc.freeze()`` once the recording is read (as ``spdslam run --online``)."""
+    ``freeze_gc``: ``gc.freeze()`` once the recording is read (as ``spdslam run``)."""
     from spdslam.io import read_sequence
     from spdslam.mapping import run_online, run_sequence
 

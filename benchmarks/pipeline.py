@@ -19,7 +19,8 @@ screening, association, initialisation, graph (every ``build_graph``), each opti
 linearisation and the sparsity pattern of H (``Problem.sparse_pattern``, all calls),
 uncertainty, write (the run folder: map.json, report, figures), the XLA programs compiled or
 loaded from the cache (``jax._src.compiler.compile_or_get_cached``: seconds, and their
-number) and the whole process (wall).
+number), the garbage collector's passes (``gc.callbacks``, every generation: seconds) and the
+whole process (wall).
 The older commit runs in a ``git worktree`` removed afterwards; both checkouts' modules are
 compiled to bytecode first (as ``install.sh`` does), so that neither pays Python's compiler
 where ``PYTHONDONTWRITEBYTECODE`` is set; the two checkouts alternate,
@@ -128,6 +129,14 @@ class Hook(importlib.abc.MetaPathFinder):
         return spec
 
 sys.meta_path.insert(0, Hook())
+import gc
+_began = []
+def _collector(phase, info):  # the garbage collector's passes, every generation
+    if phase == "start":
+        _began.append(time.perf_counter())
+    else:
+        calls.setdefault("collector", []).append(time.perf_counter() - _began.pop())
+gc.callbacks.append(_collector)
 t0 = time.perf_counter()
 from spdslam.cli import app
 t_import = time.perf_counter() - t0
@@ -140,7 +149,7 @@ except SystemExit as e:
 import spdslam
 out = {"import": t_import, "status": status, "wall_in_process": time.perf_counter() - t_start,
        "spdslam": spdslam.__path__[0]}
-for name, _ in stages:
+for name in [n for n, _ in stages] + ["collector"]:
     if name in calls:
         out[name] = calls[name]
 json.dump(out, open(result_path, "w"))
@@ -190,10 +199,10 @@ def summarise(recs: list) -> dict:
     optimisations also one by one, the linearisations as the first and the rest)."""
     out: dict = {}
     keys = ["import", "read", "screening", "association", "initialisation", "graph",
-            "optimisation", "sparsity pattern", "uncertainty", "write", "XLA programs", "wall"]
+            "optimisation", "sparsity pattern", "uncertainty", "write", "XLA programs", "collector", "wall"]
     for k in keys:
         vals = [sum(r[k]) if isinstance(r.get(k), list) else r.get(k) for r in recs]
-        if k == "XLA programs":  # none compiled or loaded: no call recorded
+        if k in ("XLA programs", "collector"):  # none: no call recorded
             vals = [v or 0.0 for v in vals]
         out[k] = statistics.median(vals) if all(v is not None for v in vals) else None
     out["XLA programs (number)"] = statistics.median(len(r.get("XLA programs") or []) for r in recs)

@@ -23,6 +23,7 @@ registers so.
 from __future__ import annotations
 
 import functools
+import gc
 import os
 import platform
 import sys
@@ -41,10 +42,17 @@ _cache_dir_in_use: Path | None = None
 
 
 def start() -> None:
-    """What every command does before its body (its help, given before, does not): turn on
-    JAX's persistent compilation cache (``solver.enable_compilation_cache``)."""
+    """What every command does before its body (its help, given before, does not): import the
+    solver (JAX) with the garbage collector paused, then freeze what the imports made out of
+    its full passes (``gc.freeze``); turn on JAX's persistent compilation cache
+    (``solver.enable_compilation_cache``)."""
     global _cache_dir_in_use
-    from ..solver import enable_compilation_cache
+    gc.disable()  # the imports make some 120 000 objects that live as long as the process:
+    try:  # no full collection traverses them while they arrive (four of them did: 0.25 s),
+        from ..solver import enable_compilation_cache
+    finally:  # and none after (docs/performance.md, section 8, "The collector")
+        gc.freeze()
+        gc.enable()
 
     _cache_dir_in_use = enable_compilation_cache()
 

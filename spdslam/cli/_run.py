@@ -105,10 +105,12 @@ def run(
     check_output(out, [sequence])
     if rerun is not None:
         check_recording(rerun, "--rerun")
-    seq = load_sequence(sequence, options)
-    if online:  # the process is the mapper's: what lives now (JAX, the sequence) leaves the
-        gc.collect()  # collector's full passes, which would pause a frame (docs/online.md)
+    gc.disable()  # the process is the mapper's: the sequence lives as long as it, and leaves the
+    try:  # collector's full passes as the modules did (``start``), which would traverse it again
+        seq = load_sequence(sequence, options)  # and again and pause an online run's frames
+    finally:  # (docs/online.md)
         gc.freeze()
+        gc.enable()
     result, metrics = run_and_write(seq, settings, out, overwrite, overlay, source=sequence)
     if rerun is not None:
         write_recording_file(rerun, "--rerun", result.objects, result.poses_tum, seq,

@@ -200,7 +200,7 @@ class OnlineMapper:
 
     Python's garbage collector pauses every thread for 0.1–0.5 s in a full pass over a
     process that has imported JAX; a process that maps for long should call ``gc.collect();
-    gc.freeze()`` once its long-lived objects exist (``spdslam run --online`` does;
+    gc.freeze()`` once its long-lived objects exist (``spdslam run`` does;
     docs/online.md, "Pauses of the garbage collector"). The mapper does not: the process is
     its host application's.
     """
