@@ -47,10 +47,11 @@ def start() -> None:
     its full passes (``gc.freeze``); turn on JAX's persistent compilation cache
     (``solver.enable_compilation_cache``)."""
     global _cache_dir_in_use
+    gc.collect()  # the garbage so far (a process that runs commands in turn: a test) is not frozen
     gc.disable()  # the imports make some 120 000 objects that live as long as the process:
     try:  # no full collection traverses them while they arrive (four of them did: 0.25 s),
         from ..solver import enable_compilation_cache
-    finally:  # and none after (docs/performance.md, section 8, "The collector")
+    finally:  # and none after (docs/performance.md, section 8, "The collector in a batch run")
         gc.freeze()
         gc.enable()
 
