@@ -195,3 +195,26 @@ def test_importing_spdslam_is_lazy_and_float64_stays_on():
     assert _probe("import jax\nimport spdslam\nimport jax.numpy as jnp\nprint(jnp.ones(1).dtype)") == ["float64"]
     with pytest.raises(AttributeError, match="has no attribute 'nonsense'"):
         spdslam.nonsense  # noqa: B018
+
+
+def test_collector_paused_freezes_what_exists_and_restores_the_collector():
+    """``start`` and ``run``'s reading: the collector off within the block, what exists at its
+    end frozen, and the collector afterwards as it was (left off when it was off)."""
+    import gc
+
+    from spdslam.cli._app import collector_paused
+
+    gc.unfreeze()
+    try:
+        with collector_paused():
+            assert not gc.isenabled()
+            kept = [[] for _ in range(10)]
+        assert gc.isenabled() and gc.get_freeze_count() > len(kept)
+        gc.unfreeze()
+        gc.disable()
+        with collector_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+        gc.unfreeze()

@@ -22,6 +22,7 @@ registers so.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import gc
 import os
@@ -48,14 +49,27 @@ def start() -> None:
     (``solver.enable_compilation_cache``)."""
     global _cache_dir_in_use
     gc.collect()  # the garbage so far (a process that runs commands in turn: a test) is not frozen
-    gc.disable()  # the imports make some 120 000 objects that live as long as the process:
-    try:  # no full collection traverses them while they arrive (four of them did: 0.25 s),
-        from ..solver import enable_compilation_cache
-    finally:  # and none after (docs/performance.md, section 8, "The collector in a batch run")
-        gc.freeze()
-        gc.enable()
+    with collector_paused():  # the imports make some 120 000 objects that live as long as the
+        from ..solver import enable_compilation_cache  # process: no full collection traverses
+    # them while they arrive (four did: 0.25 s), nor after (docs/performance.md, section 8,
+    # "The collector in a batch run")
 
     _cache_dir_in_use = enable_compilation_cache()
+
+
+@contextlib.contextmanager
+def collector_paused():
+    """Python's garbage collector off within the block, and what exists at its end frozen out
+    of its full passes (``gc.freeze``: never traversed again, still freed when unreferenced);
+    the collector then as it was before."""
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.freeze()
+        if was:
+            gc.enable()
 
 
 class _Typer(typer.Typer):

@@ -3,13 +3,12 @@ saved map's frame, and recordings merged into one map."""
 
 from __future__ import annotations
 
-import gc
 import math
 from pathlib import Path
 
 import typer
 
-from ._app import app, check_output, console, fail
+from ._app import app, check_output, collector_paused, console, fail
 from ._common import (
     METHOD_HELP,
     ROBUST_HELP,
@@ -105,12 +104,8 @@ def run(
     check_output(out, [sequence])
     if rerun is not None:
         check_recording(rerun, "--rerun")
-    gc.disable()  # the process is the mapper's: the sequence lives as long as it, and leaves the
-    try:  # collector's full passes as the modules did (``start``), which would traverse it again
-        seq = load_sequence(sequence, options)  # and again and pause an online run's frames
-    finally:  # (docs/online.md)
-        gc.freeze()
-        gc.enable()
+    with collector_paused():  # the sequence lives as long as the process: out of the collector's
+        seq = load_sequence(sequence, options)  # full passes, which would pause a frame (docs/online.md)
     result, metrics = run_and_write(seq, settings, out, overwrite, overlay, source=sequence)
     if rerun is not None:
         write_recording_file(rerun, "--rerun", result.objects, result.poses_tum, seq,
