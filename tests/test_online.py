@@ -181,6 +181,45 @@ def test_automatic_association_online_finds_the_objects(room):
 
 
 @pytest.mark.parametrize("associate", ["instances", "auto"])
+def test_the_objects_ready_in_one_update_are_fitted_in_one_batch_as_one_by_one(room, associate, monkeypatch):
+    """The tracks that can start an object in one update get their initial ellipsoids from one
+    batch (one ``initialize_objects`` call, as the batch run's), and the map is the one of a
+    mapper that fits them one by one, to the bit."""
+    import spdslam.mapping._online as online
+
+    real = online.initialize_objects
+    sizes: list = []
+
+    def together(ctx, tracks, *args, **kwargs):
+        sizes.append(len(tracks))
+        return real(ctx, tracks, *args, **kwargs)
+
+    def one_by_one(ctx, tracks, *args, **kwargs):
+        init, failed, notes = {}, {}, []
+        for tr in tracks:
+            i, f, n = real(ctx, [tr], *args, **kwargs)
+            init.update(i)
+            failed.update(f)
+            notes += n
+        return init, failed, notes
+
+    def mapped(initialize):
+        monkeypatch.setattr(online, "initialize_objects", initialize)
+        m = OnlineMapper(room.camera, room.priors, "multi-spd", associate=associate, every=30)
+        for i in range(len(room)):
+            m.add_frame(room.timestamps[i], room.poses_tum[i], detections=room.detections_at(i))
+        return m.current_map()
+
+    a, b = mapped(together), mapped(one_by_one)
+    assert max(sizes) > 1  # several objects started in one update
+    assert sorted(a.objects) == sorted(b.objects) and len(a.objects) >= 4
+    for k in a.objects:
+        np.testing.assert_array_equal(a.objects[k][1].P, b.objects[k][1].P)
+        np.testing.assert_array_equal(a.objects[k][1].center, b.objects[k][1].center)
+    np.testing.assert_array_equal(a.poses_tum, b.poses_tum)
+
+
+@pytest.mark.parametrize("associate", ["instances", "auto"])
 def test_a_mapper_in_the_background_that_keeps_up_maps_the_same(room, associate):
     sync = OnlineMapper(room.camera, room.priors, "multi-spd", associate=associate)
     bg = OnlineMapper(room.camera, room.priors, "multi-spd", associate=associate, background=True)

@@ -465,17 +465,34 @@ class OnlineMapper:
         return dataclasses.replace(self._ctx0, wxyz_xyz=self._est.array, poses=self._est)  # type: ignore[arg-type]
 
     # --- the update ---------------------------------------------------------------------------
+    def _reentry(self, k):
+        """The object that track k is a re-entry of (after a gap, or a split track), or None."""
+        if self._tracker is None or not self.landmarks:
+            return None
+        return self._tracker.match(k, sorted(self.landmarks))
+
     def _create_objects(self) -> None:
+        """The tracks ready to start an object (``_could_start``), in order of their ids: each
+        joins the object it is a re-entry of (``_reentry``), or becomes an object when its
+        initial ellipsoid (``initialize_objects``) has ``min_views`` views in front of the
+        cameras. The initial ellipsoids of all the tracks that are no re-entry are fitted in
+        one batch, as the batch run fits its objects'; a track's re-entry is looked for again
+        when an object was made or joined before it."""
         ctx = self._context()
         cands = sorted(k for k in self._candidates if self._could_start(k))
+        first = {k: self._reentry(k) for k in cands}
+        batch = [self._track(k) for k in cands if first[k] is None]
+        init = initialize_objects(ctx, batch, self.method, self.min_views)[0] if batch else {}
+        changed = False
         for k in cands:
-            if self._tracker is not None and self.landmarks:
-                j = self._tracker.match(k, sorted(self.landmarks))
-                if j is not None:  # a re-entry of object j (after a gap, or a split track)
-                    self._join(j, k)
-                    continue
+            j = self._reentry(k) if changed else first[k]
+            if j is not None:
+                self._join(j, k)
+                changed = True
+                continue
             tr = self._track(k)
-            init, failed, _ = initialize_objects(ctx, [tr], self.method, self.min_views)
+            if first[k] is not None:  # a re-entry before an object was made or joined, no longer
+                init.update(initialize_objects(ctx, [tr], self.method, self.min_views)[0])
             if k not in init:
                 self._tried[k] = len(tr.frames)
                 continue
@@ -485,6 +502,7 @@ class OnlineMapper:
                 self._tried[k] = len(tr.frames)
                 continue
             self.landmarks[k] = as_landmark(e, self.method)
+            changed = True
             self._candidates.discard(k)
             self._initial[k] = e
             self._views[k] = [v for v, good in zip(self._views[k], ok) if good]
