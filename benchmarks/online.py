@@ -20,7 +20,11 @@ long synthetic room, against the batch map.
    frames, how many exceed 100 and 300 ms, the growth of resident memory, and Python's
    garbage collector's full passes (generation 2: how many, the longest, in how many of the
    5 slowest frames one ran); ``--freeze-gc``: ``gc.collect(); gc.freeze()`` before each
-   replay (docs/online.md, "Pauses of the garbage collector"). The first replay's blocks
+   replay (docs/online.md, "Pauses of the garbage collector"); ``--room-background``: the
+   optimisations in the mapper's worker (``background=True``), the frames added as fast as
+   ``add_frame`` returns (its own time is what is timed; the worker runs one optimisation for
+   all the frames that queued meanwhile) or, with ``--room-rate HZ``, each at its time at
+   that rate. The first replay's blocks
    include the
    compilations, which happen when the problem outgrows its padded shapes (a one-off cost,
    not one that grows with the frames).
@@ -37,7 +41,7 @@ long synthetic room, against the batch map.
 
     python3 benchmarks/online.py [--out benchmarks/results/online.json]
     python3 benchmarks/online.py --skip-fr2 --room-frames 2000
-    python3 benchmarks/online.py --skip-fr2 --room-frames 30000 --seeds "" [--freeze-gc]
+    python3 benchmarks/online.py --skip-fr2 --room-frames 30000 --seeds "" [--freeze-gc] [--room-background]
     python3 benchmarks/online.py --live --skip-fr2 --skip-room --seeds ""
 """
 
@@ -225,7 +229,8 @@ def room(args) -> dict:
     out = {}
     for rep in ("first", "second"):
         m = OnlineMapper(seq.camera, seq.priors, "multi-spd", associate="instances", window=args.window,
-                         every=args.every, iterations=args.iterations, initial_poses="input")
+                         every=args.every, iterations=args.iterations, initial_poses="input",
+                         background=args.room_background)
         if args.freeze_gc:  # docs/online.md: the objects alive now out of every full collection
             gc.collect()
             gc.freeze()
@@ -244,10 +249,13 @@ def room(args) -> dict:
         rss_settled = None
         starts = np.empty(len(seq))
         for i in range(len(seq)):
+            if args.room_rate > 0:  # the frame arrives at its time
+                time.sleep(max(0.0, t0 + i / args.room_rate - time.perf_counter()))
             starts[i] = time.perf_counter()
             m.add_frame(seq.timestamps[i], seq.poses_tum[i], detections=by_frame.get(i, ()))
             if i == SETTLED:
                 rss_settled = rss_mb()
+        m.wait()  # in the background: the worker's last optimisation
         wall = time.perf_counter() - t0
         rss_end = rss_mb()
         gc.callbacks.remove(watch)
@@ -263,6 +271,8 @@ def room(args) -> dict:
                 mean.append(sec[a:b].mean())
         b_exp, _ = np.polyfit(np.log(mid), np.log(mean), 1)
         r = dict(frames=len(seq), objects=args.room_objects, detections=len(seq.detections), freeze_gc=args.freeze_gc,
+                 background=args.room_background, rate_hz=args.room_rate,
+                 optimisations=int(sum(1 for x in m.records if x.factors)),
                  wall_s=wall, median_ms=1e3 * float(np.median(sec)), p99_ms=1e3 * float(np.percentile(sec, 99)),
                  exponent=float(b_exp), objects_mapped=len(m.landmarks),
                  max_ms_after_settled=1e3 * float(late.max()) if late.size else None,
@@ -276,7 +286,9 @@ def room(args) -> dict:
                  blocks=[dict(frames=float(x), mean_ms=1e3 * float(y)) for x, y in zip(mid, mean)])
         out[rep + "_replay"] = r
         print(f"room {len(seq)} frames x {args.room_objects} objects ({len(seq.detections)} boxes), "
-              f"{rep} replay: {wall:.1f} s, per frame median {r['median_ms']:.3g} ms, p99 {r['p99_ms']:.3g} ms; "
+              f"{rep} replay{' (optimisations in the background)' if args.room_background else ''}"
+              f"{f', frames at {args.room_rate:g} Hz' if args.room_rate > 0 else ''}: {wall:.1f} s, "
+              f"{r['optimisations']} optimisations, per frame median {r['median_ms']:.3g} ms, p99 {r['p99_ms']:.3g} ms; "
               f"fitted exponent of time per frame against frames seen (after {args.warmup}): "
               f"{r['exponent']:.3f}", flush=True)
         if late.size:
@@ -308,6 +320,10 @@ def main() -> int:
     ap.add_argument("--seeds", type=lambda t: [int(x) for x in t.split(",") if x.strip()],
                     default=[0, 1, 2, 3, 4], help="Demo rooms ('' for none).")
     ap.add_argument("--live", action="store_true", help="fr2_desk as a robot runs it (part 4)")
+    ap.add_argument("--room-background", action="store_true",
+                    help="part 3 with the optimisations in the background: add_frame's own time")
+    ap.add_argument("--room-rate", type=float, default=0.0,
+                    help="part 3's frames added at this rate (Hz; 0: as fast as add_frame returns)")
     ap.add_argument("--freeze-gc", action="store_true",
                     help="gc.freeze() before each replay (the room's, and --live's once the recording is read), as "
                          "docs/online.md recommends")
