@@ -5,6 +5,7 @@ and the input it refuses (frames out of order, duplicate timestamps, …)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import gc
 import threading
 import time
@@ -17,7 +18,7 @@ from conftest import assert_cli_error, assert_cli_ok, cli_invoke
 from spdslam.evaluation import evaluate_objects, evaluate_run
 from spdslam.factors import LandmarkPriorFactor
 from spdslam.geometry import Ellipsoid, EllipsoidFull, manifold
-from spdslam.io import write_sequence
+from spdslam.io import Detection, write_sequence
 from spdslam.mapping import OnlineMapper, run_online, run_sequence
 from spdslam.mapping._online import OnlineMapper as _Mapper
 from spdslam.solver import FixedLagSmoother, padded_size, padded_sizes_above
@@ -86,6 +87,30 @@ def test_views_that_left_the_window_become_priors(room, replay):
     start = last + 1 - m.window
     pending = [f for key in m._smoother.active() for f, _ in m._smoother.kept(key)]
     assert pending and min(pending) >= start
+
+
+def test_the_mapper_keeps_the_detections_as_given_and_no_object_each(room):
+    """The detections taken in come back from ``sequence()`` to the bit (a subclass's as it
+    is), and the mapper keeps no ``Detection`` object per detection: each would lengthen the
+    garbage collector's full passes of a long run (docs/online.md)."""
+
+    class Tagged(Detection):
+        pass
+
+    def alive() -> int:
+        gc.collect()
+        return sum(isinstance(o, Detection) for o in gc.get_objects())
+
+    given = list(room.detections)
+    given[3] = Tagged(*(getattr(given[3], f) for f in ("frame", "timestamp", "box", "label", "score", "instance")))
+    given[5] = dataclasses.replace(given[5], instance=None)
+    before = alive()
+    m = OnlineMapper(room.camera, room.priors, "multi-spd", associate="auto", screen=False)
+    for i in range(len(room)):
+        m.add_frame(room.timestamps[i], room.poses_tum[i], detections=[d for d in given if d.frame == i])
+    assert alive() - before <= 1  # the subclass's
+    key = lambda d: (type(d), d.frame, d.timestamp, d.box.tobytes(), d.label, d.score, d.instance)  # noqa: E731
+    assert [key(d) for d in m.sequence().detections] == [key(d) for d in given]
 
 
 def test_the_map_can_be_read_after_any_frame(room):

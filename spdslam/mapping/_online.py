@@ -56,7 +56,7 @@ import numpy as np
 from ..frontend import AssociationSettings, OnlineTracker, Track
 from ..geometry import as_ellipsoid
 from ..geometry.se3 import from_tum, to_tum
-from ..io import BUILTIN_CLASSES, Sequence, without_class_table
+from ..io import BUILTIN_CLASSES, Detection, Sequence, without_class_table
 from ..solver import (
     FixedLagSmoother,
     L,
@@ -166,6 +166,41 @@ class _Poses:
         return self.n
 
 
+class _Detections:
+    """The detections taken in, kept as columns (frame, timestamp, box, score, instance; the
+    labels as strings) instead of objects: a long run takes in hundreds of thousands, and each
+    object the garbage collector tracks lengthens every full pass (docs/online.md, "Pauses of
+    the garbage collector"). ``list()`` gives them back as ``Detection`` s equal to those taken
+    in; one of a subclass of ``Detection`` is kept as it is."""
+
+    def __init__(self):
+        self._a = np.zeros((256, 8))  # frame, timestamp, x1, y1, x2, y2, score, instance (NaN: none)
+        self._labels: list = []
+        self._kept: dict = {}  # index -> a detection of a subclass, as given
+        self.n = 0
+
+    def extend(self, dets) -> None:
+        while self.n + len(dets) > len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        for i, d in enumerate(dets, self.n):
+            r = self._a[i]
+            r[0], r[1], r[2:6], r[6] = d.frame, d.timestamp, d.box, d.score
+            r[7] = np.nan if d.instance is None else d.instance
+            if type(d) is not Detection:
+                self._kept[i] = d
+        self._labels += [d.label for d in dets]
+        self.n += len(dets)
+
+    def list(self) -> list:
+        a = self._a[: self.n]
+        return [self._kept[i] if i in self._kept else
+                Detection(int(r[0]), float(r[1]), r[2:6], label, float(r[6]), None if r[7] != r[7] else int(r[7]))
+                for i, (r, label) in enumerate(zip(a, self._labels))]
+
+    def __len__(self) -> int:
+        return self.n
+
+
 class OnlineMapper:
     """Incremental object mapping (module docstring).
 
@@ -241,7 +276,7 @@ class OnlineMapper:
         self._timestamps: list = []
         self._input = _Poses()  # input poses (jaxlie parameters)
         self._est = _Poses()  # current estimates
-        self._detections: list = []
+        self._detections = _Detections()
         self._ellipsoids: list = []
         self._views: dict = {}  # track id -> [(frame, box)]
         self._labels: dict = {}  # track id -> Counter of its detections' labels
@@ -374,7 +409,7 @@ class OnlineMapper:
         self._timestamps.append(t)
         self._input.append(wxyz)
         self._est.append(est)
-        self._detections += dets
+        self._detections.extend(dets)
         self._ellipsoids += meas
         self._associate(f, dets)
         for m in meas:
@@ -684,7 +719,7 @@ class OnlineMapper:
         """The frames so far as a ``Sequence`` (input poses, detections, measured ellipsoids)."""
         rows = np.stack([to_tum(jaxlie.SE3(r)) for r in self._input.array]) if len(self) else np.zeros((0, 7))
         return Sequence(self.name, self._ctx0.camera, np.asarray(self._timestamps), rows,
-                        list(self._detections), priors=self._ctx0.priors,
+                        self._detections.list(), priors=self._ctx0.priors,
                         ellipsoids=list(self._ellipsoids) if self._ellipsoids else None,
                         segments=tuple(self._segments))
 

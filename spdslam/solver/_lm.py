@@ -391,7 +391,8 @@ def decide(rule: StepRule, h: dict, cost, trial_cost, usable, solved, pred, step
             lam_acc = xp.maximum(h["lambda_min"], lam / h["lambda_factor"])
             lam_rej, nu_acc, nu_rej = lam * h["lambda_factor"], nu, nu
         else:
-            shrink = xp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            with np.errstate(over="ignore"):  # a gain beyond 1e102 (the model's decrease ~0): 1/3, silently
+                shrink = xp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
             lam_acc = xp.maximum(h["lambda_min"], lam * shrink)
             lam_rej, nu_acc, nu_rej = lam * nu, 2.0, 2.0 * nu
         fail = xp.where(lam_rej > h["lambda_max"], LAMBDA_MAX, 0)
