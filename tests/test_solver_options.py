@@ -194,6 +194,24 @@ def test_isotropic_damping_is_the_largest_curvature_of_each_block():
         LevenbergMarquardt(damping="diag")
 
 
+def test_nielsens_rule_shrinks_lambda_by_a_third_at_most_and_silently_for_any_gain():
+    """An accepted step whose model predicted almost no decrease has a huge gain ratio; λ
+    then shrinks by the rule's limit, 1/3, without an overflow warning (a long online run
+    printed one)."""
+    import warnings
+
+    from spdslam.solver import LevenbergMarquardtParams
+    from spdslam.solver._lm import StepRule, decide, hyper
+
+    h = hyper(LevenbergMarquardtParams())
+    for pred, shrink in ((1.0, 1.0 - (2.0 * 0.5 - 1.0) ** 3), (1e-300, 1.0 / 3.0), (0.25, 1.0 / 3.0)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            accepted, gain, lam, _, _ = decide(StepRule(), h, 1.0, 0.5, True, True, pred, 1.0, 1.0, 2.0, 2.0, np)
+        assert accepted
+        assert lam == pytest.approx(2.0 * shrink, rel=1e-15)
+
+
 def test_dogleg_step_follows_the_dogleg_path():
     from spdslam.solver._lm import dogleg_step
 
