@@ -167,35 +167,41 @@ class _Poses:
 
 
 class _Detections:
-    """The detections taken in, kept as columns (frame, timestamp, box, score, instance; the
-    labels as strings) instead of objects: a long run takes in hundreds of thousands, and each
-    object the garbage collector tracks lengthens every full pass (docs/online.md, "Pauses of
-    the garbage collector"). ``list()`` gives them back as ``Detection`` s equal to those taken
-    in; one of a subclass of ``Detection`` is kept as it is."""
+    """The detections taken in, kept as columns (timestamp, box, score as floats; frame and
+    instance as integers; the labels as strings) instead of objects: a long run takes in
+    hundreds of thousands, and each object the garbage collector tracks lengthens every full
+    pass (docs/online.md, "Pauses of the garbage collector"). ``list()`` gives them back as
+    ``Detection`` s equal to the bit to those taken in; one of a subclass of ``Detection``, or
+    with an instance id beyond 64 bits, is kept as it is."""
+
+    _INT64 = np.iinfo(np.int64)
 
     def __init__(self):
-        self._a = np.zeros((256, 8))  # frame, timestamp, x1, y1, x2, y2, score, instance (NaN: none)
+        self._x = np.zeros((256, 6))  # timestamp, x1, y1, x2, y2, score
+        self._k = np.zeros((256, 2), np.int64)  # frame, instance
+        self._none = np.zeros(256, bool)  # no instance id
         self._labels: list = []
-        self._kept: dict = {}  # index -> a detection of a subclass, as given
+        self._kept: dict = {}  # index -> a detection kept as given
         self.n = 0
 
     def extend(self, dets) -> None:
-        while self.n + len(dets) > len(self._a):
-            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        while self.n + len(dets) > len(self._x):
+            self._x, self._k, self._none = (np.concatenate([a, np.zeros_like(a)]) for a in (self._x, self._k, self._none))
         for i, d in enumerate(dets, self.n):
-            r = self._a[i]
-            r[0], r[1], r[2:6], r[6] = d.frame, d.timestamp, d.box, d.score
-            r[7] = np.nan if d.instance is None else d.instance
-            if type(d) is not Detection:
+            self._x[i, 0], self._x[i, 1:5], self._x[i, 5] = d.timestamp, d.box, d.score
+            self._none[i] = d.instance is None
+            if type(d) is not Detection or not (d.instance is None or self._INT64.min <= d.instance <= self._INT64.max):
                 self._kept[i] = d
+                continue
+            self._k[i] = d.frame, (0 if d.instance is None else d.instance)
         self._labels += [d.label for d in dets]
         self.n += len(dets)
 
     def list(self) -> list:
-        a = self._a[: self.n]
+        x, k, none = self._x[: self.n], self._k[: self.n].tolist(), self._none[: self.n].tolist()
         return [self._kept[i] if i in self._kept else
-                Detection(int(r[0]), float(r[1]), r[2:6], label, float(r[6]), None if r[7] != r[7] else int(r[7]))
-                for i, (r, label) in enumerate(zip(a, self._labels))]
+                Detection(k[i][0], float(x[i, 0]), x[i, 1:5], label, float(x[i, 5]), None if none[i] else k[i][1])
+                for i, label in enumerate(self._labels)]
 
     def __len__(self) -> int:
         return self.n
