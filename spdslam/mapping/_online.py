@@ -186,7 +186,8 @@ class _Detections:
 
     def extend(self, dets) -> None:
         while self.n + len(dets) > len(self._x):
-            self._x, self._k, self._none = (np.concatenate([a, np.zeros_like(a)]) for a in (self._x, self._k, self._none))
+            grown = (np.concatenate([a, np.zeros_like(a)]) for a in (self._x, self._k, self._none))
+            self._x, self._k, self._none = grown
         for i, d in enumerate(dets, self.n):
             self._x[i, 0], self._x[i, 1:5], self._x[i, 5] = d.timestamp, d.box, d.score
             self._none[i] = d.instance is None
