@@ -15,8 +15,10 @@ from ._initialization import InitializationError as InitializationError
 from ._initialization import MultiFit as MultiFit
 from ._initialization import multi_initialize as multi_initialize
 from ._initialization import multi_initialize_batch as multi_initialize_batch
+from ._initialization import sphere_initialize as sphere_initialize
 from ._initialization import svd_initialize as svd_initialize
 from ._initialization import triangulate_rays as triangulate_rays
+from ._initialization import unoriented_initialize as unoriented_initialize
 from ._scene import SupportPlanes as SupportPlanes
 from ._scene import estimate_support_planes as estimate_support_planes
 from ._scene import lowest_points as lowest_points

@@ -14,6 +14,11 @@ distance from it: x = s x' + c, so π' = Tᵀπ and Q* = T Q*' Tᵀ with T = [[s
 Truncated detections: with a ``truncation_margin`` (px), box edges within it of the image
 border (``geometry.truncation_mask``) are the image's edge, not the object's, and are left
 out of both fits.
+
+Without an up direction the multi-constraint fit has no frame; ``unoriented_initialize``
+starts from Quadric-SVD where it fits the boxes, else from a sphere on the boxes' rays
+(``sphere_initialize``): on real boxes the algebraic fit is often flat (a radius of 0.1 mm)
+or metres long, starts the back end takes many iterations to leave, when it leaves them.
 """
 
 from __future__ import annotations
@@ -30,7 +35,10 @@ from ..geometry import (
     Camera,
     Ellipsoid,
     EllipsoidFull,
+    box_iou,
     box_planes,
+    in_front,
+    project_box,
     truncation_mask,
 )
 from ..geometry.se3 import as_pose, quat_to_matrix
@@ -43,8 +51,10 @@ __all__ = [
     "InitializationError",
     "multi_initialize",
     "multi_initialize_batch",
+    "sphere_initialize",
     "svd_initialize",
     "triangulate_rays",
+    "unoriented_initialize",
 ]
 
 _TRIU = np.triu_indices(4)
@@ -129,6 +139,74 @@ def _ellipsoid_of_quadric(Q):
 #: ``_ellipsoid_of_quadric`` as one stored program (a few dozen operations: one call, not one
 #: dispatch each)
 _ELLIPSOID_OF_QUADRIC = stored_jit(_ellipsoid_of_quadric, "frontend.ellipsoid_of_quadric")
+
+
+def _box_rays_of(boxes, poses, camera):
+    """(centres, world directions through the box centres, R_wc) of ``poses``."""
+    rows = np.stack([np.asarray(as_pose(T).wxyz_xyz, dtype=float) for T in poses])
+    return _box_rays(boxes, rows, camera)
+
+
+def sphere_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoid:
+    """A sphere from the boxes alone: its centre c the point nearest the rays through the box
+    centres (``triangulate_rays``), its radius the median over views of
+    zᵢ (wᵢ/f_x + hᵢ/f_y)/4, with zᵢ the depth of c and wᵢ × hᵢ the box of view i (the radius
+    whose projection has the box's mean half-size). Raises ``InitializationError`` when the
+    rays are (nearly) parallel or c lies behind a camera."""
+    boxes, poses = _views(boxes, poses, max(min_views, 2))
+    origins, directions, Rs = _box_rays_of(boxes, poses, camera)
+    c = triangulate_rays(origins, directions)
+    z = np.einsum("kji,kj->ki", Rs, c[None] - origins)[:, 2]
+    if not np.all(z > 0):
+        raise InitializationError(f"the boxes' rays meet behind {int(np.sum(z <= 0))} of the cameras")
+    K = np.asarray(camera.K)
+    r = float(np.median(z * ((boxes[:, 2] - boxes[:, 0]) / K[0, 0] + (boxes[:, 3] - boxes[:, 1]) / K[1, 1]) / 4))
+    if not r > 0:
+        raise InitializationError("the boxes have no extent")
+    return Ellipsoid(np.eye(3) * r**2, c)
+
+
+def _box_fit(e: Ellipsoid, boxes, poses, camera: Camera) -> float:
+    """The median over views of the IoU of the ellipsoid's box (``project_box``, clipped to
+    the image) with the detected box; a view with the ellipsoid not wholly in front counts 0."""
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    rows = np.stack([np.asarray(as_pose(T).wxyz_xyz, dtype=float) for T in poses])
+    pose = (quat_to_matrix(rows[:, [1, 2, 3, 0]]), rows[:, 4:])
+    e = Ellipsoid(np.asarray(e.P, dtype=float), np.asarray(e.center, dtype=float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        predicted = np.asarray(project_box(e, pose, camera))
+    predicted = np.clip(predicted, 0.0, [camera.width, camera.height, camera.width, camera.height])
+    iou = np.asarray(box_iou(predicted, boxes), dtype=float)
+    iou = np.where(np.asarray(in_front(e, pose, 1e-3)) & np.isfinite(iou), iou, 0.0)
+    return float(np.median(iou))
+
+
+def unoriented_initialize(boxes, poses, camera: Camera, min_views: int = 3,
+                          truncation_margin: float | None = None,
+                          min_ratio: float = 0.0) -> tuple[Ellipsoid, str]:
+    """The initial ellipsoid without an up direction, and which start it is ("svd" or
+    "sphere"): Quadric-SVD (``svd_initialize``) unless it fails, is flat (smallest radius
+    below ``min_ratio`` of the largest) or fits the boxes worse than the sphere on their rays
+    (``sphere_initialize``; ``_box_fit``, the median IoU); then the sphere. Raises
+    ``InitializationError`` when neither can be made."""
+    svd, why = None, ""
+    try:
+        svd = svd_initialize(boxes, poses, camera, min_views, truncation_margin)
+    except InitializationError as err:
+        why = str(err)
+    if svd is not None:
+        r = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(svd.P, dtype=float)), 0.0, None))
+        if r[0] < min_ratio * r[2]:
+            svd, why = None, f"Quadric-SVD is flat (radii {r[2]:.3g}, {r[1]:.3g}, {r[0]:.3g} m)"
+    try:
+        sphere = sphere_initialize(boxes, poses, camera, min_views)
+    except InitializationError as err:
+        if svd is None:
+            raise InitializationError(f"{why}; no sphere either: {err}") from None
+        return svd, "svd"
+    if svd is not None and _box_fit(svd, boxes, poses, camera) >= _box_fit(sphere, boxes, poses, camera):
+        return svd, "svd"
+    return sphere, "sphere"
 
 
 # --- multi-constraint initialisation ---------------------------------------------------------

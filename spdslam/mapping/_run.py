@@ -32,6 +32,7 @@ from ..frontend import (
     multi_initialize_batch,
     svd_initialize,
     tracks_from_instances,
+    unoriented_initialize,
 )
 from ..frontend import associate as auto_associate
 from ..geometry import (
@@ -227,9 +228,9 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
     priors = ctx.priors
     init, failed, notes = {}, {}, []
     use_multi = method.initialization == "multi"
-    if use_multi and ctx.up is None:
-        notes.append("no up direction or support plane in the priors: Quadric-SVD initialisation")
-        use_multi = False
+    unoriented = use_multi and ctx.up is None  # the multi-constraint fit has no frame
+    use_multi = use_multi and not unoriented
+    spheres = 0
     prior_planes = ctx.support_planes()
     fitted: dict = {}
     multi: list = []  # (id, (boxes, poses, plane, fit)): fitted together (``multi_initialize_batch``)
@@ -252,10 +253,17 @@ def initialize_objects(ctx, tracks, method: Method, min_views: int = 3,
                 fit = MultiFit(None if cp is None else cp.radii, 0.2 if cp is None else max(cp.sigma, 0.05),
                                object_shape(method, priors, tr.label), method.margin)
                 multi.append((tr.id, (tr.boxes, Ts, plane, fit)))
+            elif unoriented:
+                fitted[tr.id], start = unoriented_initialize(tr.boxes, Ts, ctx.camera, truncation_margin=method.margin,
+                                                             min_ratio=MIN_PLAUSIBLE_RATIO)
+                spheres += start == "sphere"
             else:
                 fitted[tr.id] = svd_initialize(tr.boxes, Ts, ctx.camera, truncation_margin=method.margin)
         except OBJECT_ERRORS as err:
             fitted[tr.id] = err
+    if unoriented:
+        notes.append("no up direction or support plane in the priors: Quadric-SVD initialisation, "
+                     f"a sphere on the boxes' rays where it is flat or fits the boxes worse ({spheres} objects)")
     if multi:
         got = multi_initialize_batch([m for _, m in multi], ctx.camera, ctx.up)
         fitted.update(zip([i for i, _ in multi], got))
