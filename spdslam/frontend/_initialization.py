@@ -17,7 +17,7 @@ out of both fits.
 
 Without an up direction the multi-constraint fit has no frame; ``unoriented_initialize``
 starts from Quadric-SVD where it fits the boxes, else from a sphere on the boxes' rays
-(``sphere_initialize``): on real boxes the algebraic fit is often flat (a radius of 0.1 mm)
+(``sphere_initialize``): on real boxes the algebraic fit is often flat (a radius below 1 mm)
 or metres long, starts the back end takes many iterations to leave, when it leaves them.
 """
 
