@@ -141,29 +141,16 @@ def _ellipsoid_of_quadric(Q):
 _ELLIPSOID_OF_QUADRIC = stored_jit(_ellipsoid_of_quadric, "frontend.ellipsoid_of_quadric")
 
 
-def _box_rays_of(boxes, poses, camera):
-    """(centres, world directions through the box centres, R_wc) of ``poses``."""
-    rows = np.stack([np.asarray(as_pose(T).wxyz_xyz, dtype=float) for T in poses])
-    return _box_rays(boxes, rows, camera)
-
-
-def sphere_initialize(boxes, poses, camera: Camera, min_views: int = 3) -> Ellipsoid:
-    """A sphere from the boxes alone: its centre c the point nearest the rays through the box
-    centres (``triangulate_rays``), its radius the median over views of
-    zᵢ (wᵢ/f_x + hᵢ/f_y)/4, with zᵢ the depth of c and wᵢ × hᵢ the box of view i (the radius
-    whose projection has the box's mean half-size). Raises ``InitializationError`` when the
-    rays are (nearly) parallel or c lies behind a camera."""
+def sphere_initialize(boxes, poses, camera: Camera, min_views: int = 3,
+                      truncation_margin: float | None = None) -> Ellipsoid:
+    """A sphere from the boxes alone: its centre the point nearest the rays through the box
+    centres, its radius the mean of the boxes' median half-width and half-height at that
+    depth (``_ray_centre``, as the multi-constraint fit's starts). Raises
+    ``InitializationError`` when the rays are (nearly) parallel or meet behind the cameras."""
     boxes, poses = _views(boxes, poses, max(min_views, 2))
-    origins, directions, Rs = _box_rays_of(boxes, poses, camera)
-    c = triangulate_rays(origins, directions)
-    z = np.einsum("kji,kj->ki", Rs, c[None] - origins)[:, 2]
-    if not np.all(z > 0):
-        raise InitializationError(f"the boxes' rays meet behind {int(np.sum(z <= 0))} of the cameras")
-    K = np.asarray(camera.K)
-    r = float(np.median(z * ((boxes[:, 2] - boxes[:, 0]) / K[0, 0] + (boxes[:, 3] - boxes[:, 1]) / K[1, 1]) / 4))
-    if not r > 0:
-        raise InitializationError("the boxes have no extent")
-    return Ellipsoid(np.eye(3) * r**2, c)
+    rows = np.stack([np.asarray(T.wxyz_xyz, dtype=float) for T in poses])
+    c, half_w, half_h = _ray_centre(boxes, rows, camera, _keep(boxes, camera, truncation_margin))
+    return Ellipsoid(np.eye(3) * (0.5 * (half_w + half_h)) ** 2, c)
 
 
 def _box_fit(e: Ellipsoid, boxes, poses, camera: Camera) -> float:
@@ -199,7 +186,7 @@ def unoriented_initialize(boxes, poses, camera: Camera, min_views: int = 3,
         if r[0] < min_ratio * r[2]:
             svd, why = None, f"Quadric-SVD is flat (radii {r[2]:.3g}, {r[1]:.3g}, {r[0]:.3g} m)"
     try:
-        sphere = sphere_initialize(boxes, poses, camera, min_views)
+        sphere = sphere_initialize(boxes, poses, camera, min_views, truncation_margin)
     except InitializationError as err:
         if svd is None:
             raise InitializationError(f"{why}; no sphere either: {err}") from None
@@ -371,12 +358,11 @@ def _multi_problem(boxes, poses, camera: Camera, up, support_plane, fit: MultiFi
                         fit.shape)
 
 
-def _multi_starts(boxes, rows, camera: Camera, keep, frame, on_plane: bool) -> list:
-    """The fit's starts θ = (centre in the plane's frame, log radii, yaw, tilt), one per
-    yaw of ``_YAW_STARTS``: the centre from the rays through the box centres, the radii from
-    the box sizes at that depth (whole boxes when there are two, a truncated box's centre
-    and size are biased), resting on the plane when ``on_plane``."""
-    e1, e2, n, w0 = frame
+def _ray_centre(boxes, rows, camera: Camera, keep) -> tuple[np.ndarray, float, float]:
+    """(centre, half-width, half-height) of an object from its boxes: the point nearest the
+    rays through the box centres, and the boxes' median half-sizes at its depth (whole boxes
+    when there are two, a truncated box's centre and size are biased; ``keep`` the edges
+    kept, ``rows`` the poses' jaxlie parameters)."""
     whole = keep.all(axis=1)
     start = whole if whole.sum() >= 2 else np.ones(len(boxes), bool)
     origins, dirs, Rs = _box_rays(boxes[start], rows[start], camera)
@@ -387,6 +373,16 @@ def _multi_starts(boxes, rows, camera: Camera, keep, frame, on_plane: bool) -> l
     depth = np.maximum(depth, 1e-3)
     half_w = np.median((boxes[start, 2] - boxes[start, 0]) * depth / (2 * camera.fx))
     half_h = np.median((boxes[start, 3] - boxes[start, 1]) * depth / (2 * camera.fy))
+    return c0, float(half_w), float(half_h)
+
+
+def _multi_starts(boxes, rows, camera: Camera, keep, frame, on_plane: bool) -> list:
+    """The fit's starts θ = (centre in the plane's frame, log radii, yaw, tilt), one per
+    yaw of ``_YAW_STARTS``: the centre from the rays through the box centres, the radii from
+    the box sizes at that depth (whole boxes when there are two, a truncated box's centre
+    and size are biased), resting on the plane when ``on_plane``."""
+    e1, e2, n, w0 = frame
+    c0, half_w, half_h = _ray_centre(boxes, rows, camera, keep)
     r_h = max(half_w, 1e-3)
     r_v = max(half_h, 1e-3)
     w = c0 @ n
