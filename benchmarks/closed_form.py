@@ -9,7 +9,10 @@ programs (the closed form first: its first linearisation also compiles the two v
 types' pushforwards, which both modes use), then ``--repeats`` times; medians are printed.
 The two linearisations' H and g are compared.
 
-    python3 benchmarks/closed_form.py [--poses 2200] [--per-pose 10] [--objects 20] [--repeats 7] [--out FILE]
+``--retain`` first calls ``solver.retain_freed_memory`` (as the ``spdslam`` command does when
+a command starts): freed blocks are reused instead of being handed back and faulted in again.
+
+    python3 benchmarks/closed_form.py [--poses 2200] [--per-pose 10] [--objects 20] [--repeats 7] [--retain] [--out FILE]
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run from a ch
 
 from spdslam.factors import Cauchy, InverseBoxFactor  # noqa: E402
 from spdslam.geometry import Camera, Ellipsoid, look_at, project_box  # noqa: E402
-from spdslam.solver import L, NonlinearFactorGraph, Problem, Values, X, closed_forms  # noqa: E402
+from spdslam.solver import L, NonlinearFactorGraph, Problem, Values, X, closed_forms, retain_freed_memory  # noqa: E402
 
 
 def problem_parts(poses: int, per_pose: int, objects: int, seed: int = 0):
@@ -93,14 +96,17 @@ def main() -> None:
     ap.add_argument("--objects", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--quick", action="store_true", help="200 poses, 3 repeats")
+    ap.add_argument("--retain", action="store_true", help="solver.retain_freed_memory() first, as the command")
     ap.add_argument("--out", type=Path)
     a = ap.parse_args()
     if a.quick:
         a.poses, a.repeats = 200, 3
+    retained = retain_freed_memory() if a.retain else False
     graph, values = problem_parts(a.poses, a.per_pose, a.objects)
     n = len(graph.entries()[0])
     res = {"closed form": measure(graph, values, True, a.repeats), "JAX": measure(graph, values, False, a.repeats)}
-    print(f"{n} inverse box factors, {a.poses} poses, {a.objects} objects; medians of {a.repeats}")
+    print(f"{n} inverse box factors, {a.poses} poses, {a.objects} objects; medians of {a.repeats}; "
+          f"freed memory {'retained' if retained else 'handed back (glibc defaults)'}")
     print("| | closed form | JAX | ratio |\n| --- | --- | --- | --- |")
     for key in ("first_linearisation", "linearisation", "first_cost", "cost"):
         c, j = res["closed form"][key], res["JAX"][key]
@@ -112,7 +118,8 @@ def main() -> None:
     print(f"H and g, closed form against JAX: largest difference {dH:.1e} and {dg:.1e} of their largest entries")
     if a.out:
         out = {mode: {k: v for k, v in r.items() if k not in ("H", "g")} for mode, r in res.items()}
-        out.update(factors=n, poses=a.poses, objects=a.objects, repeats=a.repeats, H_difference=dH, g_difference=dg)
+        out.update(factors=n, poses=a.poses, objects=a.objects, repeats=a.repeats, H_difference=dH, g_difference=dg,
+                   retained=retained)
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(out, indent=2))
         print(f"wrote {a.out}")

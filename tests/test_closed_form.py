@@ -65,7 +65,8 @@ def test_inverse_box_closed_form_matches_the_jax_jacobian_and_central_difference
     args = (jnp.asarray(boxes), jax.tree.map(jnp.asarray, cam)) + (() if keep is None else (jnp.asarray(keep),))
     # the JAX Jacobians, themselves checked against central differences
     r_jax, (J_pose, J_lm) = check_jacobians(inverse_box_residual, (poses, lm), args)
-    Ts = (_host(pushforward(jaxlie.SE3, poses)), _host(pushforward(Ellipsoid, lm)))
+    n = len(boxes)  # the solver's form: each type's pushforwards and the factors' rows in them
+    Ts = ((_host(pushforward(jaxlie.SE3, poses)), np.arange(n)), (_host(pushforward(Ellipsoid, lm)), np.arange(n)))
     host_args = tuple(_host(a) for a in args)
     r, J, valid = inverse_box_linearization((_host(poses), _host(lm)), Ts, host_args)
     assert np.allclose(r, r_jax, rtol=1e-9, atol=1e-9)

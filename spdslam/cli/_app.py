@@ -45,15 +45,20 @@ _cache_dir_in_use: Path | None = None
 def start() -> None:
     """What every command does before its body (its help, given before, does not): import the
     solver (JAX) with the garbage collector paused, then freeze what the imports made out of
-    its full passes (``gc.freeze``); turn on JAX's persistent compilation cache
+    its full passes (``gc.freeze``); keep large freed blocks for reuse
+    (``solver.retain_freed_memory``); turn on JAX's persistent compilation cache
     (``solver.enable_compilation_cache``)."""
     global _cache_dir_in_use
     gc.collect()  # the garbage so far (a process that runs commands in turn: a test) is not frozen
     with collector_paused():  # the imports make some 120 000 objects that live as long as the
-        from ..solver import enable_compilation_cache  # process: no full collection traverses
-    # them while they arrive (four did: 0.25 s), nor after (docs/performance.md, section 8,
-    # "The collector in a batch run")
+        from ..solver import enable_compilation_cache, retain_freed_memory  # process: no full
+    # collection traverses them while they arrive (four did: 0.25 s), nor after
+    # (docs/performance.md, section 8, "The collector in a batch run")
 
+    try:
+        retain_freed_memory()
+    except ValueError as e:
+        fail(str(e))
     _cache_dir_in_use = enable_compilation_cache()
 
 

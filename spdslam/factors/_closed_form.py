@@ -71,12 +71,15 @@ class ClosedForm:
     """A residual function's NumPy linearisation (``closed_form``).
 
     ``linearize(xs, Ts, args, jacobian)`` takes the stacked variables of n factors (``xs``,
-    one pytree with NumPy leaves per variable), their pushforwards (``Ts``, as the solver
-    gathers them) and the stacked data (``args``) and returns (r (n, m), J (n, m, D) in
-    tangent coordinates or None without ``jacobian``, validity (n,) or None). It stands for
-    ``residual`` with the validity rule ``valid`` when the variables are of ``types``.
-    ``pushforwards``: for each variable, whether ``linearize`` reads its pushforward (the
-    solver computes only those; an entry of ``Ts`` it does not read may be None)."""
+    one pytree with NumPy leaves per variable), their pushforwards (``Ts``: per variable a
+    pair (rows, index), the pushforwards of every variable of that type, stacked, and the
+    row of each of the n factors' in them, (n,); not gathered per factor, since a landmark's
+    is shared by its many factors) and the stacked data (``args``) and returns (r (n, m),
+    J (n, m, D) in tangent coordinates or None without ``jacobian``, validity (n,) or None).
+    It stands for ``residual`` with the validity rule ``valid`` when the variables are of
+    ``types``. ``pushforwards``: for each variable, whether ``linearize`` reads its
+    pushforward (the solver computes only those; an entry of ``Ts`` it does not read may be
+    None)."""
 
     residual: Callable
     valid: Callable | None
@@ -106,16 +109,18 @@ def _register(cf: ClosedForm) -> None:
 _I, _J = np.array([0, 1, 2, 0, 1]), np.array([0, 1, 2, 2, 2])
 
 
-def _entry_jacobians(G, m, A, T_landmark):
-    """∂G_e/∂(ρ, ω, landmark) (n, 5, 6 + 9) for the entries e = (i, j) of ``_I``, ``_J``:
+def _box_jacobian(dr, G, m, A, T_landmark):
+    """∂r/∂(ρ, ω, landmark) (n, 4, 6 + 9) = dr ∂G_e/∂(…) from dr = ∂r/∂G_e (n, 4, 5), for
+    the entries e = (i, j) of ``_I``, ``_J``:
 
         ρ ↦ e_i m_j + m_i e_j,   ω ↦ e_j × g_i + e_i × g_j   (g_i: row i of G),
         (dP, dt) ↦ a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt   (a_i: row i of A),
 
-    the pose's written out entry by entry (most are 0), the landmark's through its
-    pushforward ``T_landmark`` (per factor: P (n, 9, 3, 3), center (n, 9, 3))."""
+    the pose's written out entry by entry (most are 0), the landmark's as dr times the
+    coefficients of (dP, dt) (n, 4, 12), then times the landmark's directions: its
+    pushforward ``T_landmark`` = (rows, index) (``ClosedForm``), as (12, 9) per landmark."""
     n = len(G)
-    dG = np.zeros((n, 5, 15))
+    dG = np.zeros((n, 5, 6))
     g00, g11, g22, g01, g02, g12 = G[:, 0, 0], G[:, 1, 1], G[:, 2, 2], G[:, 0, 1], G[:, 0, 2], G[:, 1, 2]
     m0, m1, m2 = m[:, 0], m[:, 1], m[:, 2]
     # ρ
@@ -128,23 +133,30 @@ def _entry_jacobians(G, m, A, T_landmark):
     dG[:, 2, 3], dG[:, 2, 4] = -2.0 * g12, 2.0 * g02
     dG[:, 3, 3], dG[:, 3, 4], dG[:, 3, 5] = -g01, g00 - g22, g12
     dG[:, 4, 3], dG[:, 4, 4], dG[:, 4, 5] = g22 - g11, g01, -g02
-    # the landmark
-    dG[:, :, 6:] = _landmark_entries(A[:, None], m[:, None], np.asarray(T_landmark.P),
-                                     np.asarray(T_landmark.center))[:, 0]
-    return dG
+    rows, index = T_landmark
+    T = _directions(np.asarray(rows.P), np.asarray(rows.center))[index]
+    return np.concatenate([dr @ dG, (dr @ _coefficients(A[:, None], m[:, None])[:, 0]) @ T], axis=2)
 
 
-def _landmark_entries(A, m, TP, Tt):
-    """∂G_e/∂(the landmark's directions) (B, K, 5, Q) for the entries e of ``_I``, ``_J``:
-    a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt, each of B landmarks seen from K cameras (A (B, K,
-    3, 3), m (B, K, 3)) along its Q directions (dP (B, Q, 3, 3), dt (B, Q, 3)): per landmark
-    the views' coefficients (5K rows) times its directions."""
+def _coefficients(A, m):
+    """The coefficients (B, K, 5, 12) of a landmark's (dP, dt) (9 + 3, row-major) in ∂G_e for
+    the entries e of ``_I``, ``_J`` seen from B × K cameras (A (B, K, 3, 3), m (B, K, 3)):
+    a_iᵀ dP a_j − (m_j a_i + m_i a_j)·dt."""
     B, K = m.shape[:2]
-    Q = TP.shape[1]
     AI, AJ = A[:, :, _I], A[:, :, _J]
-    dGP = np.einsum("bkei,bkej->bkeij", AI, AJ).reshape(B, K * 5, 9)
-    dGt = -(m[:, :, _J, None] * AI + m[:, :, _I, None] * AJ).reshape(B, K * 5, 3)
-    return (dGP @ np.swapaxes(TP.reshape(B, Q, 9), 1, 2) + dGt @ np.swapaxes(Tt, 1, 2)).reshape(B, K, 5, Q)
+    dGP = np.einsum("bkei,bkej->bkeij", AI, AJ).reshape(B, K, 5, 9)
+    dGt = -(m[:, :, _J, None] * AI + m[:, :, _I, None] * AJ)
+    return np.concatenate([dGP, dGt], axis=3)
+
+
+def _directions(TP, Tt):
+    """B landmarks' Q directions (dP (B, Q, 3, 3), dt (B, Q, 3)) as columns (B, 12, Q),
+    contiguous (matmul's fast path takes both operands so)."""
+    B, Q = Tt.shape[:2]
+    T = np.empty((B, 12, Q))
+    T[:, :9] = np.swapaxes(TP.reshape(B, Q, 9), 1, 2)
+    T[:, 9:] = np.swapaxes(Tt, 1, 2)
+    return T
 
 
 def _edges(a, b, g, f, c0, jacobian: bool):
@@ -197,12 +209,13 @@ def ellipsoid_boxes(A, c, P, t, camera, directions=None):
     B, K = A.shape[:2]
     Af = A.reshape(B, K * 3, 3)
     m = (Af @ t[:, :, None]).reshape(B, K, 3) - np.einsum("bkij,bkj->bki", A, c)
-    AP = (Af @ P).reshape(B, K, 3, 3)  # rows a_iᵀ P
-    g = np.einsum("bkei,bkei->bke", AP[:, :, _I], A[:, :, _J]) - m[:, :, _I] * m[:, :, _J]
+    S = (Af @ P).reshape(B, K, 3, 3) @ np.ascontiguousarray(np.swapaxes(A, 2, 3))  # A P Aᵀ
+    g = S.reshape(B, K, 9)[:, :, _I * 3 + _J] - m[:, :, _I] * m[:, :, _J]
     box, dbox = _box_of_entries(g, camera, directions is not None)
     if directions is None:
         return box, None
-    return box, dbox @ _landmark_entries(A, m, np.asarray(directions[0]), np.asarray(directions[1]))
+    T = _directions(np.asarray(directions[0]), np.asarray(directions[1]))
+    return box, ((dbox @ _coefficients(A, m)).reshape(B, K * 4, 12) @ T).reshape(B, K, 4, T.shape[2])
 
 
 def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
@@ -227,8 +240,7 @@ def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     if not jacobian:
         return r, None, valid
     dr = dbox if keep is None else dbox * keep[:, :, None]
-    dG = _entry_jacobians(G, m, A, Ts[1])
-    return r, dr @ dG, valid
+    return r, _box_jacobian(dr, G, m, A, Ts[1]), valid
 
 
 #: ``box_visible``'s depth margin, read from its signature (one place for the number).

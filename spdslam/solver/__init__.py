@@ -10,12 +10,15 @@ loop (``_optimizers``, CHOLMOD on the host), and ``.batched(graph, values)`` (a
 ``BatchedProblem`` of array data) / ``.optimize_batched(graphs, values_list)`` run many
 problems of one structure in one jitted loop (``_batched``). ``enable_compilation_cache`` /
 ``ensure_compilation_cache`` (``_cache``) turn on JAX's persistent compilation cache;
-``stored_jit`` (``_stored``) keeps spdslam's own compiled programs on disk between processes.
+``stored_jit`` (``_stored``) keeps spdslam's own compiled programs on disk between processes;
+``retain_freed_memory`` (``_allocator``) keeps glibc from handing large freed blocks back.
 ``FixedLagSmoother`` (``_smoother``) is the online mapper's window solve and marginalisation,
 beside the batch optimisers. Imports
 only ``spdslam.geometry`` and ``spdslam.factors``.
 """
 
+from ._allocator import ALLOCATOR_ENV as ALLOCATOR_ENV
+from ._allocator import retain_freed_memory as retain_freed_memory
 from ._batched import DEFAULT_LANES as DEFAULT_LANES
 from ._batched import BatchedProblem as BatchedProblem
 from ._batched import BatchedResult as BatchedResult

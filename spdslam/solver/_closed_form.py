@@ -102,7 +102,8 @@ class ClosedFormGroup:
         """(JᵀJ upper triangles (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)."""
         r, J, half_rho, valid, finite = self._terms(xs, Ts, mask, data, True)
         n, D = len(r), self.spec.D
-        H = np.take((np.swapaxes(J, 1, 2) @ J).reshape(n, D * D), self._upper, axis=1)
+        # Jᵀ made contiguous first: matmul's stacked path is 2–3× faster on it than on a view
+        H = np.take((np.ascontiguousarray(np.swapaxes(J, 1, 2)) @ J).reshape(n, D * D), self._upper, axis=1)
         g = np.einsum("nmi,nm->ni", J, r)
         return H, g, half_rho, valid, finite
 

@@ -493,8 +493,9 @@ class _Kernels:
         gather = lambda host, p, t: host[t][1].unflatten([a[idx[:, p]] for a in host[t][0]])  # noqa: E731
         xs = [gather(vars_host, p, t) for p, t in enumerate(var_types)]
         Ts = None
-        if push_host is not None and isinstance(self.groups[k], ClosedFormGroup):
-            Ts = [None if push_host[t] is None else gather(push_host, p, t) for p, t in enumerate(var_types)]
+        if push_host is not None and isinstance(self.groups[k], ClosedFormGroup):  # (rows, index): ClosedForm
+            Ts = [None if push_host[t] is None else (push_host[t][1].unflatten(push_host[t][0]), idx[:, p])
+                  for p, t in enumerate(var_types)]
         elif push_host is not None and all(push_host[t] is not None for t in var_types):
             Ts = [gather(push_host, p, t) for p, t in enumerate(var_types)]
         self.groups[k].note(xs, Ts, mask, data)
