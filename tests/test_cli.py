@@ -32,6 +32,14 @@ def test_info_reports_jax_and_float64():
     assert "sparse solver" in out
 
 
+def test_a_bad_allocator_setting_is_one_line_and_exit_2(monkeypatch):
+    monkeypatch.setenv("SPDSLAM_ALLOCATOR", "huge")
+    result = runner.invoke(cli.app, ["info"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        "spdslam: error: SPDSLAM_ALLOCATOR must be 'retain' or 'system', got 'huge'"]
+
+
 @pytest.mark.parametrize("cholmod,cvxopt,name", [(True, True, "cholmod: CHOLMOD (scikit-sparse"),
                                                  (False, True, "cvxopt: CHOLMOD bundled with cvxopt"),
                                                  (False, False, "scipy: SuperLU")])
