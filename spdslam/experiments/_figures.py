@@ -119,16 +119,21 @@ def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool, loops=(
     of a top view on ``ax``; returns each ellipsoid's (centre, colour, area)."""
     from scipy.spatial import ConvexHull, QhullError
 
-    out = []
+    from matplotlib.collections import PolyCollection
+
+    out, fills = [], []
     for i, e in enumerate(ellipsoids):
         P, t = _landmark(e)
         c, S = top_view_ellipse(P, t, B)
         xy = ellipse_points(c, S, 120)
         color = _COLORS[i % len(_COLORS)]
-        ax.fill(xy[:, 0], xy[:, 1], color=color, alpha=0.15, lw=0)
+        fills.append(xy)
         ax.plot(xy[:, 0], xy[:, 1], "-", color=color, lw=1.2,
                 label="estimated ellipsoids" if i == 0 and legend else None)  # fmt: skip
         out.append((c, color, float(np.sqrt(max(np.linalg.det(S), 0.0)))))
+    if fills:  # the outlines above set the data limits; one collection fills them all
+        ax.add_collection(PolyCollection(fills, facecolors=[color for _, color, _ in out], alpha=0.15,
+                                         linewidths=0), autolim=False)
     for i, g in enumerate(gt_cuboids or []):
         cub = getattr(g, "cuboid", g)
         pts = np.asarray(cub.corners(), dtype=float) @ B.T

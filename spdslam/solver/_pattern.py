@@ -70,15 +70,18 @@ def csc_pattern(n: int, offsets: np.ndarray, dims: np.ndarray, groups) -> dict:
         s = indptr[c] + (a - i) + C[sel][:, None] + j
         rows[s], cols[s] = phi[sel][:, None] + j, c
     base = indptr[off]
-    hslots = tuple(_slots(B, d, nf_pad, pk, n, off, base, R, dim, C, nnz) for B, d, nf_pad in groups)
+    hslots = tuple(_slots(B, d, nf_pad, pk, n, off, base, R, C, nnz) for B, d, nf_pad in groups)
     return dict(nnz=nnz, indptr=indptr.astype(np.int32), indices=rows.astype(np.int32), rows=rows, cols=cols,
                 diag=indptr[:-1].copy(), hslots=hslots)
 
 
-def _slots(B, d, nf_pad, pk, n, off, base, R, dim, C, nnz) -> np.ndarray:
+def _slots(B, d, nf_pad, pk, n, off, base, R, C, nnz) -> np.ndarray:
     """Flat (nf_pad·D(D+1)/2,) slot of each upper-triangle entry (s, t) of each factor's
     JᵀJ (local columns s ≤ t; nnz where a variable is fixed or the row is padding), from
-    per-factor block numbers: column o_u + i starts at indptr[o_u] + i (R_u + d_u) − i(i − 1)/2."""
+    per-factor block numbers. A group's position a always holds a variable of dimension
+    d_a, so column o_u + i starts at indptr[o_u] + i·R_u + (i·d_a − i(i − 1)/2): one
+    per-factor term (indptr[o_u], plus C_k in a pair block), one per-factor factor (R_u) of
+    the entry's i and one per-entry constant."""
     d = np.asarray(d, np.int64)
     k, D = len(d), int(d.sum())
     start = np.concatenate([[0], np.cumsum(d)[:-1]])
@@ -90,10 +93,13 @@ def _slots(B, d, nf_pad, pk, n, off, base, R, dim, C, nnz) -> np.ndarray:
     out = np.full((nf_pad, len(su)), nnz, np.int64)
     free = B >= 0
     blk = np.searchsorted(off, np.where(free, B, 0))  # each position's variable block
+    b0, r0 = base[blk], R[blk]  # (nf, k): indptr[o_u] and R_u of each position's variable
 
-    def column_start(u, i):
-        """indptr[o_u + i] (nf, len(i)) for the blocks u (nf,)."""
-        return base[u][:, None] + i * (R[u] + dim[u])[:, None] - i * (i - 1) // 2
+    def block(a, ii, jj, shift, rows):
+        """Slots (len(rows), len(ii)) of the entries (column o_u + ii, row offset jj past the
+        column's diagonal part) of position a's variable u in the factors ``rows``."""
+        const = ii * d[a] - ii * (ii - 1) // 2 + jj
+        return (b0[rows, a] + shift)[:, None] + r0[rows, a][:, None] * ii + const
 
     for a in range(k):
         for b in range(a, k):
@@ -101,17 +107,20 @@ def _slots(B, d, nf_pad, pk, n, off, base, R, dim, C, nnz) -> np.ndarray:
             if e.size == 0:
                 continue
             ie, je = i[e], j[e]
-            if a == b:  # a variable's own block, i ≤ j
-                val = column_start(blk[:, a], ie) + (je - ie)
+            if a == b:  # a variable's own block, i ≤ j: (j − i) past the column's start
                 ok = free[:, a]
+                val = block(a, ie, je - ie, 0, slice(None))
             else:  # the pair's column block is the variable of the smaller offset
-                ua, ub = blk[:, a], blk[:, b]
                 ok = free[:, a] & free[:, b]
                 kp = np.zeros(nf, np.int64)
                 kp[ok] = np.searchsorted(pk, np.minimum(B[ok, a], B[ok, b]) * n + np.maximum(B[ok, a], B[ok, b]))
-                va = column_start(ua, ie) + (dim[ua][:, None] - ie) + je
-                vb = column_start(ub, je) + (dim[ub][:, None] - je) + ie
                 Ck = C[kp] if C.size else np.zeros(nf, np.int64)  # no pair: every one has a fixed variable
-                val = np.where((B[:, a] < B[:, b])[:, None], va, vb) + Ck[:, None]
-            out[:nf, e] = np.where(ok[:, None], val, nnz)
+                first = B[:, a] < B[:, b]
+                val = np.empty((nf, e.size), np.int64)
+                fa, fb = np.flatnonzero(first), np.flatnonzero(~first)
+                # a's column i, row o_b + j: past a's d_a − i diagonal rows; b's column j likewise
+                val[fa] = block(a, ie, d[a] - ie + je, Ck[fa], fa)
+                val[fb] = block(b, je, d[b] - je + ie, Ck[fb], fb)
+            val[~ok] = nnz
+            out[:nf, e] = val
     return out.ravel()
