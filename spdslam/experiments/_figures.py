@@ -117,9 +117,8 @@ def _place_labels(fig, ax, anchors, texts, colors, fontsize: float = 7.0) -> Non
 def _draw_map(ax, B, ellipsoids, gt_cuboids, trajectories, legend: bool, loops=()):
     """Ellipsoids, ground-truth footprints, trajectories and loop closures (``plot_map_top``)
     of a top view on ``ax``; returns each ellipsoid's (centre, colour, area)."""
-    from scipy.spatial import ConvexHull, QhullError
-
     from matplotlib.collections import PolyCollection
+    from scipy.spatial import ConvexHull, QhullError
 
     out, fills = [], []
     for i, e in enumerate(ellipsoids):
