@@ -3,6 +3,8 @@ central differences, and the solver's use of them (``solver.closed_forms``)."""
 
 from __future__ import annotations
 
+import shutil
+
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -26,7 +28,7 @@ from spdslam.factors import (
     pose_prior_residual,
 )
 from spdslam.geometry import Camera, Ellipsoid, EllipsoidRTS, manifold, project_box
-from spdslam.geometry import se3
+from spdslam.geometry import native, se3
 from spdslam.geometry.se3 import quat_to_matrix
 from spdslam.solver import L, NonlinearFactorGraph, Problem, Values, X, closed_forms
 from spdslam.solver._linearize import pushforward
@@ -393,3 +395,98 @@ def test_the_objects_uncertainty_jacobian_in_numpy_matches_the_jax_one(gen, shap
     with np.errstate(all="ignore"):
         Jb = _summary_jacobians(bad)
     assert not np.isfinite(Jb[0]).all() and np.array_equal(Jb[1:], J[1:])
+
+
+# --- the compiled kernels (geometry.native) ------------------------------------------------
+
+compiled = pytest.mark.skipif(native.native_kernels() is None, reason="the compiled kernels were not built")
+
+
+def test_the_kernels_are_built_where_a_c_compiler_is():
+    """An install on a machine with a C compiler builds ``geometry/_kernels.c`` (setup.py);
+    a build that fails there would silently leave every run on the NumPy code."""
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler here")
+    assert native.native_kernels() is not None, "geometry/_kernels.c was not built: pip install -e . again"
+
+
+def _edge_cases(gen, n=40):
+    """Stacked rows with every branch of the box kernel: general views, a camera inside its
+    ellipsoid (Δ ≤ 0), an ellipsoid behind its camera, a pose sent astray (NaN), a zero
+    quaternion, and per-row cameras."""
+    poses, lm, cam = _views(gen, n)
+    q = np.array(poses.wxyz_xyz)
+    P, t = np.array(lm.P), np.array(lm.center)
+    q[1, 4:] = t[1]  # the camera at the centre: inside
+    q[2, 4:] = t[2] + 3.0 * quat_to_matrix(q[2, [1, 2, 3, 0]])[:, 2]  # looking away: behind
+    q[3, 0] = np.nan
+    q[4, :4] = 0.0
+    return jaxlie.SE3(q), Ellipsoid(P, t), cam
+
+
+@compiled
+@pytest.mark.parametrize("truncated", [False, True])
+def test_the_compiled_box_kernel_is_the_numpy_closed_form(gen, truncated):
+    poses, lm, cam = _edge_cases(gen)
+    n = len(lm.center)
+    boxes = gen.rng.uniform(0.0, 600.0, size=(n, 4))
+    keep = (gen.rng.random(boxes.shape) > 0.25).astype(float) if truncated else None
+    host_args = (boxes, _host(cam)) + (() if keep is None else (keep,))
+    landmarks = jax.tree.map(lambda a: a[::2], lm)  # every landmark seen by two rows
+    index = np.arange(n) // 2
+    Ts = (None, (_host(pushforward(Ellipsoid, landmarks)), index))
+    xs = (poses, Ellipsoid(np.asarray(landmarks.P)[index], np.asarray(landmarks.center)[index]))
+    out = {}
+    for on in (False, True):
+        with native.compiled_kernels(on), np.errstate(all="ignore"):
+            out[on] = (inverse_box_linearization(xs, Ts, host_args), inverse_box_linearization(xs, None, host_args, False))
+    (r0, J0, v0), (c0, _, w0) = out[False]
+    (r1, J1, v1), (c1, _, w1) = out[True]
+    assert np.array_equal(v0, v1) and np.array_equal(w0, w1) and not v1[2] and not v1[3]
+    for a, b in ((r0, r1), (c0, c1), (J0, J1)):
+        assert np.array_equal(np.isfinite(a), np.isfinite(b))
+        ok = np.isfinite(a)
+        scale = 1.0 + np.abs(np.where(ok, a, 0.0)).max()
+        assert np.max(np.abs(np.where(ok, a - b, 0.0))) < 1e-12 * scale
+    assert not np.isfinite(r1[3]).any() and not np.isfinite(r1[4]).any()  # astray and zero: NaN, no error
+
+
+@compiled
+def test_the_compiled_gram_and_scatter_are_numpys(gen):
+    J = gen.rng.normal(size=(50, 4, 15))
+    r = gen.rng.normal(size=(50, 4))
+    H, g = native.gram_upper(native.native_kernels(), J, r)
+    iu, ju = np.triu_indices(15)
+    assert np.allclose(H, (np.swapaxes(J, 1, 2) @ J)[:, iu, ju], rtol=1e-14, atol=1e-13)
+    assert np.allclose(g, np.einsum("nmi,nm->ni", J, r), rtol=1e-14, atol=1e-13)
+    slots = gen.rng.integers(0, 30, size=H.size)  # repeated slots sum up
+    out = np.ones(30)
+    native.scatter_add(native.native_kernels(), slots, H, out)
+    assert np.allclose(out, 1.0 + np.bincount(slots, weights=H.ravel(), minlength=30), rtol=1e-13, atol=1e-12)
+    with pytest.raises(ValueError, match="as many slots as values"):
+        native.scatter_add(native.native_kernels(), slots[:-1], H, out)
+
+
+def test_the_kernels_setting(monkeypatch):
+    monkeypatch.setenv(native.KERNELS_ENV, "numpy")
+    assert native.native_kernels() is None
+    monkeypatch.setenv(native.KERNELS_ENV, "fast")
+    with pytest.raises(ValueError, match=f"{native.KERNELS_ENV} must be 'compiled' or 'numpy', got 'fast'"):
+        native.native_kernels()
+    monkeypatch.delenv(native.KERNELS_ENV)
+    with native.compiled_kernels(False):
+        assert native.native_kernels() is None
+
+
+@compiled
+def test_a_problem_linearises_alike_with_and_without_the_compiled_kernels(gen):
+    graph, values = _graph(gen, n_poses=8, n_objects=4)
+    problem = Problem(graph, values)
+    out = {}
+    for on in (False, True):
+        with native.compiled_kernels(on):
+            out[on] = problem.linearize(problem.vars)[:3]
+    (H0, g0, c0), (H1, g1, c1) = out[False], out[True]
+    assert np.allclose(H1, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+    assert np.allclose(g1, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
+    assert c1 == pytest.approx(c0, rel=1e-14)

@@ -55,8 +55,11 @@ def start() -> None:
     # collection traverses them while they arrive (four did: 0.25 s), nor after
     # (docs/performance.md, section 8, "The collector in a batch run")
 
+    from ..geometry import native
+
     try:
         retain_freed_memory()
+        native.native_kernels()  # SPDSLAM_KERNELS checked before any work
     except ValueError as e:
         fail(str(e))
     _cache_dir_in_use = enable_compilation_cache()
@@ -194,6 +197,18 @@ def cholmod_available() -> bool:
     return True
 
 
+def kernels_name() -> str:
+    """Which code linearises the box factors (``geometry.native``): the compiled kernels or
+    NumPy, and why NumPy."""
+    from ..geometry import native
+
+    if native.native_kernels() is not None:
+        return "compiled (geometry/_kernels.c)"
+    if os.environ.get(native.KERNELS_ENV, "").strip().lower() == "numpy":
+        return f"off ({native.KERNELS_ENV}=numpy): NumPy"
+    return "not built (no C compiler at install): NumPy"
+
+
 def sparse_solver_name() -> str:
     """Human-readable name of the sparse linear solver the optimiser will use (as the
     solver itself decides: ``spdslam.solver.default_sparse_solver``)."""
@@ -262,6 +277,7 @@ def info() -> None:
         else "not available",
     )
     versions.add_row("sparse solver", sparse_solver_name())
+    versions.add_row("compiled kernels", kernels_name())
     try:
         backend = jax.default_backend()
         devices = ", ".join(str(d) for d in jax.devices())

@@ -47,7 +47,7 @@ from typing import Callable
 import jaxlie
 import numpy as np
 
-from ..geometry import Ellipsoid, spd
+from ..geometry import Ellipsoid, native, spd
 from ..geometry.matfun import TIE_RTOL
 from ..geometry.se3 import (
     adjoint_params,
@@ -224,6 +224,15 @@ def inverse_box_linearization(xs, Ts, args, jacobian: bool = True):
     pose, lm = xs
     box_obs, cam = args[0], args[1]
     keep = args[2] if len(args) > 2 else None
+    lib = native.native_kernels()
+    if lib is not None:  # the same, per row in C (geometry.native)
+        directions = index = None
+        if jacobian:
+            rows, index = Ts[1]
+            directions = _directions(np.asarray(rows.P), np.asarray(rows.center))
+        return native.box_linearize(lib, np.asarray(pose.wxyz_xyz), np.asarray(lm.P), np.asarray(lm.center),
+                                    np.asarray(box_obs), (cam.fx, cam.fy, cam.cx, cam.cy),
+                                    None if keep is None else np.asarray(keep), directions, index, _MIN_DEPTH)
     q = np.asarray(pose.wxyz_xyz)
     ok = np.all(np.isfinite(q), axis=1) & np.any(q[:, :4] != 0, axis=1)  # a pose a step sent astray: NaN out
     R = quat_to_matrix(np.where(ok[:, None], q[:, [1, 2, 3, 0]], [0.0, 0.0, 0.0, 1.0]))  # jaxlie's wxyz as xyzw

@@ -7,11 +7,12 @@ JAX in (or traced), JAX out, differentiable.
 Namespaces: ``matfun`` (spectral functions of symmetric matrices with derivatives finite at
 repeated eigenvalues), ``spd`` (the manifold SPD(3): retraction, log map, distance),
 ``se3`` (poses and the camera-to-world convention), ``manifold`` (the registry of
-optimisation variable types).
+optimisation variable types), ``native`` (the compiled kernels, where built).
 """
 
 from . import manifold as manifold
 from . import matfun as matfun
+from . import native as native
 from . import se3 as se3
 from . import spd as spd
 from ._align import align_rigid as align_rigid

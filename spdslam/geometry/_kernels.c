@@ -1,0 +1,179 @@
+/* Compiled kernels for the hot path of a linearisation (docs/performance.md, section 8,
+ * "The box factor compiled").
+ *
+ * Built with the package when a C compiler is there (setup.py: an optional extension); the
+ * Python module it defines is empty: spdslam.geometry._native loads this file with ctypes and
+ * calls the functions below on NumPy arrays (C-contiguous float64, int64 indices). Each
+ * function is the NumPy code it replaces, written per row; the tests compare them.
+ *
+ * box_linearize: the inverse box factor's residual, validity and Jacobian
+ * (spdslam.factors._closed_form.inverse_box_linearization, whose docstrings give the maths).
+ * gram_upper: each row's JᵀJ upper triangle (row-major, i ≤ j) and Jᵀr.
+ * scatter_add: values added into slots (H's assembly).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+
+/* The entries (I[e], J[e]) of G the box edges read: (G00, G11, G22, G02, G12). */
+static const int EI[5] = {0, 1, 2, 0, 1};
+static const int EJ[5] = {0, 1, 2, 2, 2};
+
+/* One edge pair: (lower, upper) image coordinates c0 + f (b ± √Δ)/g, Δ = b² − a g (√ of
+ * Δ ≤ 0 taken as 0, with derivative 0), and their derivatives by (a, b, g). */
+static void edges(double a, double b, double g, double f, double c0, double value[2], double d[2][3]) {
+    double delta = b * b - a * g;
+    int pos = delta > 0;
+    double s = pos ? sqrt(delta) : 0.0;
+    double sign_lo = g < 0 ? 1.0 : -1.0;
+    double inv_2s = pos ? 0.5 / s : 0.0;
+    double ds0 = -g * inv_2s, ds1 = 2.0 * b * inv_2s, ds2 = -a * inv_2s;
+    for (int k = 0; k < 2; ++k) {
+        double sigma = k == 0 ? sign_lo : -sign_lo;
+        value[k] = c0 + f * (b + sigma * s) / g;
+        d[k][0] = f * sigma * ds0 / g;
+        d[k][1] = f * (1.0 + sigma * ds1) / g;
+        d[k][2] = f * sigma * ds2 / g - f * (b + sigma * s) / (g * g);
+    }
+}
+
+/* n (pose, ellipsoid) pairs of the inverse box model.
+ * q (n, 7) wxyz xyz (T_wc); P (n, 9); t (n, 3); obs (n, 4); fx, fy, cx, cy: per row with
+ * stride cam_stride (0: one camera); keep (n, 4) or NULL; directions (L, 12, Q) and index
+ * (n,) the landmark of each row, or directions NULL for no Jacobian.
+ * Out: r (n, 4); valid (n,); J (n, 4, 6 + Q) when directions is given. */
+void box_linearize(int64_t n, const double *q, const double *P, const double *t, const double *obs,
+                   const double *fx, const double *fy, const double *cx, const double *cy, int64_t cam_stride,
+                   const double *keep, const double *directions, const int64_t *index, int64_t Q,
+                   double min_depth, double *r, uint8_t *valid, double *J) {
+    const int64_t D = 6 + Q;
+    for (int64_t k = 0; k < n; ++k) {
+        const double *qk = q + 7 * k, *Pk = P + 9 * k, *tk = t + 3 * k;
+        double R[3][3], A[3][3];
+        int ok = 1, nonzero = 0;
+        for (int i = 0; i < 7; ++i) ok &= isfinite(qk[i]) != 0;
+        for (int i = 0; i < 4; ++i) nonzero |= qk[i] != 0.0;
+        if (ok && nonzero) {  /* SciPy's Rotation.from_quat(xyzw).as_matrix(), term for term */
+            double w = qk[0], x = qk[1], y = qk[2], z = qk[3];
+            double nq = sqrt(x * x + y * y + z * z + w * w);
+            x /= nq, y /= nq, z /= nq, w /= nq;
+            double x2 = x * x, y2 = y * y, z2 = z * z, w2 = w * w;
+            double xy = x * y, zw = z * w, xz = x * z, yw = y * w, yz = y * z, xw = x * w;
+            R[0][0] = x2 - y2 - z2 + w2, R[0][1] = 2 * (xy - zw), R[0][2] = 2 * (xz + yw);
+            R[1][0] = 2 * (xy + zw), R[1][1] = -x2 + y2 - z2 + w2, R[1][2] = 2 * (yz - xw);
+            R[2][0] = 2 * (xz - yw), R[2][1] = 2 * (yz + xw), R[2][2] = -x2 - y2 + z2 + w2;
+        } else {
+            for (int i = 0; i < 3; ++i)
+                for (int j = 0; j < 3; ++j) R[i][j] = NAN;
+        }
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) A[i][j] = R[j][i];
+        /* m = A (t − c); S = A P Aᵀ; G = S − m mᵀ */
+        double dlt[3] = {tk[0] - qk[4], tk[1] - qk[5], tk[2] - qk[6]}, m[3], AP[3][3], G[3][3];
+        for (int i = 0; i < 3; ++i) m[i] = A[i][0] * dlt[0] + A[i][1] * dlt[1] + A[i][2] * dlt[2];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) AP[i][j] = A[i][0] * Pk[j] + A[i][1] * Pk[3 + j] + A[i][2] * Pk[6 + j];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                G[i][j] = AP[i][0] * R[0][j] + AP[i][1] * R[1][j] + AP[i][2] * R[2][j] - m[i] * m[j];
+        double fxk = fx[cam_stride * k], fyk = fy[cam_stride * k], cxk = cx[cam_stride * k], cyk = cy[cam_stride * k];
+        double u[2], v[2], du[2][3], dv[2][3];
+        edges(G[0][0], G[0][2], G[2][2], fxk, cxk, u, du);
+        edges(G[1][1], G[1][2], G[2][2], fyk, cyk, v, dv);
+        double box[4] = {u[0], v[0], u[1], v[1]};
+        /* ∂box/∂(G00, G11, G22, G02, G12) */
+        double dr[4][5] = {{0}};
+        dr[0][0] = du[0][0], dr[0][3] = du[0][1], dr[0][2] = du[0][2];
+        dr[2][0] = du[1][0], dr[2][3] = du[1][1], dr[2][2] = du[1][2];
+        dr[1][1] = dv[0][0], dr[1][4] = dv[0][1], dr[1][2] = dv[0][2];
+        dr[3][1] = dv[1][0], dr[3][4] = dv[1][1], dr[3][2] = dv[1][2];
+        for (int i = 0; i < 4; ++i) {
+            double ki = keep ? keep[4 * k + i] : 1.0;
+            r[4 * k + i] = keep ? (box[i] - obs[4 * k + i]) * ki : box[i] - obs[4 * k + i];
+            if (keep)
+                for (int e = 0; e < 5; ++e) dr[i][e] *= ki;
+        }
+        /* in front: z_c − √(a₂ᵀ P a₂) > min_depth */
+        double half2 = 0.0;
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) half2 += A[2][i] * Pk[3 * i + j] * A[2][j];
+        double half = half2 > 0 ? sqrt(half2) : 0.0;
+        valid[k] = m[2] - half > min_depth;
+        if (!directions) continue;
+        /* the pose's ∂G_e/∂(ρ, ω) (5, 6) */
+        double g00 = G[0][0], g11 = G[1][1], g22 = G[2][2], g01 = G[0][1], g02 = G[0][2], g12 = G[1][2];
+        double dG[5][6] = {{0}};
+        dG[0][0] = 2.0 * m[0], dG[1][1] = 2.0 * m[1], dG[2][2] = 2.0 * m[2];
+        dG[3][0] = m[2], dG[3][2] = m[0];
+        dG[4][1] = m[2], dG[4][2] = m[1];
+        dG[0][4] = -2.0 * g02, dG[0][5] = 2.0 * g01;
+        dG[1][3] = 2.0 * g12, dG[1][5] = -2.0 * g01;
+        dG[2][3] = -2.0 * g12, dG[2][4] = 2.0 * g02;
+        dG[3][3] = -g01, dG[3][4] = g00 - g22, dG[3][5] = g12;
+        dG[4][3] = g22 - g11, dG[4][4] = g01, dG[4][5] = -g02;
+        /* the landmark's coefficients of (dP, dt) in ∂G_e (5, 12) */
+        double coef[5][12];
+        for (int e = 0; e < 5; ++e) {
+            const double *ai = A[EI[e]], *aj = A[EJ[e]];
+            double mi = m[EI[e]], mj = m[EJ[e]];
+            for (int a = 0; a < 3; ++a)
+                for (int b = 0; b < 3; ++b) coef[e][3 * a + b] = ai[a] * aj[b];
+            for (int c = 0; c < 3; ++c) coef[e][9 + c] = -(mj * ai[c] + mi * aj[c]);
+        }
+        const double *T = directions + index[k] * 12 * Q;
+        double *Jk = J + k * 4 * D;
+        for (int i = 0; i < 4; ++i) {
+            double *row = Jk + i * D;
+            for (int c = 0; c < 6; ++c) {
+                double acc = 0.0;
+                for (int e = 0; e < 5; ++e) acc += dr[i][e] * dG[e][c];
+                row[c] = acc;
+            }
+            double tmp[12];
+            for (int c = 0; c < 12; ++c) {
+                double acc = 0.0;
+                for (int e = 0; e < 5; ++e) acc += dr[i][e] * coef[e][c];
+                tmp[c] = acc;
+            }
+            for (int c = 0; c < Q; ++c) row[6 + c] = 0.0;
+            for (int l = 0; l < 12; ++l) {
+                const double *Tl = T + l * Q;
+                for (int c = 0; c < Q; ++c) row[6 + c] += tmp[l] * Tl[c];
+            }
+        }
+    }
+}
+
+/* H (n, D(D+1)/2): the upper triangle of each J[k]ᵀ J[k], row-major (i ≤ j); g (n, D) =
+ * J[k]ᵀ r[k]; J (n, m, D), r (n, m). */
+void gram_upper(int64_t n, int64_t m, int64_t D, const double *J, const double *r, double *H, double *g) {
+    const int64_t T = D * (D + 1) / 2;
+    for (int64_t k = 0; k < n; ++k) {
+        const double *Jk = J + k * m * D, *rk = r + k * m;
+        double *Hk = H + k * T, *gk = g + k * D;
+        int64_t s = 0;
+        for (int64_t i = 0; i < D; ++i) {
+            for (int64_t j = i; j < D; ++j) {
+                double acc = 0.0;
+                for (int64_t a = 0; a < m; ++a) acc += Jk[a * D + i] * Jk[a * D + j];
+                Hk[s++] = acc;
+            }
+            double acc = 0.0;
+            for (int64_t a = 0; a < m; ++a) acc += Jk[a * D + i] * rk[a];
+            gk[i] = acc;
+        }
+    }
+}
+
+/* out[slots[i]] += values[i] for i < n (the per-factor JᵀJ summed into H's slots). */
+void scatter_add(int64_t n, const int64_t *slots, const double *values, double *out) {
+    for (int64_t i = 0; i < n; ++i) out[slots[i]] += values[i];
+}
+
+/* An importable, empty module: the functions above are reached through ctypes. */
+static struct PyModuleDef kernels_module = {PyModuleDef_HEAD_INIT, "_kernels",
+                                            "spdslam's compiled kernels (loaded with ctypes).", -1, NULL};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&kernels_module); }

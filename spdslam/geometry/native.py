@@ -1,0 +1,143 @@
+"""The compiled kernels (``_kernels.c``): loaded with ctypes, or None.
+
+A namespace (``geometry.native``). ``_kernels.c`` is built with the package where a C
+compiler is there (``setup.py``: an optional extension; docs/install.md); it holds the inverse
+box factor's linearisation, the per-factor JᵀJ and its sum into H, each the NumPy code it
+replaces written per row (docs/performance.md, section 8, "The box factor compiled").
+``native_kernels()`` gives the library, or None where it was not built or where
+``SPDSLAM_KERNELS=numpy``; the callers then take their NumPy code. ``compiled_kernels(False)``
+turns them off within a block (the tests and benchmarks that compare the two).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import importlib.machinery
+import importlib.util
+import os
+from typing import Iterator
+
+import numpy as np
+
+__all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "scatter_add"]
+
+#: ``numpy``: never use the compiled kernels; ``compiled`` (or unset): use them where built
+KERNELS_ENV = "SPDSLAM_KERNELS"
+
+_LIB: list = []  # [the library or None], loaded once
+_ENABLED = [True]
+
+_F = ctypes.POINTER(ctypes.c_double)
+_I = ctypes.POINTER(ctypes.c_int64)
+_U8 = ctypes.POINTER(ctypes.c_uint8)
+_N = ctypes.c_int64
+
+
+def _load():
+    """The built ``_kernels`` extension (its file: the Python module it defines is empty) as a
+    ctypes library, or None."""
+    try:
+        spec = importlib.util.find_spec(__name__.rpartition(".")[0] + "._kernels")
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin or not spec.origin.endswith(tuple(importlib.machinery.EXTENSION_SUFFIXES)):
+        return None
+    try:
+        lib = ctypes.CDLL(spec.origin)
+        lib.box_linearize.argtypes = [_N, _F, _F, _F, _F, _F, _F, _F, _F, _N, _F, _F, _I, _N, ctypes.c_double,
+                                      _F, _U8, _F]
+        lib.gram_upper.argtypes = [_N, _N, _N, _F, _F, _F, _F]
+        lib.scatter_add.argtypes = [_N, _I, _F, _F]
+    except (OSError, AttributeError):
+        return None
+    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add):
+        f.restype = None
+    return lib
+
+
+def _setting() -> str:
+    value = os.environ.get(KERNELS_ENV, "").strip().lower()
+    if value not in ("", "compiled", "numpy"):
+        raise ValueError(f"{KERNELS_ENV} must be 'compiled' or 'numpy', got {value!r}")
+    return value or "compiled"
+
+
+def native_kernels():
+    """The compiled kernels (a ``ctypes.CDLL``), or None: not built, turned off by
+    ``SPDSLAM_KERNELS=numpy`` (``ValueError`` for another value) or by ``compiled_kernels``."""
+    if not _ENABLED[0] or _setting() == "numpy":
+        return None
+    if not _LIB:
+        _LIB.append(_load())
+    return _LIB[0]
+
+
+@contextlib.contextmanager
+def compiled_kernels(enabled: bool) -> Iterator[None]:
+    """Within the block, the compiled kernels are used where built (True, the default) or
+    not at all (False: every caller takes its NumPy code)."""
+    before = _ENABLED[0]
+    _ENABLED[0] = bool(enabled)
+    try:
+        yield
+    finally:
+        _ENABLED[0] = before
+
+
+def _ptr(a: np.ndarray, kind=_F):
+    return a.ctypes.data_as(kind)
+
+
+def _f64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def box_linearize(lib, q, P, t, obs, camera, keep, directions, index, min_depth: float):
+    """The inverse box factor of n (pose, ellipsoid) rows by the compiled kernel: (r (n, 4),
+    J (n, 4, 6 + Q) or None, valid (n,)). ``q`` (n, 7) wxyz_xyz T_wc; ``P`` (n, 3, 3); ``t``
+    (n, 3); ``obs`` (n, 4); ``camera``: (fx, fy, cx, cy), each a scalar or (n,); ``keep`` (n,
+    4) or None; ``directions`` (L, 12, Q) (``factors._closed_form._directions``) and
+    ``index`` (n,) each row's landmark, or None for the residual only."""
+    q, P, t, obs = _f64(q), _f64(P), _f64(t), _f64(obs)
+    n = len(q)
+    cams = [np.asarray(c, dtype=np.float64) for c in camera]
+    per_row = any(c.ndim > 0 and c.size > 1 for c in cams)
+    cams = [_f64(np.broadcast_to(c, (n,))) if per_row else _f64(c.reshape(1)) for c in cams]
+    r = np.empty((n, 4))
+    valid = np.empty(n, np.uint8)
+    keep = None if keep is None else _f64(keep)
+    keep_p = None if keep is None else _ptr(keep)
+    if directions is None:
+        J, d_p, i_p, Q = None, None, None, 0
+    else:
+        directions = _f64(directions)
+        index = np.ascontiguousarray(index, dtype=np.int64)
+        Q = directions.shape[2]
+        J = np.empty((n, 4, 6 + Q))
+        d_p, i_p = _ptr(directions), _ptr(index, _I)
+    lib.box_linearize(n, _ptr(q), _ptr(P), _ptr(t), _ptr(obs), *(_ptr(c) for c in cams), 1 if per_row else 0,
+                      keep_p, d_p, i_p, Q, float(min_depth), _ptr(r), _ptr(valid, _U8),
+                      None if J is None else _ptr(J))
+    return r, J, valid.astype(bool)
+
+
+def gram_upper(lib, J, r):
+    """(H (n, D(D+1)/2) the upper triangles of each JᵀJ, row-major; g (n, D) = Jᵀr) of J (n, m,
+    D) and r (n, m) by the compiled kernel."""
+    J, r = _f64(J), _f64(r)
+    n, m, D = J.shape
+    H = np.empty((n, D * (D + 1) // 2))
+    g = np.empty((n, D))
+    lib.gram_upper(n, m, D, _ptr(J), _ptr(r), _ptr(H), _ptr(g))
+    return H, g
+
+
+def scatter_add(lib, slots, values, out: np.ndarray) -> None:
+    """``out[slots[i]] += values[i]`` for every i, in order, by the compiled kernel (``out``
+    float64 C-contiguous, written in place; every slot < ``out.size``, unchecked)."""
+    slots = np.ascontiguousarray(slots, dtype=np.int64).reshape(-1)
+    values = _f64(values).reshape(-1)
+    if slots.size != values.size or not (out.dtype == np.float64 and out.flags.c_contiguous):
+        raise ValueError("scatter_add needs as many slots as values and a C-contiguous float64 output")
+    lib.scatter_add(slots.size, _ptr(slots, _I), _ptr(values), _ptr(out))
