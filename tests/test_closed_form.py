@@ -490,3 +490,20 @@ def test_a_problem_linearises_alike_with_and_without_the_compiled_kernels(gen):
     assert np.allclose(H1, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
     assert np.allclose(g1, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
     assert c1 == pytest.approx(c0, rel=1e-14)
+
+
+@compiled
+def test_the_compiled_gram_scatter_is_gram_then_scatter(gen):
+    J = gen.rng.normal(size=(40, 6, 12))
+    r = gen.rng.normal(size=(40, 6))
+    hs, gs = gen.rng.integers(0, 50, size=40 * 78), gen.rng.integers(0, 20, size=40 * 12)
+    lib = native.native_kernels()
+    H, g = native.gram_upper(lib, J, r)
+    h0, g0 = np.full(50, 2.0), np.full(20, 3.0)
+    h1, g1 = h0.copy(), g0.copy()
+    native.scatter_add(lib, hs, H, h0)
+    native.scatter_add(lib, gs, g, g0)
+    native.gram_scatter(lib, J, r, hs, gs, h1, g1)
+    assert np.allclose(h1, h0, rtol=1e-13, atol=1e-12) and np.allclose(g1, g0, rtol=1e-13, atol=1e-12)
+    with pytest.raises(ValueError, match="a slot per JᵀJ entry"):
+        native.gram_scatter(lib, J, r, hs[:-1], gs, h1, g1)

@@ -9,7 +9,7 @@
  * box_linearize: the inverse box factor's residual, validity and Jacobian
  * (spdslam.factors._closed_form.inverse_box_linearization, whose docstrings give the maths).
  * gram_upper: each row's JᵀJ upper triangle (row-major, i ≤ j) and Jᵀr.
- * scatter_add: values added into slots (H's assembly).
+ * scatter_add: values added into slots (H's assembly); gram_scatter: both in one pass.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -163,6 +163,28 @@ void gram_upper(int64_t n, int64_t m, int64_t D, const double *J, const double *
             double acc = 0.0;
             for (int64_t a = 0; a < m; ++a) acc += Jk[a * D + i] * rk[a];
             gk[i] = acc;
+        }
+    }
+}
+
+/* gram_upper and scatter_add in one pass, without the per-factor JᵀJ: each J[k]ᵀJ[k] upper
+ * entry s added into h[hslots[k T + s]], each (J[k]ᵀr[k])_i into g[gslots[k D + i]]. */
+void gram_scatter(int64_t n, int64_t m, int64_t D, const double *J, const double *r, const int64_t *hslots,
+                  const int64_t *gslots, double *h, double *g) {
+    const int64_t T = D * (D + 1) / 2;
+    for (int64_t k = 0; k < n; ++k) {
+        const double *Jk = J + k * m * D, *rk = r + k * m;
+        const int64_t *hs = hslots + k * T, *gs = gslots + k * D;
+        int64_t s = 0;
+        for (int64_t i = 0; i < D; ++i) {
+            for (int64_t j = i; j < D; ++j) {
+                double acc = 0.0;
+                for (int64_t a = 0; a < m; ++a) acc += Jk[a * D + i] * Jk[a * D + j];
+                h[hs[s++]] += acc;
+            }
+            double acc = 0.0;
+            for (int64_t a = 0; a < m; ++a) acc += Jk[a * D + i] * rk[a];
+            g[gs[i]] += acc;
         }
     }
 }

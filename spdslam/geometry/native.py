@@ -20,7 +20,8 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "scatter_add"]
+__all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "gram_scatter",
+           "scatter_add"]
 
 #: ``numpy``: never use the compiled kernels; ``compiled`` (or unset): use them where built
 KERNELS_ENV = "SPDSLAM_KERNELS"
@@ -49,9 +50,10 @@ def _load():
                                       _F, _U8, _F]
         lib.gram_upper.argtypes = [_N, _N, _N, _F, _F, _F, _F]
         lib.scatter_add.argtypes = [_N, _I, _F, _F]
+        lib.gram_scatter.argtypes = [_N, _N, _N, _F, _F, _I, _I, _F, _F]
     except (OSError, AttributeError):
         return None
-    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add):
+    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter):
         f.restype = None
     return lib
 
@@ -141,3 +143,16 @@ def scatter_add(lib, slots, values, out: np.ndarray) -> None:
     if slots.size != values.size or not (out.dtype == np.float64 and out.flags.c_contiguous):
         raise ValueError("scatter_add needs as many slots as values and a C-contiguous float64 output")
     lib.scatter_add(slots.size, _ptr(slots, _I), _ptr(values), _ptr(out))
+
+
+def gram_scatter(lib, J, r, hslots, gslots, h: np.ndarray, g: np.ndarray) -> None:
+    """``gram_upper`` of J (n, m, D) and r (n, m) added into ``h`` at ``hslots`` (n·D(D+1)/2,)
+    and into ``g`` at ``gslots`` (n·D,) (``scatter_add``), in one pass by the compiled kernel."""
+    J, r = _f64(J), _f64(r)
+    n, m, D = J.shape
+    hslots = np.ascontiguousarray(hslots, dtype=np.int64).reshape(-1)
+    gslots = np.ascontiguousarray(gslots, dtype=np.int64).reshape(-1)
+    if (r.shape != (n, m) or hslots.size != n * (D * (D + 1) // 2) or gslots.size != n * D
+            or not all(a.dtype == np.float64 and a.flags.c_contiguous for a in (h, g))):
+        raise ValueError("gram_scatter needs r (n, m), a slot per JᵀJ entry and Jᵀr entry, C-contiguous float64 sums")
+    lib.gram_scatter(n, m, D, _ptr(J), _ptr(r), _ptr(hslots, _I), _ptr(gslots, _I), _ptr(h), _ptr(g))

@@ -513,16 +513,33 @@ class _Kernels:
         cost = float(sum(np.sum(np.asarray(hr)) for hr, _ in out))
         return cost, tuple(None if v is None else np.asarray(v) for _, v in out)
 
-    def linearize_sparse(self, vars_, gdata, gidx):
-        """(per group (JᵀJ upper triangles, Jᵀr), F, validity per group, all finite)."""
+    def linearize_into(self, vars_, gdata, gidx, hslots, gslots, h: np.ndarray, g: np.ndarray):
+        """Each group's per-factor JᵀJ upper triangles and Jᵀr added into ``h`` and ``g`` at
+        their slots (``Problem.sparse_pattern``); (F, validity per group, all finite). With the
+        compiled kernels (``geometry.native``) a closed-form group's are summed from its J and
+        r in one pass, without the per-factor JᵀJ, and the others' scattered in C; without
+        them, summed with ``np.bincount``."""
+        lib = native.native_kernels()
         vh, th = _host(vars_), self._pushforwards(vars_)
-        out = [gk.sparse(*self._inputs(k, vh, ix, d, th))
-               for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx))]
-        terms = tuple((hc, gc) for hc, gc, _, _, _ in out)
-        cost = float(sum(np.sum(np.asarray(hr)) for _, _, hr, _, _ in out))
-        valids = tuple(None if v is None else np.asarray(v) for _, _, _, v, _ in out)
-        finite = all(bool(np.all(np.asarray(fin))) for *_, fin in out)
-        return terms, cost, valids, finite
+        cost, valids, finite = 0.0, [], True
+        for k, (gk, d, ix) in enumerate(zip(self.groups, gdata, gidx)):
+            inputs = self._inputs(k, vh, ix, d, th)
+            if lib is not None and isinstance(gk, ClosedFormGroup):
+                r, J, hr, v, fin = gk.terms(*inputs)
+                native.gram_scatter(lib, J, r, hslots[k], gslots[k], h, g)
+            else:
+                hc, gc, hr, v, fin = gk.sparse(*inputs)
+                hc, gc = np.asarray(hc), np.asarray(gc)
+                if lib is not None:
+                    native.scatter_add(lib, hslots[k], hc, h)
+                    native.scatter_add(lib, gslots[k], gc, g)
+                else:
+                    h += np.bincount(hslots[k], weights=hc.ravel(), minlength=len(h))
+                    g += np.bincount(gslots[k], weights=gc.ravel(), minlength=len(g))
+            cost += float(np.sum(np.asarray(hr)))
+            valids.append(None if v is None else np.asarray(v))
+            finite = finite and bool(np.all(np.asarray(fin)))
+        return cost, tuple(valids), finite
 
     def step(self, vars_, deltas, free, gdata, gidx, valid_cur):
         """(x ⊞ δ, its cost, whether a factor valid at x is invalid there)."""
@@ -830,28 +847,21 @@ class Problem:
 
     def linearize(self, vars_, timings: dict | None = None):
         """(H: lower CSC data (nnz,), g = Jᵀr (n,), cost, validity per group, whether all
-        residuals and Jacobians are finite). H and g are numpy arrays, summed here from the
-        per-factor JᵀJ and Jᵀr (so compiled code depends on the counts of factors and
-        variables only, not on n or nnz). ``timings`` accumulates seconds spent in
-        "jacobians" (the jitted call) and "assemble" (the sums)."""
+        residuals and Jacobians are finite). H and g are numpy arrays, summed on the host from
+        the per-factor JᵀJ and Jᵀr (``_Kernels.linearize_into``: so compiled code depends on
+        the counts of factors and variables only, not on n or nnz). ``timings`` accumulates
+        seconds spent in "jacobians" (the terms and their sums into H and g) and "assemble"
+        (the sparsity pattern, built by the first call)."""
         t0 = time.perf_counter()
         sp = self.sparse_pattern()
-        terms, cost, valids, finite = self.kernels.linearize_sparse(vars_, self.gdata, self.gidx)
-        terms = [(np.asarray(hc), np.asarray(gc)) for hc, gc in terms]
         t1 = time.perf_counter()
-        h = np.zeros(sp["nnz"] + 1)
+        h = np.zeros(sp["nnz"] + 1)  # the last entries: the slots of discarded terms
         g = np.zeros(self.n + 1)
-        lib = native.native_kernels()
-        for (hc, gc), hs, gs in zip(terms, sp["hslots"], sp["gslots"]):
-            if lib is not None:  # the same sums in C (geometry.native), without an array per group
-                native.scatter_add(lib, hs, hc, h)
-                native.scatter_add(lib, gs, gc, g)
-                continue
-            h += np.bincount(hs, weights=hc.ravel(), minlength=len(h))
-            g += np.bincount(gs, weights=gc.ravel(), minlength=len(g))
+        cost, valids, finite = self.kernels.linearize_into(vars_, self.gdata, self.gidx, sp["hslots"],
+                                                           sp["gslots"], h, g)
         if timings is not None:
-            timings["jacobians"] = timings.get("jacobians", 0.0) + t1 - t0
-            timings["assemble"] = timings.get("assemble", 0.0) + time.perf_counter() - t1
+            timings["jacobians"] = timings.get("jacobians", 0.0) + time.perf_counter() - t1
+            timings["assemble"] = timings.get("assemble", 0.0) + t1 - t0
         return h[:-1], g[:-1], float(cost), valids, bool(finite)
 
     def step(self, vars_, delta, valid_cur):
