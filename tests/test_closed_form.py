@@ -507,3 +507,36 @@ def test_the_compiled_gram_scatter_is_gram_then_scatter(gen):
     assert np.allclose(h1, h0, rtol=1e-13, atol=1e-12) and np.allclose(g1, g0, rtol=1e-13, atol=1e-12)
     with pytest.raises(ValueError, match="a slot per JᵀJ entry"):
         native.gram_scatter(lib, J, r, hs[:-1], gs, h1, g1)
+
+
+@compiled
+def test_the_compiled_pose_factors_are_the_numpy_closed_forms(gen):
+    """Every branch: residuals near zero (θ² < 1e-10 and θ < 1e-2, the series), rotations
+    near π (the quaternion's w near 0, of both signs), general ones, unnormalised and NaN
+    quaternions."""
+    n = 48
+    T1 = _random_poses(gen, n, 1.0)
+    steps = [_random_poses(gen, 12, s) for s in (1e-7, 3e-3, 0.5)]
+    near_pi = np.array(_random_poses(gen, 12, 0.3).wxyz_xyz)
+    near_pi[:, :4] = np.c_[np.full(12, 1e-11) * np.where(np.arange(12) % 2, 1, -1), gen.rng.normal(size=(12, 3))]
+    near_pi[:, :4] /= np.linalg.norm(near_pi[:, :4], axis=1, keepdims=True)
+    E = np.concatenate([np.asarray(s.wxyz_xyz) for s in steps] + [near_pi])
+    T2 = np.asarray((T1 @ jaxlie.SE3(E)).wxyz_xyz)
+    T12 = np.asarray((T1.inverse() @ jaxlie.SE3(T2)).wxyz_xyz) @ np.diag([1, 1, 1, 1, 1, 1, 1.0])
+    T12[:, :4] *= 1.3  # unnormalised: both normalise when they rotate
+    T1h = np.array(T1.wxyz_xyz)
+    T1h[0, 5] = np.nan
+    out = {}
+    for on in (False, True):
+        with native.compiled_kernels(on), np.errstate(all="ignore"):
+            out[on] = (pose_prior_linearization((jaxlie.SE3(T2),), None, (jaxlie.SE3(T1h),)),
+                       pose_between_linearization((jaxlie.SE3(T1h), jaxlie.SE3(T2)), None, (jaxlie.SE3(T12),)),
+                       pose_between_linearization((jaxlie.SE3(T1h), jaxlie.SE3(T2)), None, (jaxlie.SE3(T12),), False))
+    for (r0, J0, _), (r1, J1, _) in zip(out[False], out[True]):
+        for a, b in ((r0, r1), (J0, J1)):
+            if a is None:
+                assert b is None
+                continue
+            assert np.array_equal(np.isfinite(a), np.isfinite(b)) and not np.isfinite(a[0]).all()
+            ok = np.isfinite(a)
+            assert np.max(np.abs(np.where(ok, a - b, 0.0)) / (1.0 + np.abs(np.where(ok, a, 0.0)))) < 1e-11

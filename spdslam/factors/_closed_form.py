@@ -267,6 +267,9 @@ def _in_front(A, P, m, min_depth: float = _MIN_DEPTH):
 def pose_prior_linearization(xs, Ts, args, jacobian: bool = True):
     """``pose_prior_residual`` of n stacked poses: (r (n, 6), J (n, 6, 6) or None, None)."""
     (T,), (T_prior,) = xs, args
+    lib = native.native_kernels()
+    if lib is not None:  # the same, per row in C (geometry.native)
+        return (*native.pose_prior(lib, np.asarray(T.wxyz_xyz), np.asarray(T_prior.wxyz_xyz), jacobian), None)
     r = log_params(compose_params(inverse_params(np.asarray(T_prior.wxyz_xyz)), np.asarray(T.wxyz_xyz)))
     return r, (right_jacobian_inverse(r) if jacobian else None), None
 
@@ -275,6 +278,10 @@ def pose_between_linearization(xs, Ts, args, jacobian: bool = True):
     """``pose_between_residual`` of n stacked pose pairs: (r (n, 6), J (n, 6, 12) or None,
     None)."""
     (T1, T2), (T12,) = xs, args
+    lib = native.native_kernels()
+    if lib is not None:  # the same, per row in C (geometry.native)
+        return (*native.pose_between(lib, np.asarray(T1.wxyz_xyz), np.asarray(T2.wxyz_xyz),
+                                     np.asarray(T12.wxyz_xyz), jacobian), None)
     D = compose_params(inverse_params(np.asarray(T1.wxyz_xyz)), np.asarray(T2.wxyz_xyz))
     r = log_params(compose_params(inverse_params(np.asarray(T12.wxyz_xyz)), D))
     if not jacobian:

@@ -8,6 +8,8 @@
  *
  * box_linearize: the inverse box factor's residual, validity and Jacobian
  * (spdslam.factors._closed_form.inverse_box_linearization, whose docstrings give the maths).
+ * pose_prior, pose_between: the pose factors' residuals and Jacobians (the same module's
+ * pose_prior_linearization and pose_between_linearization, through geometry.se3's functions).
  * gram_upper: each row's JᵀJ upper triangle (row-major, i ≤ j) and Jᵀr.
  * scatter_add: values added into slots (H's assembly); gram_scatter: both in one pass.
  */
@@ -143,6 +145,183 @@ void box_linearize(int64_t n, const double *q, const double *P, const double *t,
                 for (int c = 0; c < Q; ++c) row[6 + c] += tmp[l] * Tl[c];
             }
         }
+    }
+}
+
+/* --- SE(3) in wxyz_xyz parameters (geometry.se3's NumPy functions, per row) ------------- */
+
+/* jaxlie's float64 threshold on ‖q_xyz‖² and θ², and right_jacobian_inverse's θ below which
+ * Q's coefficients take their series (se3._JAXLIE_EPS, se3._Q_SERIES). */
+#define JAXLIE_EPS 1e-10
+#define Q_SERIES 1e-2
+
+static void rotation(const double *T, double R[3][3]) {  /* se3._rotation: normalised here */
+    double w = T[0], x = T[1], y = T[2], z = T[3];
+    double nq = sqrt(x * x + y * y + z * z + w * w);
+    x /= nq, y /= nq, z /= nq, w /= nq;
+    double x2 = x * x, y2 = y * y, z2 = z * z, w2 = w * w;
+    double xy = x * y, zw = z * w, xz = x * z, yw = y * w, yz = y * z, xw = x * w;
+    R[0][0] = x2 - y2 - z2 + w2, R[0][1] = 2 * (xy - zw), R[0][2] = 2 * (xz + yw);
+    R[1][0] = 2 * (xy + zw), R[1][1] = -x2 + y2 - z2 + w2, R[1][2] = 2 * (yz - xw);
+    R[2][0] = 2 * (xz - yw), R[2][1] = 2 * (yz + xw), R[2][2] = -x2 - y2 + z2 + w2;
+}
+
+static void inverse(const double *a, double *out) {  /* (q̄, −Rᵀ t) */
+    double R[3][3];
+    rotation(a, R);
+    out[0] = a[0], out[1] = -a[1], out[2] = -a[2], out[3] = -a[3];
+    for (int i = 0; i < 3; ++i) out[4 + i] = -(R[0][i] * a[4] + R[1][i] * a[5] + R[2][i] * a[6]);
+}
+
+static void compose(const double *a, const double *b, double *out) {  /* (q_a q_b, R_a t_b + t_a) */
+    double R[3][3], t[3];
+    rotation(a, R);
+    for (int i = 0; i < 3; ++i) t[i] = R[i][0] * b[4] + R[i][1] * b[5] + R[i][2] * b[6] + a[4 + i];
+    double aw = a[0], ax = a[1], ay = a[2], az = a[3], bw = b[0], bx = b[1], by = b[2], bz = b[3];
+    out[0] = aw * bw - ax * bx - ay * by - az * bz;
+    out[1] = aw * bx + ax * bw + ay * bz - az * by;
+    out[2] = aw * by - ax * bz + ay * bw + az * bx;
+    out[3] = aw * bz + ax * by - ay * bx + az * bw;
+    for (int i = 0; i < 3; ++i) out[4 + i] = t[i];
+}
+
+static void hat(const double *w, double W[3][3]) {
+    W[0][0] = 0.0, W[0][1] = -w[2], W[0][2] = w[1];
+    W[1][0] = w[2], W[1][1] = 0.0, W[1][2] = -w[0];
+    W[2][0] = -w[1], W[2][1] = w[0], W[2][2] = 0.0;
+}
+
+static void mul3(double A[3][3], double B[3][3], double C[3][3]) {
+    double out[3][3];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) out[i][j] = A[i][0] * B[0][j] + A[i][1] * B[1][j] + A[i][2] * B[2][j];
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) C[i][j] = out[i][j];
+}
+
+/* J_l⁻¹(ω) of SO(3) = I − ½[ω]× + c [ω]×², c = (1 − θ cos(θ/2) / (2 sin(θ/2)))/θ² (1/12 below
+ * θ² = 1e-10) */
+static void so3_left_jacobian_inverse(const double *w, double out[3][3]) {
+    double th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    int small = th2 < JAXLIE_EPS;
+    double th2s = small ? 1.0 : th2, th = sqrt(th2s);
+    double c = small ? 1.0 / 12.0 : (1.0 - th * cos(th / 2) / (2.0 * sin(th / 2))) / th2s;
+    double W[3][3], WW[3][3];
+    hat(w, W);
+    mul3(W, W, WW);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) out[i][j] = (i == j ? 1.0 : 0.0) - 0.5 * W[i][j] + c * WW[i][j];
+}
+
+static void log_se3(const double *T, double *out) {  /* se3.log_params: (V⁻¹ t, ω) */
+    double w = T[0], v[3] = {T[1], T[2], T[3]};
+    double n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    int small = n2 < JAXLIE_EPS;
+    double n = sqrt(small ? 1.0 : n2), ws = small ? w : 1.0, factor;
+    if (small)
+        factor = 2.0 / ws - 2.0 / 3.0 * n2 / (ws * ws * ws);
+    else if (fabs(w) < JAXLIE_EPS)
+        factor = (w > 0 ? 1.0 : -1.0) * M_PI / n;
+    else
+        factor = 2.0 * atan2(w < 0 ? -n : n, fabs(w)) / n;
+    double omega[3] = {factor * v[0], factor * v[1], factor * v[2]}, Vi[3][3];
+    so3_left_jacobian_inverse(omega, Vi);
+    for (int i = 0; i < 3; ++i) out[i] = Vi[i][0] * T[4] + Vi[i][1] * T[5] + Vi[i][2] * T[6];
+    for (int i = 0; i < 3; ++i) out[3 + i] = omega[i];
+}
+
+/* se3.right_jacobian_inverse: J_r⁻¹(ξ) = [[A, −A Q A], [0, A]], A = J_l⁻¹(−ω), Q = Q(−ρ, −ω)
+ * (Barfoot's, its coefficients by their series below θ = Q_SERIES); out (6, 6) row-major. */
+static void right_jacobian_inverse(const double *xi, double *out) {
+    double rho[3] = {-xi[0], -xi[1], -xi[2]}, phi[3] = {-xi[3], -xi[4], -xi[5]};
+    double th2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2];
+    int small = th2 < Q_SERIES * Q_SERIES;
+    double th = sqrt(small ? 1.0 : th2), s = sin(th), c = cos(th);
+    double c1 = small ? 1.0 / 6 - th2 / 120 + th2 * th2 / 5040 : (th - s) / (th * th * th);
+    double c2 = small ? 1.0 / 24 - th2 / 720 + th2 * th2 / 40320 : (th * th + 2 * c - 2) / (2 * th * th * th * th);
+    double c3 = small ? 1.0 / 120 - th2 / 2520 + th2 * th2 / 120960
+                      : (2 * th - 3 * s + th * c) / (2 * th * th * th * th * th);
+    double P[3][3], Rh[3][3], PR[3][3], RP[3][3], PP[3][3], PRP[3][3], PPR[3][3], RPP[3][3], PRPP[3][3],
+        PPRP[3][3], Q[3][3], A[3][3], AQ[3][3], AQA[3][3];
+    hat(phi, P);
+    hat(rho, Rh);
+    mul3(P, Rh, PR);
+    mul3(Rh, P, RP);
+    mul3(P, P, PP);
+    mul3(PR, P, PRP);
+    mul3(PP, Rh, PPR);
+    mul3(RP, P, RPP);
+    mul3(PRP, P, PRPP);
+    mul3(PP, RP, PPRP);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            Q[i][j] = 0.5 * Rh[i][j] + c1 * (PR[i][j] + RP[i][j] + PRP[i][j])
+                      + c2 * (PPR[i][j] + RPP[i][j] - 3 * PRP[i][j]) + c3 * (PRPP[i][j] + PPRP[i][j]);
+    so3_left_jacobian_inverse(phi, A);
+    mul3(A, Q, AQ);
+    mul3(AQ, A, AQA);
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < 6; ++j) out[6 * i + j] = 0.0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            out[6 * i + j] = A[i][j];
+            out[6 * (3 + i) + 3 + j] = A[i][j];
+            out[6 * i + 3 + j] = -AQA[i][j];
+        }
+}
+
+/* Ad(T) (6, 6) in (v, ω) order: [[R, [t]× R], [0, R]] */
+static void adjoint(const double *T, double out[6][6]) {
+    double R[3][3], tx[3][3], tR[3][3];
+    rotation(T, R);
+    hat(T + 4, tx);
+    mul3(tx, R, tR);
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < 6; ++j) out[i][j] = 0.0;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            out[i][j] = R[i][j];
+            out[3 + i][3 + j] = R[i][j];
+            out[i][3 + j] = tR[i][j];
+        }
+}
+
+/* The pose prior r = Log(T̄⁻¹ T) and J = J_r⁻¹(r) (n, 6, 6) (factors' pose_prior_linearization);
+ * J NULL: r only. */
+void pose_prior(int64_t n, const double *T, const double *prior, double *r, double *J) {
+    for (int64_t k = 0; k < n; ++k) {
+        double inv[7], E[7];
+        inverse(prior + 7 * k, inv);
+        compose(inv, T + 7 * k, E);
+        log_se3(E, r + 6 * k);
+        if (J) right_jacobian_inverse(r + 6 * k, J + 36 * k);
+    }
+}
+
+/* The pose between r = Log(T̄₁₂⁻¹ D), D = T₁⁻¹ T₂, and J = [−J_r⁻¹(r) Ad(D⁻¹), J_r⁻¹(r)]
+ * (n, 6, 12) (factors' pose_between_linearization); J NULL: r only. */
+void pose_between(int64_t n, const double *T1, const double *T2, const double *T12, double *r, double *J) {
+    for (int64_t k = 0; k < n; ++k) {
+        double inv1[7], D[7], inv12[7], E[7];
+        inverse(T1 + 7 * k, inv1);
+        compose(inv1, T2 + 7 * k, D);
+        inverse(T12 + 7 * k, inv12);
+        compose(inv12, D, E);
+        double *rk = r + 6 * k;
+        log_se3(E, rk);
+        if (!J) continue;
+        double Jr[36], Dinv[7], Ad[6][6];
+        right_jacobian_inverse(rk, Jr);
+        inverse(D, Dinv);
+        adjoint(Dinv, Ad);
+        double *Jk = J + 72 * k;
+        for (int i = 0; i < 6; ++i)
+            for (int j = 0; j < 6; ++j) {
+                double acc = 0.0;
+                for (int l = 0; l < 6; ++l) acc += Jr[6 * i + l] * Ad[l][j];
+                Jk[12 * i + j] = -acc;
+                Jk[12 * i + 6 + j] = Jr[6 * i + j];
+            }
     }
 }
 

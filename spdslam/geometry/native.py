@@ -2,7 +2,7 @@
 
 A namespace (``geometry.native``). ``_kernels.c`` is built with the package where a C
 compiler is there (``setup.py``: an optional extension; docs/install.md); it holds the inverse
-box factor's linearisation, the per-factor JᵀJ and its sum into H, each the NumPy code it
+box factor's and the pose factors' linearisations, the per-factor JᵀJ and its sum into H, each the NumPy code it
 replaces written per row (docs/performance.md, section 8, "The box factor compiled").
 ``native_kernels()`` gives the library, or None where it was not built or where
 ``SPDSLAM_KERNELS=numpy``; the callers then take their NumPy code. ``compiled_kernels(False)``
@@ -21,7 +21,7 @@ from typing import Iterator
 import numpy as np
 
 __all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "gram_scatter",
-           "scatter_add"]
+           "scatter_add", "pose_prior", "pose_between"]
 
 #: ``numpy``: never use the compiled kernels; ``compiled`` (or unset): use them where built
 KERNELS_ENV = "SPDSLAM_KERNELS"
@@ -51,9 +51,11 @@ def _load():
         lib.gram_upper.argtypes = [_N, _N, _N, _F, _F, _F, _F]
         lib.scatter_add.argtypes = [_N, _I, _F, _F]
         lib.gram_scatter.argtypes = [_N, _N, _N, _F, _F, _I, _I, _F, _F]
+        lib.pose_prior.argtypes = [_N, _F, _F, _F, _F]
+        lib.pose_between.argtypes = [_N, _F, _F, _F, _F, _F]
     except (OSError, AttributeError):
         return None
-    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter):
+    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter, lib.pose_prior, lib.pose_between):
         f.restype = None
     return lib
 
@@ -156,3 +158,25 @@ def gram_scatter(lib, J, r, hslots, gslots, h: np.ndarray, g: np.ndarray) -> Non
             or not all(a.dtype == np.float64 and a.flags.c_contiguous for a in (h, g))):
         raise ValueError("gram_scatter needs r (n, m), a slot per JᵀJ entry and Jᵀr entry, C-contiguous float64 sums")
     lib.gram_scatter(n, m, D, _ptr(J), _ptr(r), _ptr(hslots, _I), _ptr(gslots, _I), _ptr(h), _ptr(g))
+
+
+def pose_prior(lib, T, prior, jacobian: bool = True):
+    """The pose prior of n rows (wxyz_xyz (n, 7) each) by the compiled kernel: (r = Log(T̄⁻¹ T)
+    (n, 6), J = J_r⁻¹(r) (n, 6, 6) or None)."""
+    T, prior = _f64(T), _f64(prior)
+    n = len(T)
+    r = np.empty((n, 6))
+    J = np.empty((n, 6, 6)) if jacobian else None
+    lib.pose_prior(n, _ptr(T), _ptr(prior), _ptr(r), None if J is None else _ptr(J))
+    return r, J
+
+
+def pose_between(lib, T1, T2, T12, jacobian: bool = True):
+    """The pose between factor of n rows by the compiled kernel: (r = Log(T̄₁₂⁻¹ T₁⁻¹ T₂) (n, 6),
+    J = [−J_r⁻¹(r) Ad(D⁻¹), J_r⁻¹(r)] (n, 6, 12) or None)."""
+    T1, T2, T12 = _f64(T1), _f64(T2), _f64(T12)
+    n = len(T1)
+    r = np.empty((n, 6))
+    J = np.empty((n, 6, 12)) if jacobian else None
+    lib.pose_between(n, _ptr(T1), _ptr(T2), _ptr(T12), _ptr(r), None if J is None else _ptr(J))
+    return r, J
