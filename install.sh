@@ -9,7 +9,8 @@
 #    command to run and continues.
 # 2. pip install -e ".[test,viewer,ros,ray,export,cholmod]"; if that fails (scikit-sparse cannot build),
 #    falls back to pip install -e ".[test,viewer,ros,ray,export]", and the CHOLMOD bundled with cvxopt (a
-#    default dependency) is used instead of scikit-sparse's.
+#    default dependency) is used instead of scikit-sparse's. Either builds spdslam's compiled kernels
+#    (geometry/_kernels.c) where a C compiler is there; without one spdslam uses its NumPy code.
 # 3. Compiles spdslam's modules to bytecode (as pip does for a regular install).
 # Safe to re-run; never prompts.
 set -euo pipefail
@@ -57,8 +58,13 @@ if command -v dpkg-query >/dev/null 2>&1 && \
    ! dpkg-query -W -f='${Status}' libopenblas0-pthread 2>/dev/null | grep -q "install ok installed"; then
     missing+=(libopenblas0-pthread)
 fi
+# A C compiler: scikit-sparse and spdslam's own kernels (geometry/_kernels.c) are compiled
+# at install; without one the NumPy code is used (docs/install.md, "The compiled kernels").
+if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1; then
+    missing+=(gcc libc6-dev)
+fi
 if [[ ${#missing[@]} -eq 0 ]]; then
-    say "SuiteSparse headers (cholmod.h) and OpenBLAS found"
+    say "SuiteSparse headers (cholmod.h), OpenBLAS and a C compiler found"
 elif [[ "$(id -u)" -eq 0 ]] && command -v apt-get >/dev/null 2>&1; then
     say "installing ${missing[*]} with apt-get"
     if apt-get update -qq && apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null; then
@@ -85,5 +91,11 @@ fi
 # them again (about 0.35 s of each run). pip compiles a regular install; do the same here.
 # A module edited later is recompiled from source (its .pyc no longer matches), never stale.
 "$PY" -m compileall -q spdslam >/dev/null && say "compiled spdslam's modules to bytecode"
+
+if "$PY" -c 'import sys; from spdslam.geometry import native; sys.exit(native.native_kernels() is None)' 2>/dev/null; then
+    say "compiled kernels built (geometry/_kernels.c)"
+else
+    say "NOTE: the compiled kernels were not built (no C compiler?); spdslam uses its NumPy code"
+fi
 
 say "done; check with: spdslam info"

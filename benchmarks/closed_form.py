@@ -12,7 +12,11 @@ The two linearisations' H and g are compared.
 ``--retain`` first calls ``solver.retain_freed_memory`` (as the ``spdslam`` command does when
 a command starts): freed blocks are reused instead of being handed back and faulted in again.
 
-    python3 benchmarks/closed_form.py [--poses 2200] [--per-pose 10] [--objects 20] [--repeats 7] [--retain] [--out FILE]
+The closed form is measured twice where the compiled kernels are built (``geometry.native``):
+with them (the default) and with its NumPy code (``native.compiled_kernels(False)``).
+
+    python3 benchmarks/closed_form.py [--poses 2200] [--per-pose 10] [--objects 20] [--repeats 7] [--retain]
+                                      [--out FILE]
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run from a checkout
 
 from spdslam.factors import Cauchy, InverseBoxFactor  # noqa: E402
-from spdslam.geometry import Camera, Ellipsoid, look_at, project_box  # noqa: E402
+from spdslam.geometry import Camera, Ellipsoid, look_at, native, project_box  # noqa: E402
 from spdslam.solver import L, NonlinearFactorGraph, Problem, Values, X, closed_forms, retain_freed_memory  # noqa: E402
 
 
@@ -104,22 +108,31 @@ def main() -> None:
     retained = retain_freed_memory() if a.retain else False
     graph, values = problem_parts(a.poses, a.per_pose, a.objects)
     n = len(graph.entries()[0])
-    res = {"closed form": measure(graph, values, True, a.repeats), "JAX": measure(graph, values, False, a.repeats)}
+    res = {}
+    if native.native_kernels() is not None:
+        res["closed form (compiled)"] = measure(graph, values, True, a.repeats)
+    with native.compiled_kernels(False):
+        res["closed form (NumPy)"] = measure(graph, values, True, a.repeats)
+    res["JAX"] = measure(graph, values, False, a.repeats)
     print(f"{n} inverse box factors, {a.poses} poses, {a.objects} objects; medians of {a.repeats}; "
           f"freed memory {'retained' if retained else 'handed back (glibc defaults)'}")
-    print("| | closed form | JAX | ratio |\n| --- | --- | --- | --- |")
+    modes = list(res)
+    print("| | " + " | ".join(modes) + " | ratios to JAX |\n|" + " --- |" * (len(modes) + 2))
     for key in ("first_linearisation", "linearisation", "first_cost", "cost"):
-        c, j = res["closed form"][key], res["JAX"][key]
-        print(f"| {key.replace('_', ' ')} (ms) | {1e3 * c:.1f} | {1e3 * j:.1f} | {c / j:.2f}× |")
-    Hc, Hj = res["closed form"]["H"], res["JAX"]["H"]
-    gc, gj = res["closed form"]["g"], res["JAX"]["g"]
-    dH = float(np.max(np.abs(Hc - Hj)) / np.max(np.abs(Hj)))
-    dg = float(np.max(np.abs(gc - gj)) / np.max(np.abs(gj)))
-    print(f"H and g, closed form against JAX: largest difference {dH:.1e} and {dg:.1e} of their largest entries")
+        ms = " | ".join(f"{1e3 * res[m][key]:.1f}" for m in modes)
+        ratios = ", ".join(f"{res[m][key] / res['JAX'][key]:.2f}×" for m in modes[:-1])
+        print(f"| {key.replace('_', ' ')} (ms) | {ms} | {ratios} |")
+    Hj, gj = res["JAX"]["H"], res["JAX"]["g"]
+    diffs = {}
+    for m in modes[:-1]:
+        diffs[m] = (float(np.max(np.abs(res[m]["H"] - Hj)) / np.max(np.abs(Hj))),
+                    float(np.max(np.abs(res[m]["g"] - gj)) / np.max(np.abs(gj))))
+        print(f"H and g, {m} against JAX: largest difference {diffs[m][0]:.1e} and {diffs[m][1]:.1e} of their "
+              "largest entries")
     if a.out:
         out = {mode: {k: v for k, v in r.items() if k not in ("H", "g")} for mode, r in res.items()}
-        out.update(factors=n, poses=a.poses, objects=a.objects, repeats=a.repeats, H_difference=dH, g_difference=dg,
-                   retained=retained)
+        out.update(factors=n, poses=a.poses, objects=a.objects, repeats=a.repeats, retained=retained,
+                   differences_to_jax={m: {"H": d[0], "g": d[1]} for m, d in diffs.items()})
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(out, indent=2))
         print(f"wrote {a.out}")
