@@ -540,3 +540,27 @@ def test_the_compiled_pose_factors_are_the_numpy_closed_forms(gen):
             assert np.array_equal(np.isfinite(a), np.isfinite(b)) and not np.isfinite(a[0]).all()
             ok = np.isfinite(a)
             assert np.max(np.abs(np.where(ok, a - b, 0.0)) / (1.0 + np.abs(np.where(ok, a, 0.0)))) < 1e-11
+
+
+@compiled
+def test_the_compiled_whitening_is_numpys(gen):
+    lib = native.native_kernels()
+    W = gen.rng.normal(size=(30, 4, 4))
+    r = gen.rng.normal(size=(30, 4))
+    J = gen.rng.normal(size=(30, 4, 15))
+    J[3, 2, 7] = np.nan
+    r[5, 1] = np.inf
+    with np.errstate(all="ignore"):
+        rw, Jw, finite, s = native.whiten(lib, W, r, J)
+        r0, J0 = (W @ r[:, :, None])[:, :, 0], W @ J
+    ok = np.isfinite(r0)
+    assert np.allclose(rw[ok], r0[ok], rtol=1e-14, atol=1e-13) and np.array_equal(np.isfinite(rw), ok)
+    okJ = np.isfinite(J0)
+    assert np.allclose(Jw[okJ], J0[okJ], rtol=1e-14, atol=1e-13)
+    assert np.array_equal(finite, np.isfinite(r0).all(axis=1) & np.isfinite(J0).all(axis=(1, 2)))
+    assert not finite[3] and not finite[5] and finite.sum() == 28
+    assert np.allclose(s[finite], np.sum(r0 * r0, axis=1)[finite], rtol=1e-14)
+    r1, J1, f1, s1 = native.whiten(lib, None, r, None)  # no whitening, no Jacobian
+    assert J1 is None and np.array_equal(r1, r) and np.array_equal(f1, np.isfinite(r).all(axis=1))
+    with pytest.raises(ValueError, match="whiten needs W"):
+        native.whiten(lib, W[:, :3], r, J)

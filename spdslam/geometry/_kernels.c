@@ -10,6 +10,7 @@
  * (spdslam.factors._closed_form.inverse_box_linearization, whose docstrings give the maths).
  * pose_prior, pose_between: the pose factors' residuals and Jacobians (the same module's
  * pose_prior_linearization and pose_between_linearization, through geometry.se3's functions).
+ * whiten: a factor's whitened residual and Jacobian, their finiteness and ‖W r‖².
  * gram_upper: each row's JᵀJ upper triangle (row-major, i ≤ j) and Jᵀr.
  * scatter_add: values added into slots (H's assembly); gram_scatter: both in one pass.
  */
@@ -322,6 +323,40 @@ void pose_between(int64_t n, const double *T1, const double *T2, const double *T
                 Jk[12 * i + j] = -acc;
                 Jk[12 * i + 6 + j] = Jr[6 * i + j];
             }
+    }
+}
+
+/* Whitened terms: r̃ = W r (n, m), J̃ = W J (n, m, D) (W (n, m, m), or NULL: r̃ = r, J̃ = J),
+ * finite[k] whether r̃[k] and J̃[k] (when given) are all finite, s[k] = ‖r̃[k]‖². In place
+ * is not allowed (r_out, J_out are other arrays). */
+void whiten(int64_t n, int64_t m, int64_t D, const double *W, const double *r, const double *J, double *r_out,
+            double *J_out, uint8_t *finite, double *s) {
+    for (int64_t k = 0; k < n; ++k) {
+        const double *Wk = W ? W + k * m * m : NULL, *rk = r + k * m, *Jk = J ? J + k * m * D : NULL;
+        double *ro = r_out + k * m, *Jo = J_out ? J_out + k * m * D : NULL, ss = 0.0;
+        int ok = 1;
+        for (int64_t i = 0; i < m; ++i) {
+            double acc = 0.0;
+            if (Wk)
+                for (int64_t a = 0; a < m; ++a) acc += Wk[i * m + a] * rk[a];
+            else
+                acc = rk[i];
+            ro[i] = acc;
+            ss += acc * acc;
+            ok &= isfinite(acc) != 0;
+            if (!Jo) continue;
+            for (int64_t j = 0; j < D; ++j) {
+                double v = 0.0;
+                if (Wk)
+                    for (int64_t a = 0; a < m; ++a) v += Wk[i * m + a] * Jk[a * D + j];
+                else
+                    v = Jk[i * D + j];
+                Jo[i * D + j] = v;
+                ok &= isfinite(v) != 0;
+            }
+        }
+        finite[k] = (uint8_t)ok;
+        s[k] = ss;
     }
 }
 

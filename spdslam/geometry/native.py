@@ -21,7 +21,7 @@ from typing import Iterator
 import numpy as np
 
 __all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "gram_scatter",
-           "scatter_add", "pose_prior", "pose_between"]
+           "scatter_add", "pose_prior", "pose_between", "whiten"]
 
 #: ``numpy``: never use the compiled kernels; ``compiled`` (or unset): use them where built
 KERNELS_ENV = "SPDSLAM_KERNELS"
@@ -53,9 +53,11 @@ def _load():
         lib.gram_scatter.argtypes = [_N, _N, _N, _F, _F, _I, _I, _F, _F]
         lib.pose_prior.argtypes = [_N, _F, _F, _F, _F]
         lib.pose_between.argtypes = [_N, _F, _F, _F, _F, _F]
+        lib.whiten.argtypes = [_N, _N, _N, _F, _F, _F, _F, _F, _U8, _F]
     except (OSError, AttributeError):
         return None
-    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter, lib.pose_prior, lib.pose_between):
+    for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter, lib.pose_prior, lib.pose_between,
+              lib.whiten):
         f.restype = None
     return lib
 
@@ -180,3 +182,23 @@ def pose_between(lib, T1, T2, T12, jacobian: bool = True):
     J = np.empty((n, 6, 12)) if jacobian else None
     lib.pose_between(n, _ptr(T1), _ptr(T2), _ptr(T12), _ptr(r), None if J is None else _ptr(J))
     return r, J
+
+
+def whiten(lib, W, r, J):
+    """(W r (n, m), W J (n, m, D) or None, finite (n,): W r and W J all finite, s = ‖W r‖² (n,))
+    of r (n, m), J (n, m, D) or None and W (n, m, m) or None (no whitening) by the compiled
+    kernel."""
+    r = _f64(r)
+    n, m = r.shape
+    W = None if W is None else _f64(W)
+    J = None if J is None else _f64(J)
+    if (W is not None and W.shape != (n, m, m)) or (J is not None and J.shape[:2] != (n, m)):
+        raise ValueError("whiten needs W (n, m, m) and J (n, m, D) for r (n, m)")
+    D = 0 if J is None else J.shape[2]
+    r_out = np.empty((n, m))
+    J_out = None if J is None else np.empty((n, m, D))
+    finite = np.empty(n, np.uint8)
+    s = np.empty(n)
+    lib.whiten(n, m, D, None if W is None else _ptr(W), _ptr(r), None if J is None else _ptr(J), _ptr(r_out),
+               None if J_out is None else _ptr(J_out), _ptr(finite, _U8), _ptr(s))
+    return r_out, J_out, finite.astype(bool), s

@@ -75,14 +75,18 @@ class ClosedFormGroup:
         args = jax.tree.unflatten(self.spec.args_treedef, [np.asarray(a) for a in leaves])
         with np.errstate(all="ignore"):  # a degenerate factor is reported as not finite
             r, J, valid = self.cf.linearize(xs, Ts, args, jacobian)
-            if W is not None:
-                W = np.asarray(W)
-                r = (W @ r[:, :, None])[:, :, 0]
-                J = None if J is None else W @ J
-            finite = np.all(np.isfinite(r), axis=1)
-            if J is not None:
-                finite &= np.all(np.isfinite(J), axis=(1, 2))
-            s = np.sum(r * r, axis=1)
+            W = None if W is None else np.asarray(W)
+            lib = native.native_kernels()
+            if lib is not None and (W is None or W.shape == (len(r), r.shape[1], r.shape[1])):
+                r, J, finite, s = native.whiten(lib, W, r, J)  # the same, per row in C
+            else:
+                if W is not None:
+                    r = (W @ r[:, :, None])[:, :, 0]
+                    J = None if J is None else W @ J
+                finite = np.all(np.isfinite(r), axis=1)
+                if J is not None:
+                    finite &= np.all(np.isfinite(J), axis=(1, 2))
+                s = np.sum(r * r, axis=1)
             robust = self.spec.robust
             if robust is None:
                 half_rho = 0.5 * s
