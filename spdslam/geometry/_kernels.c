@@ -24,6 +24,8 @@
 static const int EI[5] = {0, 1, 2, 0, 1};
 static const int EJ[5] = {0, 1, 2, 2, 2};
 
+static void rotation(const double *T, double R[3][3]);
+
 /* One edge pair: (lower, upper) image coordinates c0 + f (b ± √Δ)/g, Δ = b² − a g (√ of
  * Δ ≤ 0 taken as 0, with derivative 0), and their derivatives by (a, b, g). */
 static void edges(double a, double b, double g, double f, double c0, double value[2], double d[2][3]) {
@@ -58,15 +60,8 @@ void box_linearize(int64_t n, const double *q, const double *P, const double *t,
         int ok = 1, nonzero = 0;
         for (int i = 0; i < 7; ++i) ok &= isfinite(qk[i]) != 0;
         for (int i = 0; i < 4; ++i) nonzero |= qk[i] != 0.0;
-        if (ok && nonzero) {  /* SciPy's Rotation.from_quat(xyzw).as_matrix(), term for term */
-            double w = qk[0], x = qk[1], y = qk[2], z = qk[3];
-            double nq = sqrt(x * x + y * y + z * z + w * w);
-            x /= nq, y /= nq, z /= nq, w /= nq;
-            double x2 = x * x, y2 = y * y, z2 = z * z, w2 = w * w;
-            double xy = x * y, zw = z * w, xz = x * z, yw = y * w, yz = y * z, xw = x * w;
-            R[0][0] = x2 - y2 - z2 + w2, R[0][1] = 2 * (xy - zw), R[0][2] = 2 * (xz + yw);
-            R[1][0] = 2 * (xy + zw), R[1][1] = -x2 + y2 - z2 + w2, R[1][2] = 2 * (yz - xw);
-            R[2][0] = 2 * (xz - yw), R[2][1] = 2 * (yz + xw), R[2][2] = -x2 - y2 + z2 + w2;
+        if (ok && nonzero) {
+            rotation(qk, R);
         } else {
             for (int i = 0; i < 3; ++i)
                 for (int j = 0; j < 3; ++j) R[i][j] = NAN;
@@ -156,7 +151,8 @@ void box_linearize(int64_t n, const double *q, const double *P, const double *t,
 #define JAXLIE_EPS 1e-10
 #define Q_SERIES 1e-2
 
-static void rotation(const double *T, double R[3][3]) {  /* se3._rotation: normalised here */
+static void rotation(const double *T, double R[3][3]) {
+    /* se3._rotation (SciPy's Rotation.from_quat(xyzw).as_matrix(), term for term): normalised here */
     double w = T[0], x = T[1], y = T[2], z = T[3];
     double nq = sqrt(x * x + y * y + z * z + w * w);
     x /= nq, y /= nq, z /= nq, w /= nq;
