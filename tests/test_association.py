@@ -239,18 +239,26 @@ def test_demo_target_map_from_automatic_tracks():
 # --- the association's array kernels against their plain definitions -------------------------
 
 
-def test_segment_medians_are_numpy_medians():
-    """One sort for all segments gives ``np.median`` of each exactly: odd and even sizes,
-    empty segments, values over many binades (sorted in chunks) and non-positive values."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_segment_medians_are_numpy_medians(compiled):
+    """One sort for all segments (or, compiled, a selection per segment) gives ``np.median``
+    of each exactly: odd and even sizes, empty segments, values over many binades (sorted in
+    chunks), non-positive values, ties, long segments."""
     from spdslam.frontend._association import _segment_medians
+    from spdslam.geometry import native
 
+    if compiled and native.native_kernels() is None:
+        pytest.skip("the compiled kernels were not built")
     rng = np.random.default_rng(0)
     for values in (lambda n: rng.uniform(0.01, 3.0, n), lambda n: np.exp(rng.uniform(-300, 300, n)),
-                   lambda n: rng.normal(0.0, 1.0, n), lambda n: np.round(rng.uniform(1, 4, n))):
+                   lambda n: rng.normal(0.0, 1.0, n), lambda n: np.round(rng.uniform(1, 4, n)),
+                   lambda n: np.round(rng.normal(0.0, 2.0, n))):
         counts = rng.integers(0, 9, 40)
         counts[:3] = [0, 1, 2]
+        counts[3:5] = [501, 1000]
         v = values(int(counts.sum()))
-        med, has = _segment_medians(v, counts)
+        with native.compiled_kernels(compiled):
+            med, has = _segment_medians(v, counts)
         ends = np.cumsum(counts)
         want = [np.median(v[e - c : e]) if c else 0.0 for e, c in zip(ends, counts)]
         assert np.array_equal(has, counts > 0) and np.array_equal(med, want)

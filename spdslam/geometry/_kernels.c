@@ -12,6 +12,7 @@
  * pose_prior_linearization and pose_between_linearization, through geometry.se3's functions).
  * whiten: a factor's whitened residual and Jacobian, their finiteness and ‖W r‖².
  * gram_upper: each row's JᵀJ upper triangle (row-major, i ≤ j) and Jᵀr.
+ * segment_medians: the medians of consecutive segments (the association's refits).
  * scatter_add: values added into slots (H's assembly); gram_scatter: both in one pass.
  */
 #define PY_SSIZE_T_CLEAN
@@ -402,6 +403,59 @@ void gram_scatter(int64_t n, int64_t m, int64_t D, const double *J, const double
 /* out[slots[i]] += values[i] for i < n (the per-factor JᵀJ summed into H's slots). */
 void scatter_add(int64_t n, const int64_t *slots, const double *values, double *out) {
     for (int64_t i = 0; i < n; ++i) out[slots[i]] += values[i];
+}
+
+/* The k-th smallest of x[0..n) (0 ≤ k < n), x reordered so that x[k] holds it, everything
+ * before it ≤ it and everything after ≥ it (Hoare's selection, median-of-three pivots). */
+static double select_kth(double *x, int64_t n, int64_t k) {
+    int64_t lo = 0, hi = n - 1;
+    while (hi > lo) {
+        int64_t mid = lo + (hi - lo) / 2;
+        /* order x[lo], x[mid], x[hi]; the median of the three is the pivot */
+        if (x[mid] < x[lo]) { double t = x[mid]; x[mid] = x[lo]; x[lo] = t; }
+        if (x[hi] < x[lo]) { double t = x[hi]; x[hi] = x[lo]; x[lo] = t; }
+        if (x[hi] < x[mid]) { double t = x[hi]; x[hi] = x[mid]; x[mid] = t; }
+        double pivot = x[mid];
+        int64_t i = lo, j = hi;
+        while (i <= j) {
+            while (x[i] < pivot) ++i;
+            while (pivot < x[j]) --j;
+            if (i <= j) {
+                double t = x[i]; x[i] = x[j]; x[j] = t;
+                ++i, --j;
+            }
+        }
+        if (k <= j) hi = j;
+        else if (k >= i) lo = i;
+        else return x[k];
+    }
+    return x[k];
+}
+
+/* The median of each of the k consecutive segments of the finite values v (sizes counts):
+ * the middle order statistic, or (x + y)/2 of the two middle ones (np.median's), 0 for an
+ * empty segment. buf: scratch of at least the largest count. */
+void segment_medians(int64_t k, const double *v, const int64_t *counts, double *buf, double *med) {
+    int64_t start = 0;
+    for (int64_t s = 0; s < k; ++s) {
+        int64_t c = counts[s];
+        if (c <= 0) {
+            med[s] = 0.0;
+            continue;
+        }
+        for (int64_t i = 0; i < c; ++i) buf[i] = v[start + i];
+        int64_t hi = c / 2;  /* the upper middle; the lower is hi − 1 when c is even */
+        double x_hi = select_kth(buf, c, hi);
+        if (c % 2) {
+            med[s] = x_hi;
+        } else {
+            double x_lo = buf[0];  /* the largest of those before hi */
+            for (int64_t i = 1; i < hi; ++i)
+                if (buf[i] > x_lo) x_lo = buf[i];
+            med[s] = (x_lo + x_hi) / 2.0;
+        }
+        start += c;
+    }
 }
 
 /* An importable, empty module: the functions above are reached through ctypes. */

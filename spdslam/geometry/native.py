@@ -2,11 +2,12 @@
 
 A namespace (``geometry.native``). ``_kernels.c`` is built with the package where a C
 compiler is there (``setup.py``: an optional extension; docs/install.md); it holds the inverse
-box factor's and the pose factors' linearisations, the per-factor JᵀJ and its sum into H, each the NumPy code it
-replaces written per row (docs/performance.md, section 8, "The box factor compiled").
-``native_kernels()`` gives the library, or None where it was not built or where
-``SPDSLAM_KERNELS=numpy``; the callers then take their NumPy code. ``compiled_kernels(False)``
-turns them off within a block (the tests and benchmarks that compare the two).
+box factor's and the pose factors' linearisations, a group's whitening, the per-factor JᵀJ and
+its sum into H, and the association's medians, each the NumPy code it replaces written per row
+(docs/performance.md, section 8, "The box factor compiled"). ``native_kernels()`` gives the
+library, or None where it was not built or where ``SPDSLAM_KERNELS=numpy``; the callers then
+take their NumPy code. ``compiled_kernels(False)`` turns them off within a block (the tests and
+benchmarks that compare the two).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Iterator
 import numpy as np
 
 __all__ = ["KERNELS_ENV", "compiled_kernels", "native_kernels", "box_linearize", "gram_upper", "gram_scatter",
-           "scatter_add", "pose_prior", "pose_between", "whiten"]
+           "scatter_add", "pose_prior", "pose_between", "whiten", "segment_medians"]
 
 #: ``numpy``: never use the compiled kernels; ``compiled`` (or unset): use them where built
 KERNELS_ENV = "SPDSLAM_KERNELS"
@@ -54,10 +55,11 @@ def _load():
         lib.pose_prior.argtypes = [_N, _F, _F, _F, _F]
         lib.pose_between.argtypes = [_N, _F, _F, _F, _F, _F]
         lib.whiten.argtypes = [_N, _N, _N, _F, _F, _F, _F, _F, _U8, _F]
+        lib.segment_medians.argtypes = [_N, _F, _I, _F, _F]
     except (OSError, AttributeError):
         return None
     for f in (lib.box_linearize, lib.gram_upper, lib.scatter_add, lib.gram_scatter, lib.pose_prior, lib.pose_between,
-              lib.whiten):
+              lib.whiten, lib.segment_medians):
         f.restype = None
     return lib
 
@@ -202,3 +204,17 @@ def whiten(lib, W, r, J):
     lib.whiten(n, m, D, None if W is None else _ptr(W), _ptr(r), None if J is None else _ptr(J), _ptr(r_out),
                None if J_out is None else _ptr(J_out), _ptr(finite, _U8), _ptr(s))
     return r_out, J_out, finite.astype(bool), s
+
+
+def segment_medians(lib, v, counts) -> np.ndarray:
+    """The median (``np.median``'s) of each of the consecutive segments of the finite values
+    ``v`` (sizes ``counts`` (k,)), 0.0 for an empty one, by the compiled kernel (selection,
+    not a sort)."""
+    v = _f64(v).reshape(-1)
+    counts = np.ascontiguousarray(counts, dtype=np.int64).reshape(-1)
+    if int(counts.sum()) != v.size or (counts.size and counts.min() < 0) or not np.isfinite(v).all():
+        raise ValueError("segment_medians needs finite values, as many as the counts say")
+    med = np.empty(counts.size)
+    buf = np.empty(max(int(counts.max()), 1) if counts.size else 1)
+    lib.segment_medians(counts.size, _ptr(v), _ptr(counts, _I), _ptr(buf), _ptr(med))
+    return med
