@@ -449,6 +449,9 @@ def test_the_compiled_box_kernel_is_the_numpy_closed_form(gen, truncated):
         scale = 1.0 + np.abs(np.where(ok, a, 0.0)).max()
         assert np.max(np.abs(np.where(ok, a - b, 0.0))) < 1e-12 * scale
     assert not np.isfinite(r1[3]).any() and not np.isfinite(r1[4]).any()  # astray and zero: NaN, no error
+    with pytest.raises(ValueError, match="one landmark index per row"):  # never a read outside the directions
+        native.box_linearize(native.native_kernels(), np.asarray(poses.wxyz_xyz), xs[1].P, xs[1].center, boxes,
+                             (520.0, 520.0, 320.0, 240.0), None, np.zeros((2, 12, 9)), index, 1e-3)
 
 
 @compiled

@@ -121,6 +121,8 @@ def box_linearize(lib, q, P, t, obs, camera, keep, directions, index, min_depth:
     else:
         directions = _f64(directions)
         index = np.ascontiguousarray(index, dtype=np.int64)
+        if index.shape != (n,) or (n and not 0 <= int(index.min()) <= int(index.max()) < len(directions)):
+            raise ValueError("box_linearize needs one landmark index per row, each among the directions' landmarks")
         Q = directions.shape[2]
         J = np.empty((n, 4, 6 + Q))
         d_p, i_p = _ptr(directions), _ptr(index, _I)

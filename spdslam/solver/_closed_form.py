@@ -104,12 +104,9 @@ class ClosedFormGroup:
         return half_rho, valid
 
     def sparse(self, xs, Ts, mask, data):
-        """(JᵀJ upper triangles (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite)."""
+        """(JᵀJ upper triangles (nf, D(D+1)/2), Jᵀr (nf, D), ½ρ(s), valid, finite) in NumPy
+        (with the compiled kernels ``_Kernels.linearize_into`` sums them from ``terms``)."""
         r, J, half_rho, valid, finite = self._terms(xs, Ts, mask, data, True)
-        lib = native.native_kernels()
-        if lib is not None:  # the same, per row in C (geometry.native)
-            H, g = native.gram_upper(lib, J, r)
-            return H, g, half_rho, valid, finite
         n, D = len(r), self.spec.D
         # Jᵀ made contiguous first: matmul's stacked path is 2–3× faster on it than on a view
         H = np.take((np.ascontiguousarray(np.swapaxes(J, 1, 2)) @ J).reshape(n, D * D), self._upper, axis=1)
